@@ -1,0 +1,45 @@
+#pragma once
+// The labeled tetrahedral mesh shared by meshing, FEM, registration and I/O.
+#include <Eigen/Dense>
+#include <array>
+#include <vector>
+
+namespace brainshift {
+
+// Which surface a boundary triangle belongs to: the label of the region on the
+// other side of it. 0 = outside the brain (outer brain surface); the ventricle
+// label = the wall of the lateral-ventricle cavity.
+struct BoundaryFace {
+  std::array<int, 3> nodes;  // ordered so the normal points out of the mesh
+  int neighbour_label = 0;
+};
+
+struct TetMesh {
+  std::vector<Eigen::Vector3d> nodes_mm;  // world RAS+ mm
+  std::vector<std::array<int, 4>> tets;   // positively oriented (volume > 0)
+  std::vector<int> tet_labels;            // tissue label of each tet (material)
+  std::vector<BoundaryFace> boundary_faces;
+
+  std::size_t node_count() const { return nodes_mm.size(); }
+  std::size_t tet_count() const { return tets.size(); }
+};
+
+// Signed volume (mm^3); positive for a positively oriented tet.
+inline double tet_volume_mm3(const TetMesh& m, std::size_t t) {
+  const auto& n = m.tets[t];
+  const Eigen::Vector3d a = m.nodes_mm[n[1]] - m.nodes_mm[n[0]];
+  const Eigen::Vector3d b = m.nodes_mm[n[2]] - m.nodes_mm[n[0]];
+  const Eigen::Vector3d c = m.nodes_mm[n[3]] - m.nodes_mm[n[0]];
+  return a.dot(b.cross(c)) / 6.0;
+}
+
+// A triangulated surface. For surfaces taken from a TetMesh, mesh_node holds
+// the TetMesh node of each vertex, so surface displacements map to Dirichlet
+// values directly.
+struct TriSurface {
+  std::vector<Eigen::Vector3d> vertices_mm;
+  std::vector<std::array<int, 3>> triangles;  // outward-facing
+  std::vector<int> mesh_node;                 // empty when not tied to a mesh
+};
+
+}  // namespace brainshift
