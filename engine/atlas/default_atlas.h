@@ -1,0 +1,43 @@
+#pragma once
+// The default preoperative atlas: Colin27 ("ch2", 1 mm, 181x217x181) T1 and a
+// label map on the same grid:
+//   1 brain parenchyma, 2 lateral ventricles, 3 corticospinal tract (CST).
+//
+// Method (all resampling goes through world coordinates, never voxel to voxel):
+// - Brain: ch2bet > 0 on ch2's grid (resampled if its geometry differs), then
+//   the largest 6-connected component, holes filled, closed with a 2 mm ball
+//   (bridges one-voxel notches) and opened with a 1 mm ball (drops strands one
+//   voxel thin), then largest component and hole filling again.
+// - Lateral ventricles: ch2better (0.5 mm, brain only, CSF set to 0) is resampled
+//   linearly onto ch2's grid; candidate CSF = inside the brain eroded by 3 mm,
+//   where both the resampled ch2better is dark and the ch2 T1 is dark (below a
+//   threshold derived from the white-matter intensity). Only components whose
+//   centroid lies in a central box (|x| < 30 mm, -45 < y < 35 mm, z > 0 mm,
+//   i.e. above the thalamus and away from the cortex) are kept; the largest
+//   component on each side of the midline (they usually merge through the
+//   septum region, then one component is kept), closed by 1 mm.
+// - CST: JHU-WhiteMatter-labels-1mm labels 7,8 (brainstem CST), 15,16 (cerebral
+//   peduncle), 19,20 (posterior limb of the internal capsule), 25,26 (superior
+//   corona radiata), nearest-neighbour resampled onto ch2's grid, restricted to
+//   the brain. Ventricles take precedence over CST where they overlap.
+#include <filesystem>
+
+#include "core/image.h"
+
+namespace brainshift {
+
+struct DefaultAtlas {
+  ImageF t1;           // ch2 T1 on its native grid
+  LabelImage labels;   // same grid: 0 background, 1 brain, 2 ventricles, 3 CST
+};
+
+DefaultAtlas build_default_atlas(
+    const std::filesystem::path& templates_dir = "/usr/share/mricron/templates");
+
+// Builds once and caches t1.nii.gz, labels.nii.gz and provenance.json in
+// cache_dir; later calls reload them. The cache is rebuilt when a file is
+// missing, unreadable, the provenance version differs, or the two images do not
+// share a grid.
+DefaultAtlas load_or_build_default_atlas(const std::filesystem::path& cache_dir);
+
+}  // namespace brainshift
