@@ -1,0 +1,106 @@
+#pragma once
+// The engine as a long-lived session: preop state kept warm, one call per scan.
+//
+// MPI shape (as PETSc's PCMPIServerBegin): rank 0 owns the session and drives
+// it; ranks > 0 sit in run_worker_loop() and take part in every collective
+// step (mesh broadcast, assembly, factorisation, each solve) when rank 0
+// broadcasts a command. Under one process the same code runs with no workers.
+// Success or failure of a collective step is agreed on all ranks before
+// rank 0 returns, so no rank is left waiting.
+#include <mpi.h>
+
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "core/tet_mesh.h"
+#include "pipeline/pipeline_parameters.h"
+
+namespace brainshift {
+
+// stage: e.g. "mesh", "assemble", "factorise", "affine", "surface", "solve";
+// fraction in [0,1]; seconds spent in the stage so far (final when fraction 1).
+using ProgressFn = std::function<void(const std::string& stage, double fraction, double seconds)>;
+
+struct PreopInput {
+  ImageF t1;
+  LabelImage labels;  // same grid as t1
+};
+
+struct IntraopInput {
+  LabelImage labels;          // 1 brain, 2 lateral ventricles (table values)
+  std::optional<ImageF> t1;   // same grid as labels when given
+};
+
+enum class ResultKind {
+  nonrigid,            // the full pipeline succeeded
+  affine_only_fallback // a non-rigid stage failed a quality gate; the field is the affine alone
+};
+
+struct ScanResult {
+  ResultKind kind = ResultKind::nonrigid;
+  std::string fallback_reason;          // why, when kind is affine_only_fallback
+  VectorImage3 pullback_field_mm;       // intraop grid, x + u(x) = preop point
+  Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
+  ImageF warped_t1;                     // preop T1 on the intraop grid
+  LabelImage warped_labels;             // preop labels on the intraop grid
+  std::map<std::string, TriSurface> models;  // preop structures, intraop frame
+  nlohmann::json metrics;
+  nlohmann::json timings;  // {"preop": {...}, "intraop": {...}, "mesh": {...}}
+};
+
+struct WarmState;  // mesh, surfaces, bindings, FEM model: see engine_session.cpp
+
+class EngineSession {
+ public:
+  // Rank 0 only. comm must be the communicator the workers loop on.
+  EngineSession(MPI_Comm comm, PipelineParameters params);
+  ~EngineSession();
+  EngineSession(const EngineSession&) = delete;
+  EngineSession& operator=(const EngineSession&) = delete;
+
+  // Meshes the preop labels (or uses stored_mesh, e.g. after a restart, so the
+  // mesh never changes), assembles and factorises on all ranks, builds surface
+  // models. Replaces any previous warm state only on success.
+  void load_preop(PreopInput input, const ProgressFn& progress,
+                  std::optional<TetMesh> stored_mesh = std::nullopt);
+  bool ready() const;
+  const TetMesh& mesh() const;            // requires ready()
+  const PreopInput& preop() const;        // requires ready()
+  nlohmann::json preop_timings() const;   // {"atlas","mesh","assemble","factorise","total"}
+  void set_atlas_seconds(double seconds); // time spent reading/building the preop inputs
+
+  // Runs the intraop stages (affine, surfaces, solve, field, warp, models,
+  // metrics). Throws InputError for bad input; quality-gate failures return an
+  // affine_only_fallback result, never a silent bad field.
+  ScanResult register_scan(const IntraopInput& input, const ProgressFn& progress);
+
+  // Tells the workers to leave run_worker_loop (also done by the destructor).
+  void stop_workers();
+
+  const PipelineParameters& parameters() const { return params_; }
+  int ranks() const;
+
+ private:
+  MPI_Comm comm_;
+  PipelineParameters params_;
+  std::unique_ptr<WarmState> warm_;
+  bool workers_stopped_ = false;
+};
+
+// Ranks > 0: serve collective commands from rank 0 until it stops them.
+void run_worker_loop(MPI_Comm comm);
+
+// Writes what `brainshift register --out DIR` writes (field.nii.gz, field.h5,
+// warped_image.nii.gz, warped_labels.nii.gz, models/<name>.vtp, metrics.json,
+// timings.json, report.png). All files go to a temporary sibling folder first
+// that is renamed into place, so a failure never leaves half-written outputs.
+void write_scan_outputs(const ScanResult& result, const ImageF* intraop_t1,
+                        const std::filesystem::path& out_dir);
+
+}  // namespace brainshift

@@ -1,0 +1,44 @@
+#pragma once
+// The label table: what each preop label value means for the pipeline.
+// Plain data; parsed from config/labels.toml (or a protocol message) at the edges.
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+namespace brainshift {
+
+enum class LabelRole {
+  parenchyma,  // meshed tissue (the brain label)
+  cavity,      // meshed as a hole whose wall is matched (lateral ventricles)
+  structure,   // carried inside the tissue (tract, tumor): own material, own model
+};
+
+struct LabelEntry {
+  std::uint16_t value = 0;
+  std::string name;  // model name, e.g. "corticospinal_tract"
+  LabelRole role = LabelRole::structure;
+  double youngs_modulus_pa = 3000.0;
+  double poisson_ratio = 0.45;
+  bool make_model = true;  // write a surface model of this label
+};
+
+struct LabelTable {
+  std::vector<LabelEntry> entries;
+
+  // 1 brain parenchyma, 2 lateral ventricles, 3 corticospinal tract, 4 tumor.
+  static LabelTable defaults();
+  const LabelEntry* find(std::uint16_t value) const;
+  const LabelEntry* find(const std::string& name) const;
+  // The parenchyma label (exactly one) and the cavity labels.
+  std::uint16_t brain_label() const;
+  std::vector<std::uint16_t> cavity_labels() const;
+  // Throws InputError: duplicate values or names, value 0, no or several
+  // parenchyma labels, nu outside (0, 0.5), E <= 0.
+  void validate() const;
+};
+
+std::string to_string(LabelRole role);
+LabelRole label_role_from_string(const std::string& text);  // InputError if unknown
+
+}  // namespace brainshift

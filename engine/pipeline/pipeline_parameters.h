@@ -1,0 +1,44 @@
+#pragma once
+// Every tunable of the pipeline as plain data. The engine never parses
+// configuration: config/ (TOML) and the protocol fill this struct.
+#include <cstddef>
+#include <string>
+
+#include "field/displacement_field.h"
+#include "fem/elastic_model.h"
+#include "mesh/label_mesher.h"
+#include "models/surface_models.h"
+#include "pipeline/label_table.h"
+#include "registration/active_surface.h"
+#include "registration/affine_registration.h"
+
+namespace brainshift {
+
+struct QualityGates {
+  // A field whose Jacobian determinant falls to or below this inside the brain
+  // is folded: the non-rigid result is refused and the affine-only fallback is
+  // returned, clearly marked.
+  double min_jacobian_determinant = 0.05;
+  // Surface-match residual (mm, mean over vertices) above which the match is
+  // declared diverged.
+  double max_mean_surface_residual_mm = 3.0;
+  // Intraop brain volume below this fraction of the preop brain volume means the
+  // field of view misses most of the brain.
+  double min_intraop_brain_fraction = 0.5;
+};
+
+struct PipelineParameters {
+  LabelTable label_table = LabelTable::defaults();
+  MeshingParameters meshing;
+  ElasticOptions elastic;
+  AffineRegistrationParameters affine;
+  ActiveSurfaceParameters outer_surface;      // outer brain surface
+  ActiveSurfaceParameters ventricle_surface;  // lateral-ventricle wall
+  FieldParameters field;
+  ModelParameters models;
+  QualityGates gates;
+  // Bounds on images received from outside (bytes after decompression).
+  std::size_t max_image_bytes = std::size_t{512} << 20;
+};
+
+}  // namespace brainshift
