@@ -1,0 +1,58 @@
+#pragma once
+// Labeled tetrahedral meshing of a label image (CGAL Mesh_3 behind the scenes).
+//
+// All non-zero labels that are not cavities form ONE tissue subdomain: thin
+// structures (corticospinal tract, tumour) must not force interfaces into the
+// mesh; they are recovered per tet afterwards (tet_labels) for the materials.
+// Each cavity label (lateral ventricles) is meshed as its own subdomain so its
+// wall is resolved, then its tets are dropped: the cavity becomes a hole whose
+// wall is a boundary surface (neighbour_label = the cavity label).
+#include <cstdint>
+#include <vector>
+
+#include "core/image.h"
+#include "core/tet_mesh.h"
+
+namespace brainshift {
+
+struct MeshingParameters {
+  // Surface criteria (CGAL Mesh_3 facet criteria), sizes in mm.
+  double facet_angle_deg = 25;
+  // Defaults tuned on the Colin27 brain (ch2bet > 0, 1.74 L) to give at least
+  // the published mesh size (43,584 nodes / 214,035 tets); see README.md.
+  double facet_size_mm = 2.0;
+  double facet_distance_mm = 1.5;
+  // Volume criteria.
+  double cell_size_mm = 3.4;
+  double cell_radius_edge_ratio = 3;
+  // Sliver removal (perturb + exude). Run WITHOUT time limits so the result
+  // depends only on the input (CGAL's default limit is the refinement time).
+  bool optimise = true;
+  double perturb_sliver_bound_deg = 10;  // stop perturbing once all dihedrals exceed this
+  double exude_sliver_bound_deg = 0;     // 0 = exude as far as possible
+  // Seeds CGAL's domain random generator (initial points, ray shooting).
+  unsigned random_seed = 0;
+  std::vector<std::uint16_t> cavity_labels{2};
+  // Tet label used where the voxel nearest a tet centroid is 0 or a cavity.
+  std::uint16_t default_tissue_label = 1;
+};
+
+// Optional diagnostics of one meshing run.
+struct MeshingStats {
+  double seconds_refine = 0, seconds_optimise = 0, seconds_total = 0;
+  std::size_t seed_components = 0;   // labeled components seeded on
+  std::size_t dropped_degenerate = 0;
+};
+
+// Meshes `labels` (0 = outside). Node coordinates are world RAS+ mm
+// (labels.grid.world_from_voxel, which may be oblique or flipped); every tet is
+// positively oriented; boundary faces point out of the tissue; nodes follow a
+// Morton curve (contiguous node ranges are spatially compact, which the FEM's
+// contiguous MPI partition relies on) and tets are sorted by smallest node.
+// Deterministic: same input and parameters give the identical mesh.
+// Throws InputError for an empty/invalid image or parameters, ComputeError when
+// CGAL yields no tissue tets.
+TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& params,
+                         MeshingStats* stats = nullptr);
+
+}  // namespace brainshift

@@ -1,0 +1,29 @@
+#pragma once
+// Boundary surfaces of a TetMesh (outer brain surface, cavity walls) as
+// triangle surfaces tied to mesh nodes, for surface matching and models.
+#include <cstddef>
+#include <vector>
+
+#include "core/tet_mesh.h"
+
+namespace brainshift {
+
+inline constexpr int kAnyBoundary = -1;
+
+// Boundary faces whose neighbour_label equals `neighbour_label` (kAnyBoundary:
+// all of them). Vertices are the used mesh nodes in increasing node order;
+// mesh_node[v] is the TetMesh node of vertex v. Triangles keep the outward
+// orientation of the boundary faces.
+TriSurface extract_boundary_surface(const TetMesh& mesh, int neighbour_label);
+
+// Components connected through shared vertices.
+std::size_t count_connected_components(const TriSurface& surface);
+
+// Sorted unique nodes on any boundary face.
+std::vector<int> boundary_nodes(const TetMesh& mesh);
+
+// Sum over triangles of (centroid . normal * area) / 3: equals the enclosed
+// volume (divergence theorem) when the surface is closed and outward-facing.
+double enclosed_volume_mm3(const TriSurface& surface);
+
+}  // namespace brainshift

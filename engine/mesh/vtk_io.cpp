@@ -1,0 +1,182 @@
+#include "mesh/vtk_io.h"
+
+#include <fstream>
+#include <iomanip>
+#include <limits>
+#include <sstream>
+
+#include "core/errors.h"
+
+namespace brainshift {
+namespace {
+
+// max_digits10 so coordinates round-trip exactly through text.
+void set_precision(std::ostream& os) { os << std::setprecision(std::numeric_limits<double>::max_digits10); }
+
+void write_points(std::ostream& os, const std::vector<Eigen::Vector3d>& points) {
+  os << "<Points>\n<DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
+  for (const auto& p : points) os << p.x() << ' ' << p.y() << ' ' << p.z() << '\n';
+  os << "</DataArray>\n</Points>\n";
+}
+
+void write_vectors(std::ostream& os, const std::string& name, const std::vector<Eigen::Vector3d>& v) {
+  os << "<DataArray type=\"Float64\" Name=\"" << name << "\" NumberOfComponents=\"3\" format=\"ascii\">\n";
+  for (const auto& p : v) os << p.x() << ' ' << p.y() << ' ' << p.z() << '\n';
+  os << "</DataArray>\n";
+}
+
+void write_file(const std::filesystem::path& path, const std::string& bytes) {
+  std::ofstream out(path, std::ios::binary);
+  if (!out) throw InputError("cannot open " + path.string() + " for writing");
+  out << bytes;
+  if (!out) throw InputError("failed writing " + path.string());
+}
+
+void check_size(std::size_t got, std::size_t want, const std::string& what) {
+  if (got != want) throw InputError(what + ": " + std::to_string(got) + " values for " + std::to_string(want) + " vertices");
+}
+
+// The text between the '>' of the first "<DataArray ... Name=name" after
+// `from` and its "</DataArray>"; empty view when absent.
+std::string_view data_array(std::string_view xml, std::size_t from, std::size_t to, std::string_view name_attr) {
+  while (true) {
+    const std::size_t tag = xml.find("<DataArray", from);
+    if (tag == std::string_view::npos || tag >= to) return {};
+    const std::size_t close = xml.find('>', tag);
+    const std::size_t end = xml.find("</DataArray>", close);
+    if (close == std::string_view::npos || end == std::string_view::npos) return {};
+    const std::string_view head = xml.substr(tag, close - tag);
+    if (name_attr.empty() || head.find(name_attr) != std::string_view::npos) return xml.substr(close + 1, end - close - 1);
+    from = end;
+  }
+}
+
+template <class T>
+std::vector<T> parse_numbers(std::string_view text, std::string_view what, std::string_view name) {
+  std::istringstream in{std::string(text)};
+  std::vector<T> values;
+  T v;
+  while (in >> v) values.push_back(v);
+  if (!in.eof()) throw InputError(std::string(name) + ": bad number in " + std::string(what));
+  return values;
+}
+
+std::size_t section(std::string_view xml, std::string_view tag, std::string_view name) {
+  const std::size_t at = xml.find(tag);
+  if (at == std::string_view::npos) throw InputError(std::string(name) + ": no " + std::string(tag) + " section (not a VTK PolyData file?)");
+  return at;
+}
+
+}  // namespace
+
+std::string vtu_bytes(const TetMesh& mesh, const std::vector<Eigen::Vector3d>* displacements) {
+  if (displacements) check_size(displacements->size(), mesh.node_count(), "write_vtu displacement");
+  if (mesh.tet_labels.size() != mesh.tet_count()) throw InputError("write_vtu: tet_labels size differs from tet count");
+  std::ostringstream os;
+  set_precision(os);
+  os << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
+     << "<UnstructuredGrid>\n<Piece NumberOfPoints=\"" << mesh.node_count() << "\" NumberOfCells=\"" << mesh.tet_count() << "\">\n";
+  if (displacements) {
+    os << "<PointData Vectors=\"displacement_mm\">\n";
+    write_vectors(os, "displacement_mm", *displacements);
+    os << "</PointData>\n";
+  }
+  os << "<CellData Scalars=\"label\">\n<DataArray type=\"Int32\" Name=\"label\" format=\"ascii\">\n";
+  for (int l : mesh.tet_labels) os << l << '\n';
+  os << "</DataArray>\n</CellData>\n";
+  write_points(os, mesh.nodes_mm);
+  os << "<Cells>\n<DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n";
+  for (const auto& t : mesh.tets) os << t[0] << ' ' << t[1] << ' ' << t[2] << ' ' << t[3] << '\n';
+  os << "</DataArray>\n<DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n";
+  for (std::size_t t = 1; t <= mesh.tet_count(); ++t) os << 4 * t << '\n';
+  os << "</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n";
+  for (std::size_t t = 0; t < mesh.tet_count(); ++t) os << "10\n";  // VTK_TETRA
+  os << "</DataArray>\n</Cells>\n</Piece>\n</UnstructuredGrid>\n</VTKFile>\n";
+  return os.str();
+}
+
+void write_vtu(const std::filesystem::path& path, const TetMesh& mesh, const std::vector<Eigen::Vector3d>* displacements) {
+  write_file(path, vtu_bytes(mesh, displacements));
+}
+
+std::string vtp_bytes(const TriSurface& s, const SurfaceAttributes& attributes) {
+  const std::size_t nv = s.vertices_mm.size();
+  if (!s.mesh_node.empty()) check_size(s.mesh_node.size(), nv, "write_vtp mesh_node");
+  for (const auto& [name, v] : attributes.vectors) check_size(v.size(), nv, "write_vtp " + name);
+  for (const auto& [name, v] : attributes.scalars) check_size(v.size(), nv, "write_vtp " + name);
+  std::ostringstream os;
+  set_precision(os);
+  os << "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
+     << "<PolyData>\n<Piece NumberOfPoints=\"" << nv << "\" NumberOfVerts=\"0\" NumberOfLines=\"0\" NumberOfStrips=\"0\" NumberOfPolys=\""
+     << s.triangles.size() << "\">\n<PointData>\n";
+  if (!s.mesh_node.empty()) {
+    os << "<DataArray type=\"Int32\" Name=\"mesh_node\" format=\"ascii\">\n";
+    for (int n : s.mesh_node) os << n << '\n';
+    os << "</DataArray>\n";
+  }
+  for (const auto& [name, v] : attributes.vectors) write_vectors(os, name, v);
+  for (const auto& [name, v] : attributes.scalars) {
+    os << "<DataArray type=\"Float64\" Name=\"" << name << "\" format=\"ascii\">\n";
+    for (double x : v) os << x << '\n';
+    os << "</DataArray>\n";
+  }
+  os << "</PointData>\n";
+  write_points(os, s.vertices_mm);
+  os << "<Polys>\n<DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n";
+  for (const auto& t : s.triangles) os << t[0] << ' ' << t[1] << ' ' << t[2] << '\n';
+  os << "</DataArray>\n<DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n";
+  for (std::size_t t = 1; t <= s.triangles.size(); ++t) os << 3 * t << '\n';
+  os << "</DataArray>\n</Polys>\n</Piece>\n</PolyData>\n</VTKFile>\n";
+  return os.str();
+}
+
+void write_vtp(const std::filesystem::path& path, const TriSurface& surface, const SurfaceAttributes& attributes) {
+  write_file(path, vtp_bytes(surface, attributes));
+}
+
+TriSurface read_vtp_bytes(std::string_view xml, std::string_view name) {
+  const std::string who(name);
+  if (xml.find("type=\"PolyData\"") == std::string_view::npos) throw InputError(who + ": not a VTK XML PolyData file");
+  if (xml.find("format=\"ascii\"") == std::string_view::npos || xml.find("format=\"binary\"") != std::string_view::npos ||
+      xml.find("format=\"appended\"") != std::string_view::npos)
+    throw InputError(who + ": only ASCII VTK XML is supported");
+  const std::size_t points_at = section(xml, "<Points>", name), polys_at = section(xml, "<Polys>", name);
+  const auto coords = parse_numbers<double>(data_array(xml, points_at, xml.size(), ""), "Points", name);
+  const auto conn = parse_numbers<long long>(data_array(xml, polys_at, xml.size(), "Name=\"connectivity\""), "connectivity", name);
+  const auto offsets = parse_numbers<long long>(data_array(xml, polys_at, xml.size(), "Name=\"offsets\""), "offsets", name);
+  if (coords.size() % 3 != 0) throw InputError(who + ": point coordinates are not triples");
+  TriSurface s;
+  for (std::size_t i = 0; i < coords.size(); i += 3) s.vertices_mm.emplace_back(coords[i], coords[i + 1], coords[i + 2]);
+  long long previous = 0;
+  for (long long end : offsets) {
+    if (end - previous != 3 || end > static_cast<long long>(conn.size())) throw InputError(who + ": polygon is not a triangle");
+    std::array<int, 3> t{};
+    for (int a = 0; a < 3; ++a) {
+      const long long v = conn[previous + a];
+      if (v < 0 || v >= static_cast<long long>(s.vertices_mm.size())) throw InputError(who + ": vertex index out of range");
+      t[a] = static_cast<int>(v);
+    }
+    s.triangles.push_back(t);
+    previous = end;
+  }
+  if (previous != static_cast<long long>(conn.size())) throw InputError(who + ": connectivity and offsets disagree");
+  const std::size_t pd = xml.find("<PointData");
+  if (pd != std::string_view::npos && pd < points_at) {
+    const auto nodes = data_array(xml, pd, points_at, "Name=\"mesh_node\"");
+    if (nodes.data()) {
+      for (long long n : parse_numbers<long long>(nodes, "mesh_node", name)) s.mesh_node.push_back(static_cast<int>(n));
+      check_size(s.mesh_node.size(), s.vertices_mm.size(), who + " mesh_node");
+    }
+  }
+  return s;
+}
+
+TriSurface read_vtp(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError("cannot open " + path.string());
+  std::ostringstream buffer;
+  buffer << in.rdbuf();
+  return read_vtp_bytes(buffer.str(), path.string());
+}
+
+}  // namespace brainshift

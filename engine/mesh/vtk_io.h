@@ -1,0 +1,38 @@
+#pragma once
+// VTK XML (ASCII) writers for meshes and surfaces, readable by ParaView and
+// 3D Slicer, plus a reader for the .vtp files written here (clients, tests).
+// Coordinates are written as stored: world RAS+ mm. Note that 3D Slicer
+// assumes LPS for models unless the file says otherwise; we do not flip.
+#include <filesystem>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include "core/tet_mesh.h"
+
+namespace brainshift {
+
+// Optional per-vertex arrays of a .vtp (each must have one entry per vertex).
+struct SurfaceAttributes {
+  std::vector<std::pair<std::string, std::vector<Eigen::Vector3d>>> vectors;
+  std::vector<std::pair<std::string, std::vector<double>>> scalars;
+};
+
+// Unstructured grid: cell data "label"; point data "displacement_mm" when given.
+void write_vtu(const std::filesystem::path& path, const TetMesh& mesh,
+               const std::vector<Eigen::Vector3d>* node_displacements_mm = nullptr);
+std::string vtu_bytes(const TetMesh& mesh, const std::vector<Eigen::Vector3d>* node_displacements_mm = nullptr);
+
+// PolyData of triangles; mesh_node (when present) is written as point data
+// "mesh_node" so that read_vtp restores it.
+void write_vtp(const std::filesystem::path& path, const TriSurface& surface,
+               const SurfaceAttributes& attributes = {});
+std::string vtp_bytes(const TriSurface& surface, const SurfaceAttributes& attributes = {});
+
+// Reads points, triangles and "mesh_node" of a .vtp as written above.
+// Throws InputError naming `name` on anything it cannot parse.
+TriSurface read_vtp_bytes(std::string_view bytes, std::string_view name = "<memory>");
+TriSurface read_vtp(const std::filesystem::path& path);
+
+}  // namespace brainshift

@@ -1,0 +1,205 @@
+// Meshing of synthetic labeled phantoms with known volumes and topology.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "core/errors.h"
+#include "mesh/label_mesher.h"
+#include "mesh/mesh_quality.h"
+#include "mesh/surface_extraction.h"
+#include "phantoms.h"
+
+namespace brainshift {
+namespace {
+
+using test::Region;
+
+// Coarser than the brain defaults: these tests must stay fast on one core.
+MeshingParameters test_parameters() {
+  MeshingParameters p;
+  p.facet_size_mm = 3;
+  p.facet_distance_mm = 0.5;
+  p.cell_size_mm = 4;
+  return p;
+}
+
+Grid3 grid_1mm(int nx, int ny, int nz) {
+  Grid3 g;
+  g.dims = {nx, ny, nz};
+  g.world_from_voxel.topRightCorner<3, 1>() = Eigen::Vector3d(-40, 20, 5);
+  return g;
+}
+
+// Ellipsoid 40/30/25 mm with a 14/9/7 mm cavity (label 2) and an 8 mm
+// sphere of label 4; 1 mm voxels.
+LabelImage ellipsoid_phantom() {
+  const Eigen::Vector3d c(45, 35, 30);
+  return test::paint(grid_1mm(90, 70, 60), {{c, {40, 30, 25}, 1},
+                                            {c + Eigen::Vector3d(-8, 0, 2), {14, 9, 7}, 2},
+                                            {c + Eigen::Vector3d(20, 5, -4), {8, 8, 8}, 4}});
+}
+
+class EllipsoidPhantom : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    labels_ = new LabelImage(ellipsoid_phantom());
+    mesh_ = new TetMesh(mesh_label_image(*labels_, test_parameters(), &stats_));
+  }
+  static void TearDownTestSuite() {
+    delete mesh_;
+    delete labels_;
+  }
+  static double voxel_volume(std::uint16_t label) {
+    return test::count_voxels(*labels_, label) * test::voxel_volume_mm3(labels_->grid);
+  }
+  static inline LabelImage* labels_ = nullptr;
+  static inline TetMesh* mesh_ = nullptr;
+  static inline MeshingStats stats_;
+};
+
+TEST_F(EllipsoidPhantom, VolumeMatchesTissueVoxels) {
+  const MeshQuality q = measure_quality(*mesh_);
+  const double tissue = voxel_volume(1) + voxel_volume(4);
+  EXPECT_NEAR(q.total_volume_mm3, tissue, 0.02 * tissue);
+  EXPECT_EQ(q.inverted_tets, 0u);
+  EXPECT_EQ(q.degenerate_tets, 0u);
+  EXPECT_GT(q.min_dihedral_deg, 1.0);
+  EXPECT_EQ(mesh_->tet_labels.size(), mesh_->tet_count());
+  std::printf("phantom: %zu nodes, %zu tets, min dihedral %.1f deg, %.2f s\n", q.nodes, q.tets,
+              q.min_dihedral_deg, stats_.seconds_total);
+}
+
+TEST_F(EllipsoidPhantom, SurfacesAreClosedOutwardAndSingleComponents) {
+  const TriSurface outer = extract_boundary_surface(*mesh_, 0);
+  const TriSurface cavity = extract_boundary_surface(*mesh_, 2);
+  EXPECT_EQ(count_connected_components(outer), 1u);
+  EXPECT_EQ(count_connected_components(cavity), 1u);
+  // Divergence theorem: outward faces enclose the tet volume exactly; the
+  // cavity wall faces point into the cavity (out of the tissue).
+  const double volume = measure_quality(*mesh_).total_volume_mm3;
+  EXPECT_NEAR(enclosed_volume_mm3(extract_boundary_surface(*mesh_, kAnyBoundary)), volume, 1e-6 * volume);
+  EXPECT_NEAR(-enclosed_volume_mm3(cavity), voxel_volume(2), 0.05 * voxel_volume(2));
+  EXPECT_NEAR(enclosed_volume_mm3(outer), voxel_volume(1) + voxel_volume(2) + voxel_volume(4),
+              0.02 * enclosed_volume_mm3(outer));
+  // Only the two expected surfaces exist.
+  for (const auto& f : mesh_->boundary_faces) EXPECT_TRUE(f.neighbour_label == 0 || f.neighbour_label == 2);
+}
+
+TEST_F(EllipsoidPhantom, Label4TetsCoverTheLabel4Region) {
+  double label4 = 0;
+  for (std::size_t t = 0; t < mesh_->tet_count(); ++t)
+    if (mesh_->tet_labels[t] == 4) label4 += tet_volume_mm3(*mesh_, t);
+  // The label-4 ball is not a mesh interface, so tets straddle it: ~20 %.
+  EXPECT_NEAR(label4, voxel_volume(4), 0.2 * voxel_volume(4));
+  for (int l : mesh_->tet_labels) EXPECT_TRUE(l == 1 || l == 4) << l;
+}
+
+TEST_F(EllipsoidPhantom, NodesFollowASpaceFillingCurveAndTetsSmallestNode) {
+  // Contiguous halves of the node range are spatially separated: their
+  // bounding boxes overlap far less than the whole mesh's box.
+  const std::size_t half = mesh_->node_count() / 2;
+  Eigen::AlignedBox3d first, second;
+  for (std::size_t n = 0; n < mesh_->node_count(); ++n) (n < half ? first : second).extend(mesh_->nodes_mm[n]);
+  EXPECT_LT(first.intersection(second).volume(), 0.1 * first.merged(second).volume());
+  for (std::size_t t = 1; t < mesh_->tet_count(); ++t)
+    ASSERT_LE(*std::min_element(mesh_->tets[t - 1].begin(), mesh_->tets[t - 1].end()),
+              *std::min_element(mesh_->tets[t].begin(), mesh_->tets[t].end()));
+}
+
+LabelImage small_phantom() {
+  const Eigen::Vector3d c(20, 18, 16);
+  return test::paint(grid_1mm(40, 36, 32), {{c, {17, 15, 13}, 1}, {c, {5, 4, 4}, 2}});
+}
+
+TEST(LabelMesher, IsDeterministic) {
+  const LabelImage labels = small_phantom();
+  const TetMesh a = mesh_label_image(labels, test_parameters());
+  const TetMesh b = mesh_label_image(labels, test_parameters());
+  ASSERT_EQ(a.node_count(), b.node_count());
+  ASSERT_EQ(a.tets, b.tets);
+  EXPECT_EQ(a.tet_labels, b.tet_labels);
+  for (std::size_t n = 0; n < a.node_count(); ++n) ASSERT_EQ(a.nodes_mm[n], b.nodes_mm[n]) << n;
+  ASSERT_EQ(a.boundary_faces.size(), b.boundary_faces.size());
+  for (std::size_t f = 0; f < a.boundary_faces.size(); ++f) ASSERT_EQ(a.boundary_faces[f].nodes, b.boundary_faces[f].nodes);
+}
+
+TEST(LabelMesher, SmallSecondCavityIsNotMissed) {
+  const Eigen::Vector3d c(30, 25, 22);
+  // Two separate "ventricles" of label 2, one much smaller than the mesh size.
+  const LabelImage labels = test::paint(grid_1mm(60, 50, 44), {{c, {26, 21, 18}, 1},
+                                                                {c + Eigen::Vector3d(-9, 0, 0), {5, 4, 4}, 2},
+                                                                {c + Eigen::Vector3d(9, 3, 0), {3, 3, 3}, 2}});
+  const TetMesh m = mesh_label_image(labels, test_parameters());
+  EXPECT_EQ(count_connected_components(extract_boundary_surface(m, 2)), 2u);
+  EXPECT_EQ(count_connected_components(extract_boundary_surface(m, 0)), 1u);
+}
+
+TEST(LabelMesher, ObliqueFlippedAffineMeshesInWorldSpace) {
+  LabelImage labels = small_phantom();
+  // Anisotropic voxels (0.9, 1.1, 1.3 mm), flipped x (negative determinant),
+  // rotated 30 deg about z and 20 deg about x, translated.
+  const Eigen::Matrix3d rotation =
+      (Eigen::AngleAxisd(M_PI / 6, Eigen::Vector3d::UnitZ()) * Eigen::AngleAxisd(M_PI / 9, Eigen::Vector3d::UnitX()))
+          .toRotationMatrix();
+  labels.grid.world_from_voxel.setIdentity();
+  labels.grid.world_from_voxel.topLeftCorner<3, 3>() = rotation * Eigen::Vector3d(-0.9, 1.1, 1.3).asDiagonal();
+  labels.grid.world_from_voxel.topRightCorner<3, 1>() = Eigen::Vector3d(12, -80, 33);
+  ASSERT_LT((labels.grid.world_from_voxel.topLeftCorner<3, 3>().determinant()), 0);
+
+  const TetMesh m = mesh_label_image(labels, test_parameters());
+  const MeshQuality q = measure_quality(m);
+  EXPECT_EQ(q.inverted_tets, 0u);
+  const double tissue = test::count_voxels(labels, 1) * test::voxel_volume_mm3(labels.grid);
+  EXPECT_NEAR(q.total_volume_mm3, tissue, 0.03 * tissue);
+  EXPECT_NEAR(-enclosed_volume_mm3(extract_boundary_surface(m, 2)),
+              test::count_voxels(labels, 2) * test::voxel_volume_mm3(labels.grid), 0.1 * tissue);
+  // The mesh sits where the labels are in world space: centroids agree and
+  // every node lies within a voxel of a labeled voxel.
+  Eigen::Vector3d label_centroid = Eigen::Vector3d::Zero(), mesh_centroid = Eigen::Vector3d::Zero();
+  std::size_t n_labeled = 0;
+  for (int k = 0; k < labels.grid.dims[2]; ++k)
+    for (int j = 0; j < labels.grid.dims[1]; ++j)
+      for (int i = 0; i < labels.grid.dims[0]; ++i)
+        if (labels.at(i, j, k) == 1) label_centroid += labels.grid.world_mm(i, j, k), ++n_labeled;
+  label_centroid /= double(n_labeled);
+  double volume = 0;
+  for (std::size_t t = 0; t < m.tet_count(); ++t) {
+    Eigen::Vector3d c = Eigen::Vector3d::Zero();
+    for (int n : m.tets[t]) c += m.nodes_mm[n] / 4;
+    mesh_centroid += c * tet_volume_mm3(m, t);
+    volume += tet_volume_mm3(m, t);
+  }
+  mesh_centroid /= volume;
+  EXPECT_LT((mesh_centroid - label_centroid).norm(), 0.5);
+  const Eigen::Matrix4d voxel_from_world = labels.grid.voxel_from_world();
+  for (const auto& x : m.nodes_mm) {
+    const Eigen::Vector3d ijk = (voxel_from_world * x.homogeneous()).head<3>();
+    bool near_label = false;
+    for (int dk = -1; dk <= 1 && !near_label; ++dk)
+      for (int dj = -1; dj <= 1 && !near_label; ++dj)
+        for (int di = -1; di <= 1 && !near_label; ++di) {
+          const int i = std::lround(ijk.x()) + di, j = std::lround(ijk.y()) + dj, k = std::lround(ijk.z()) + dk;
+          near_label = labels.grid.contains(i, j, k) && labels.at(i, j, k) != 0;
+        }
+    ASSERT_TRUE(near_label) << "node at voxel " << ijk.transpose();
+  }
+}
+
+TEST(LabelMesher, RejectsBadInput) {
+  LabelImage empty = test::paint(grid_1mm(10, 10, 10), {});
+  EXPECT_THROW(mesh_label_image(empty, test_parameters()), InputError);
+  LabelImage only_cavity = test::paint(grid_1mm(10, 10, 10), {{{5, 5, 5}, {3, 3, 3}, 2}});
+  EXPECT_THROW(mesh_label_image(only_cavity, test_parameters()), InputError);
+  LabelImage ok = small_phantom();
+  MeshingParameters bad = test_parameters();
+  bad.cell_size_mm = 0;
+  EXPECT_THROW(mesh_label_image(ok, bad), InputError);
+  bad = test_parameters();
+  bad.cavity_labels = {0};
+  EXPECT_THROW(mesh_label_image(ok, bad), InputError);
+  ok.voxels.pop_back();
+  EXPECT_THROW(mesh_label_image(ok, test_parameters()), InputError);
+}
+
+}  // namespace
+}  // namespace brainshift
