@@ -12,6 +12,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <filesystem>
 #include <optional>
 #include <string>
 
@@ -48,6 +49,7 @@ struct ScanResult {
   VectorImage3 pullback_field_mm;       // intraop grid, x + u(x) = preop point
   Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
   ImageF warped_t1;                     // preop T1 on the intraop grid
+  ImageF warped_t1_affine_only;         // the same through the affine alone (for the report)
   LabelImage warped_labels;             // preop labels on the intraop grid
   std::map<std::string, TriSurface> models;  // preop structures, intraop frame
   nlohmann::json metrics;
@@ -90,6 +92,7 @@ class EngineSession {
   MPI_Comm comm_;
   PipelineParameters params_;
   std::unique_ptr<WarmState> warm_;
+  double atlas_seconds_ = 0;
   bool workers_stopped_ = false;
 };
 

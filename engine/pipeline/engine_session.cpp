@@ -1,0 +1,85 @@
+#include "pipeline/engine_session.h"
+
+#include "core/errors.h"
+#include "pipeline/mpi_commands.h"
+#include "pipeline/warm_state.h"
+
+namespace brainshift {
+
+EngineSession::EngineSession(MPI_Comm comm, PipelineParameters params)
+    : comm_(comm), params_(std::move(params)) {
+  params_.label_table.validate();
+}
+
+EngineSession::~EngineSession() {
+  // Workers must leave their loop before MPI/PETSc finalise.
+  try {
+    stop_workers();
+  } catch (...) {
+  }
+}
+
+void EngineSession::load_preop(PreopInput input, const ProgressFn& progress,
+                               std::optional<TetMesh> stored_mesh) {
+  // Built aside and swapped in: a failed load keeps the previous warm state.
+  auto next = build_warm_state(comm_, std::move(input), params_, progress, std::move(stored_mesh));
+  if (warm_ && warm_->timings.contains("atlas")) next->timings["atlas"] = warm_->timings["atlas"];
+  warm_ = std::move(next);
+}
+
+bool EngineSession::ready() const { return warm_ != nullptr; }
+
+const TetMesh& EngineSession::mesh() const {
+  if (!warm_) throw ComputeError("no preop state is loaded");
+  return warm_->fem.mesh();
+}
+
+const PreopInput& EngineSession::preop() const {
+  if (!warm_) throw ComputeError("no preop state is loaded");
+  return warm_->preop;
+}
+
+nlohmann::json EngineSession::preop_timings() const {
+  if (!warm_) return nlohmann::json::object();
+  nlohmann::json t = warm_->timings;
+  if (!t.contains("atlas")) t["atlas"] = atlas_seconds_;
+  t["total"] = t.value("total", 0.0) + t["atlas"].get<double>();
+  return t;
+}
+
+void EngineSession::set_atlas_seconds(double seconds) {
+  atlas_seconds_ = seconds;
+  if (warm_) warm_->timings["atlas"] = seconds;
+}
+
+ScanResult EngineSession::register_scan(const IntraopInput& input, const ProgressFn& progress) {
+  if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
+  ScanResult result = run_intraop(*warm_, input, params_, progress);
+  result.timings["preop"] = preop_timings();
+  return result;
+}
+
+void EngineSession::stop_workers() {
+  if (workers_stopped_) return;
+  workers_stopped_ = true;
+  mpi_channel::broadcast_command(comm_, mpi_channel::Command::stop);
+}
+
+int EngineSession::ranks() const {
+  int size = 1;
+  MPI_Comm_size(comm_, &size);
+  return size;
+}
+
+void run_worker_loop(MPI_Comm comm) {
+  FemCluster fem(comm);
+  for (;;) {
+    switch (mpi_channel::receive_command(comm)) {
+      case mpi_channel::Command::stop: return;
+      case mpi_channel::Command::load: fem.serve_load(); break;
+      case mpi_channel::Command::solve: fem.serve_solve(); break;
+    }
+  }
+}
+
+}  // namespace brainshift

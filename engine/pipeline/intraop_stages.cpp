@@ -1,0 +1,200 @@
+// The per-scan stages. Everything here runs while the surgeon waits: the
+// budget is about a second, so no stage re-does preop work.
+#include <algorithm>
+#include <cmath>
+
+#include "core/errors.h"
+#include "core/timer.h"
+#include "field/displacement_field.h"
+#include "field/metrics.h"
+#include "field/warp.h"
+#include "image/image_stats.h"
+#include "image/morphology.h"
+#include "image/resample.h"
+#include "pipeline/warm_state.h"
+#include "registration/active_surface.h"
+#include "registration/affine_registration.h"
+
+namespace brainshift {
+namespace {
+
+struct StageClock {
+  const ProgressFn& progress;
+  nlohmann::json& timings;
+  Stopwatch watch;
+  void start(const std::string& stage) {
+    watch.lap();
+    if (progress) progress(stage, 0.0, 0.0);
+  }
+  double done(const std::string& stage) {
+    const double s = watch.lap();
+    timings[stage] = s;
+    if (progress) progress(stage, 1.0, s);
+    return s;
+  }
+};
+
+TriSurface mapped_by_affine(const TriSurface& surface, const Eigen::Matrix4d& intraop_from_preop) {
+  TriSurface out = surface;
+  for (auto& v : out.vertices_mm) v = (intraop_from_preop * v.homogeneous()).head<3>();
+  return out;
+}
+
+// Matches every mesh boundary surface to its intraop structure and returns the
+// non-rigid displacement of every fixed node (intraop frame, from A p to the
+// matched position).
+std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const IntraopDistanceMaps& maps,
+                                            const Eigen::Matrix4d& A, const IntraopInput& input,
+                                            const PipelineParameters& params, nlohmann::json& metrics,
+                                            std::string* failure) {
+  const auto& fixed = warm.fem.fixed_nodes();
+  std::vector<Eigen::Vector3d> values(fixed.size(), Eigen::Vector3d::Zero());
+  const bool intraop_has_ventricles =
+      std::any_of(maps.ventricle_sdf_mm.voxels.begin(), maps.ventricle_sdf_mm.voxels.end(),
+                  [](float d) { return d < 0.f; });
+  const ImageF* image = input.t1 ? &*input.t1 : nullptr;
+  for (const auto& s : warm.surfaces) {
+    const bool outer = s.cavity_label == 0;
+    nlohmann::json& m = metrics["surfaces"][s.name];
+    if (!outer && !intraop_has_ventricles) {
+      // No intraop data for this wall: it follows the affine (non-rigid 0) and
+      // the metrics say so rather than inventing a match.
+      m["matched"] = false;
+      m["reason"] = "structure absent from the intraop labels";
+      continue;
+    }
+    const ImageF& target = outer ? maps.outer_sdf_mm : maps.ventricle_sdf_mm;
+    const auto& p = outer ? params.outer_surface : params.ventricle_surface;
+    const SurfaceMatchResult r = match_surface(mapped_by_affine(s.surface, A), target, p, image);
+    for (std::size_t v = 0; v < s.surface.mesh_node.size(); ++v)
+      values[warm.fixed_index_of_node[s.surface.mesh_node[v]]] = r.displacement_mm[v];
+    m = {{"matched", true},
+         {"vertices", s.surface.vertices_mm.size()},
+         {"iterations", r.iterations},
+         {"converged", r.converged},
+         {"mean_residual_mm", r.mean_residual_mm},
+         {"max_residual_mm", r.max_residual_mm},
+         {"flipped_triangles", r.flipped_triangles}};
+    if (r.flipped_triangles > 0 && failure->empty())
+      *failure = "surface match of " + s.name + " folded " + std::to_string(r.flipped_triangles) + " triangles";
+    if (r.mean_residual_mm > params.gates.max_mean_surface_residual_mm && failure->empty())
+      *failure = "surface match of " + s.name + " diverged (mean residual " +
+                 std::to_string(r.mean_residual_mm) + " mm)";
+  }
+  return values;
+}
+
+nlohmann::json label_metrics(const LabelImage& warped, const LabelImage& intraop, const LabelTable& table) {
+  nlohmann::json out;
+  for (const auto& e : table.entries) {
+    const Mask a = mask_of_labels(warped, {e.value});
+    const Mask b = mask_of_labels(intraop, {e.value});
+    if (count_nonzero(b) == 0) continue;  // only structures the intraop segmentation has
+    const SurfaceDistances d = surface_distances_mm(a, b);
+    out[e.name] = {{"dice", dice(a, b)}, {"mean_surface_distance_mm", d.mean_mm}, {"hausdorff95_mm", d.p95_mm}};
+  }
+  return out;
+}
+
+}  // namespace
+
+ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                       const ProgressFn& progress) {
+  const LabelTable& table = params.label_table;
+  Stopwatch total;
+  ScanResult result;
+  nlohmann::json timings;
+  nlohmann::json metrics;
+  StageClock clock{progress, timings, {}};
+
+  clock.start("read");
+  validate_intraop_input(input, table);
+  const auto cavities = table.cavity_labels();
+  const std::uint16_t ventricle = cavities.empty() ? 0 : cavities.front();
+  const double intraop_volume_ml = volume_ml(outline_mask(input.labels));
+  if (intraop_volume_ml < params.gates.min_intraop_brain_fraction * warm.brain_volume_ml)
+    throw InputError("intraop labels: the brain covers only " + std::to_string(intraop_volume_ml) +
+                     " ml against " + std::to_string(warm.brain_volume_ml) +
+                     " ml preop; the field of view misses most of the brain");
+  clock.done("read");
+
+  clock.start("affine");
+  const IntraopDistanceMaps maps = prepare_intraop_maps(input.labels, table.brain_label(), ventricle);
+  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine);
+  const Eigen::Matrix4d A = affine.intraop_from_preop;
+  result.intraop_from_preop = A;
+  metrics["affine"] = {{"converged", affine.converged}, {"iterations", affine.iterations},
+                       {"rms_surface_distance_mm", affine.rms_surface_distance_mm},
+                       {"inlier_fraction", affine.inlier_fraction}, {"message", affine.message}};
+  clock.done("affine");
+
+  std::string failure;
+  if (!affine.converged) failure = "affine registration did not converge: " + affine.message;
+
+  clock.start("surface");
+  std::vector<Eigen::Vector3d> fixed_values;
+  if (failure.empty()) fixed_values = match_surfaces(warm, maps, A, input, params, metrics, &failure);
+  clock.done("surface");
+
+  clock.start("solve");
+  MeshDeformation deformation;
+  deformation.intraop_from_preop = A;
+  deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
+  if (failure.empty()) {
+    try {
+      const SolveReport solve = warm.fem.drive_solve(fixed_values, deformation.nonrigid_mm);
+      metrics["solve"] = {{"iterations", solve.iterations}, {"relative_residual", solve.relative_residual},
+                          {"solver", solve.solver_description}};
+    } catch (const ComputeError& e) {
+      failure = e.what();
+      deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
+    }
+  }
+  clock.done("solve");
+
+  clock.start("field");
+  FieldStats field_stats;
+  result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
+  const Mask brain_region = outline_mask(input.labels);
+  JacobianStats jac = jacobian_stats(result.pullback_field_mm, &brain_region);
+  if (failure.empty() && jac.min_determinant <= params.gates.min_jacobian_determinant) {
+    failure = "the non-rigid field folds (min Jacobian determinant " + std::to_string(jac.min_determinant) + ")";
+    deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
+    result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
+    jac = jacobian_stats(result.pullback_field_mm, &brain_region);
+  }
+  metrics["jacobian"] = {{"min", jac.min_determinant}, {"max", jac.max_determinant},
+                         {"folded_voxels", jac.folded_voxels}};
+  clock.done("field");
+
+  clock.start("warp");
+  result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
+  result.warped_labels = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
+  clock.done("warp");
+
+  clock.start("models");
+  for (const auto& [name, model] : warm.models)
+    result.models[name] = carry(model.surface, model.binding, deformation);
+  clock.done("models");
+
+  timings["total"] = total.seconds();
+
+  // Quality metrics are reported, not part of the timed budget.
+  const LabelImage affine_labels = resample_nearest(warm.preop.labels, input.labels.grid, A.inverse());
+  result.warped_t1_affine_only = resample_linear(warm.preop.t1, input.labels.grid, A.inverse());
+  metrics["labels_affine_only"] = label_metrics(affine_labels, input.labels, table);
+  metrics["labels"] = label_metrics(result.warped_labels, input.labels, table);
+  if (!failure.empty()) {
+    result.kind = ResultKind::affine_only_fallback;
+    result.fallback_reason = failure;
+  }
+  metrics["result"] = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
+  if (!failure.empty()) metrics["fallback_reason"] = failure;
+  result.metrics = std::move(metrics);
+  result.timings = {{"intraop", timings},
+                    {"preop", warm.timings},
+                    {"mesh", {{"nodes", warm.fem.mesh().node_count()}, {"tets", warm.fem.mesh().tet_count()}}}};
+  return result;
+}
+
+}  // namespace brainshift

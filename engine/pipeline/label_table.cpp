@@ -1,0 +1,82 @@
+#include "pipeline/label_table.h"
+
+#include <set>
+
+#include "core/errors.h"
+#include "core/labels.h"
+
+namespace brainshift {
+
+LabelTable LabelTable::defaults() {
+  LabelTable table;
+  table.entries = {
+      {labels::brain, "brain", LabelRole::parenchyma, 3000.0, 0.45, true},
+      {labels::ventricles, "ventricles", LabelRole::cavity, 3000.0, 0.45, true},
+      {labels::corticospinal_tract, "corticospinal_tract", LabelRole::structure, 3000.0, 0.45, true},
+      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.45, true},
+  };
+  return table;
+}
+
+const LabelEntry* LabelTable::find(std::uint16_t value) const {
+  for (const auto& e : entries)
+    if (e.value == value) return &e;
+  return nullptr;
+}
+
+const LabelEntry* LabelTable::find(const std::string& name) const {
+  for (const auto& e : entries)
+    if (e.name == name) return &e;
+  return nullptr;
+}
+
+std::uint16_t LabelTable::brain_label() const {
+  for (const auto& e : entries)
+    if (e.role == LabelRole::parenchyma) return e.value;
+  throw InputError("label table: no label has role \"parenchyma\"");
+}
+
+std::vector<std::uint16_t> LabelTable::cavity_labels() const {
+  std::vector<std::uint16_t> out;
+  for (const auto& e : entries)
+    if (e.role == LabelRole::cavity) out.push_back(e.value);
+  return out;
+}
+
+void LabelTable::validate() const {
+  std::set<std::uint16_t> values;
+  std::set<std::string> names;
+  int parenchyma = 0;
+  for (const auto& e : entries) {
+    const std::string where = "label table entry " + std::to_string(e.value) + " (\"" + e.name + "\")";
+    if (e.value == 0) throw InputError(where + ": value 0 is reserved for background");
+    if (e.name.empty()) throw InputError(where + ": empty name");
+    if (!values.insert(e.value).second) throw InputError(where + ": duplicate value");
+    if (!names.insert(e.name).second) throw InputError(where + ": duplicate name");
+    if (!(e.youngs_modulus_pa > 0.0)) throw InputError(where + ": youngs_modulus_pa must be > 0");
+    if (!(e.poisson_ratio > 0.0 && e.poisson_ratio < 0.5))
+      throw InputError(where + ": poisson_ratio must lie in (0, 0.5)");
+    if (e.role == LabelRole::parenchyma) ++parenchyma;
+  }
+  if (parenchyma != 1)
+    throw InputError("label table: exactly one label must have role \"parenchyma\" (found " +
+                     std::to_string(parenchyma) + ")");
+}
+
+std::string to_string(LabelRole role) {
+  switch (role) {
+    case LabelRole::parenchyma: return "parenchyma";
+    case LabelRole::cavity: return "cavity";
+    case LabelRole::structure: return "structure";
+  }
+  return "structure";
+}
+
+LabelRole label_role_from_string(const std::string& text) {
+  if (text == "parenchyma") return LabelRole::parenchyma;
+  if (text == "cavity") return LabelRole::cavity;
+  if (text == "structure") return LabelRole::structure;
+  throw InputError("unknown label role \"" + text + "\" (expected parenchyma, cavity or structure)");
+}
+
+}  // namespace brainshift

@@ -1,0 +1,105 @@
+// The preop phase: mesh, boundary surfaces, FEM set-up on all ranks, affine
+// samples, surface models bound to the mesh. Minutes are allowed here; every
+// per-scan cost that can move here does.
+#include "core/errors.h"
+#include "core/timer.h"
+#include "image/image_stats.h"
+#include "image/morphology.h"
+#include "mesh/surface_extraction.h"
+#include "models/surface_models.h"
+#include "pipeline/warm_state.h"
+
+namespace brainshift {
+namespace {
+
+void report(const ProgressFn& progress, const std::string& stage, double fraction, double seconds) {
+  if (progress) progress(stage, fraction, seconds);
+}
+
+ElasticOptions elastic_options_for(const PipelineParameters& params) {
+  ElasticOptions options = params.elastic;
+  for (const auto& e : params.label_table.entries)
+    if (e.role != LabelRole::cavity)
+      options.material_by_label[e.value] = Material{e.youngs_modulus_pa, e.poisson_ratio};
+  const auto* brain = params.label_table.find(params.label_table.brain_label());
+  options.default_material = Material{brain->youngs_modulus_pa, brain->poisson_ratio};
+  return options;
+}
+
+std::vector<MatchedSurface> matched_surfaces(const TetMesh& mesh, const LabelTable& table) {
+  std::vector<MatchedSurface> out;
+  out.push_back({"outer", 0, extract_boundary_surface(mesh, 0)});
+  if (out.front().surface.triangles.empty())
+    throw ComputeError("the brain mesh has no outer boundary surface");
+  for (const auto cavity : table.cavity_labels()) {
+    TriSurface wall = extract_boundary_surface(mesh, cavity);
+    if (!wall.triangles.empty()) out.push_back({table.find(cavity)->name, cavity, std::move(wall)});
+  }
+  return out;
+}
+
+std::vector<StructureDefinition> structures_for(const LabelTable& table) {
+  StructureDefinition brain{"brain", {}};
+  std::vector<StructureDefinition> out;
+  for (const auto& e : table.entries) {
+    brain.labels.push_back(e.value);
+    if (e.make_model && e.role != LabelRole::parenchyma) out.push_back({e.name, {e.value}});
+  }
+  out.insert(out.begin(), brain);
+  return out;
+}
+
+}  // namespace
+
+std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
+                                            const PipelineParameters& params,
+                                            const ProgressFn& progress,
+                                            std::optional<TetMesh> stored_mesh) {
+  const LabelTable& table = params.label_table;
+  validate_preop_input(input, table);
+  auto warm = std::make_unique<WarmState>(comm);
+  Stopwatch total;
+
+  Stopwatch stage;
+  report(progress, "mesh", 0.0, 0.0);
+  MeshingParameters meshing = params.meshing;
+  meshing.cavity_labels = table.cavity_labels();
+  meshing.default_tissue_label = table.brain_label();
+  TetMesh mesh = stored_mesh ? std::move(*stored_mesh) : mesh_label_image(input.labels, meshing);
+  const double mesh_seconds = stage.lap();
+  report(progress, "mesh", 1.0, mesh_seconds);
+
+  warm->surfaces = matched_surfaces(mesh, table);
+  std::vector<int> fixed_nodes = boundary_nodes(mesh);
+  warm->fixed_index_of_node.assign(mesh.node_count(), -1);
+  for (std::size_t i = 0; i < fixed_nodes.size(); ++i) warm->fixed_index_of_node[fixed_nodes[i]] = static_cast<int>(i);
+
+  report(progress, "factorise", 0.0, 0.0);
+  warm->fem.drive_load(std::move(mesh), std::move(fixed_nodes), elastic_options_for(params));
+  const double fem_seconds = stage.lap();
+  const auto& times = warm->fem.model().times();
+  report(progress, "factorise", 1.0, fem_seconds);
+
+  report(progress, "models", 0.0, 0.0);
+  const auto ventricles = table.cavity_labels();
+  warm->affine_samples = prepare_preop_samples(input.labels, table.brain_label(),
+                                               ventricles.empty() ? std::uint16_t{0} : ventricles.front());
+  for (auto& [name, surface] : structure_models(input.labels, structures_for(table), params.models)) {
+    PreopModel model{std::move(surface), {}};
+    model.binding = bind_to_mesh(model.surface, warm->fem.mesh());
+    warm->models.emplace(name, std::move(model));
+  }
+  warm->brain_volume_ml = volume_ml(outline_mask(input.labels));
+  const double models_seconds = stage.lap();
+  report(progress, "models", 1.0, models_seconds);
+
+  warm->timings = {{"mesh", mesh_seconds},
+                   {"assemble", times.create + times.assemble},
+                   {"factorise", times.setup},
+                   {"surfaces_and_models", models_seconds},
+                   {"total", total.seconds()}};
+  warm->preop = std::move(input);
+  return warm;
+}
+
+}  // namespace brainshift

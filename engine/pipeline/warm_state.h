@@ -1,0 +1,57 @@
+#pragma once
+// Everything the intraop stages reuse from the preop phase, kept in memory on
+// rank 0 between scans (the FEM part also lives on the workers).
+#include <map>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "core/tet_mesh.h"
+#include "models/carry.h"
+#include "pipeline/engine_session.h"
+#include "pipeline/fem_cluster.h"
+#include "registration/boundary_samples.h"
+
+namespace brainshift {
+
+// A boundary surface of the mesh and the intraop structure it is matched to.
+struct MatchedSurface {
+  std::string name;                      // "outer" or the cavity label's name
+  std::uint16_t cavity_label = 0;        // 0 for the outer surface
+  TriSurface surface;                    // preop, vertices tied to mesh nodes
+};
+
+struct PreopModel {
+  TriSurface surface;     // preop frame
+  ModelBinding binding;   // where each vertex sits in the mesh
+};
+
+struct WarmState {
+  explicit WarmState(MPI_Comm comm) : fem(comm) {}
+
+  PreopInput preop;
+  FemCluster fem;                          // owns the mesh every rank shares
+  std::vector<MatchedSurface> surfaces;    // outer first, then cavity walls
+  std::vector<int> fixed_index_of_node;    // node -> index into fixed_nodes, or -1
+  PreopBoundarySamples affine_samples;     // boundary points for the affine stage
+  std::map<std::string, PreopModel> models;
+  double brain_volume_ml = 0;
+  nlohmann::json timings;                  // preop stage seconds
+};
+
+// The preop phase on rank 0 (drives the workers through fem).
+std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
+                                            const PipelineParameters& params,
+                                            const ProgressFn& progress,
+                                            std::optional<TetMesh> stored_mesh);
+
+// The intraop stages on rank 0.
+ScanResult run_intraop(WarmState& warm, const IntraopInput& input,
+                       const PipelineParameters& params, const ProgressFn& progress);
+
+// Checks shared by both phases (InputError with a clear message).
+void validate_preop_input(const PreopInput& input, const LabelTable& table);
+void validate_intraop_input(const IntraopInput& input, const LabelTable& table);
+
+}  // namespace brainshift
