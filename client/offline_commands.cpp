@@ -1,0 +1,182 @@
+// `brainshift register` and `brainshift phantom`: the engine in this process.
+#include "offline_commands.h"
+
+#include <mpi.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <iostream>
+
+#include "atlas/default_atlas.h"
+#include "config_file.h"
+#include "core/errors.h"
+#include "core/timer.h"
+#include "fem/petsc_session.h"
+#include "image/nifti_io.h"
+#include "phantom/brain_shift_phantom.h"
+#include "pipeline/engine_session.h"
+
+namespace brainshift::cli {
+namespace fs = std::filesystem;
+namespace {
+
+constexpr int kExitOk = 0;
+constexpr int kExitError = 1;
+constexpr int kExitFallback = 4;
+
+fs::path default_atlas_cache() {
+  if (const char* xdg = std::getenv("XDG_CACHE_HOME"); xdg && *xdg) return fs::path(xdg) / "brainshift" / "atlas";
+  if (const char* home = std::getenv("HOME"); home && *home) return fs::path(home) / ".cache" / "brainshift" / "atlas";
+  return fs::path("brainshift-atlas");
+}
+
+struct PreopPaths {
+  std::string image, labels, atlas_cache;
+};
+
+// Reads the preop pair, or the default atlas when neither path is given.
+PreopInput read_preop(const PreopPaths& paths) {
+  if (paths.image.empty() != paths.labels.empty())
+    throw InputError("give both --preop-image and --preop-labels, or neither (default atlas)");
+  if (paths.image.empty()) {
+    const fs::path cache = paths.atlas_cache.empty() ? default_atlas_cache() : fs::path(paths.atlas_cache);
+    DefaultAtlas atlas = load_or_build_default_atlas(cache);
+    return PreopInput{std::move(atlas.t1), std::move(atlas.labels)};
+  }
+  return PreopInput{read_scalar_image(paths.image), read_label_image(paths.labels)};
+}
+
+PipelineParameters read_parameters(const std::string& config_path) {
+  return config_path.empty() ? config::pipeline_parameters_from_text(config::default_config_text(), "built-in brainshiftd.toml")
+                             : config::pipeline_parameters_from_file(config_path);
+}
+
+void print_progress(const std::string& phase, const std::string& stage, double fraction, double seconds) {
+  if (fraction >= 1.0)
+    std::fprintf(stderr, "[%s] %-10s %8.3f s\n", phase.c_str(), stage.c_str(), seconds);
+  else if (fraction <= 0.0)
+    std::fprintf(stderr, "[%s] %-10s ...\n", phase.c_str(), stage.c_str());
+}
+
+struct RegisterOptions {
+  PreopPaths preop;
+  std::string intraop_labels, intraop_image, out, config;
+};
+
+int run_register_rank0(const RegisterOptions& o) {
+  const PipelineParameters params = read_parameters(o.config);
+  EngineSession session(MPI_COMM_WORLD, params);
+  Stopwatch atlas_clock;
+  PreopInput preop = read_preop(o.preop);
+  session.set_atlas_seconds(atlas_clock.seconds());
+  print_progress("preop", "atlas", 1.0, atlas_clock.seconds());
+  session.load_preop(std::move(preop), [](const std::string& s, double f, double t) { print_progress("preop", s, f, t); });
+  std::fprintf(stderr, "[preop] mesh: %zu nodes, %zu tets\n", session.mesh().node_count(), session.mesh().tet_count());
+
+  Stopwatch read_clock;
+  IntraopInput intraop{read_label_image(o.intraop_labels), std::nullopt};
+  if (!o.intraop_image.empty()) intraop.t1 = read_scalar_image(o.intraop_image);
+  const double read_seconds = read_clock.seconds();
+  ScanResult result = session.register_scan(intraop, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
+  // Decoding the files is part of what the surgeon waits for.
+  result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;
+  result.timings["intraop"]["total"] = result.timings["intraop"]["total"].get<double>() + read_seconds;
+  write_scan_outputs(result, intraop.t1 ? &*intraop.t1 : nullptr, o.out);
+  std::fprintf(stderr, "[intraop] total      %8.3f s\n", result.timings["intraop"]["total"].get<double>());
+  std::cout << "wrote " << o.out << '\n';
+  if (result.kind == ResultKind::affine_only_fallback) {
+    std::fprintf(stderr, "WARNING: non-rigid registration refused (%s); the outputs hold the AFFINE-ONLY result\n",
+                 result.fallback_reason.c_str());
+    return kExitFallback;
+  }
+  return kExitOk;
+}
+
+// Every rank parses the same command line; ranks > 0 only serve the FEM.
+int run_register(const RegisterOptions& o) {
+  PetscSession petsc;
+  int rank = 0;
+  MPI_Comm_rank(MPI_COMM_WORLD, &rank);
+  if (rank != 0) {
+    run_worker_loop(MPI_COMM_WORLD);
+    return kExitOk;
+  }
+  try {
+    return run_register_rank0(o);
+  } catch (const InputError& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "error: registration failed: %s\n", e.what());
+  }
+  // EngineSession's destructor has released the workers by now.
+  return kExitError;
+}
+
+struct PhantomOptions {
+  PreopPaths preop;
+  std::string preset, out;
+  unsigned seed = 1;
+  bool list = false;
+};
+
+int run_phantom(const PhantomOptions& o) {
+  try {
+    const auto suite = standard_phantom_suite();
+    if (o.list) {
+      for (const auto& spec : suite) std::cout << spec.name << '\n';
+      return kExitOk;
+    }
+    const PhantomSpec* chosen = nullptr;
+    for (const auto& spec : suite)
+      if (spec.name == o.preset) chosen = &spec;
+    if (!chosen) throw InputError("unknown phantom preset \"" + o.preset + "\" (see --list)");
+    PhantomSpec spec = *chosen;
+    spec.seed = o.seed;
+    const PreopInput preop = read_preop(o.preop);
+    const PhantomCase c = make_phantom(preop.t1, preop.labels, spec);
+    write_phantom_case(c, o.out);
+    std::cout << "wrote " << o.out << '\n';
+    return kExitOk;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return kExitError;
+  }
+}
+
+void add_preop_options(CLI::App* cmd, PreopPaths& p) {
+  cmd->add_option("--preop-image", p.image, "preop T1 (NIfTI); default: the built-in Colin27 atlas");
+  cmd->add_option("--preop-labels", p.labels, "preop label map on the T1's grid (NIfTI)");
+  cmd->add_option("--atlas-cache", p.atlas_cache, "where the default atlas is cached (default ~/.cache/brainshift/atlas)");
+}
+
+}  // namespace
+
+void add_offline_commands(CLI::App& app, int* exit_code) {
+  auto reg = std::make_shared<RegisterOptions>();
+  CLI::App* r = app.add_subcommand("register", "one-shot registration in this process (no daemon)");
+  add_preop_options(r, reg->preop);
+  r->add_option("--intraop-labels", reg->intraop_labels, "intraop label map (1 brain, 2 lateral ventricles)")->required();
+  r->add_option("--intraop-image", reg->intraop_image, "intraop T1 on the labels' grid (optional)");
+  r->add_option("--out", reg->out, "output folder (written atomically)")->required();
+  r->add_option("--config", reg->config, "configuration TOML (default: the built-in config/brainshiftd.toml)");
+  r->callback([reg, exit_code] { *exit_code = run_register(*reg); });
+
+  auto ph = std::make_shared<PhantomOptions>();
+  CLI::App* p = app.add_subcommand("phantom", "make a synthetic brain-shift case with a known field");
+  add_preop_options(p, ph->preop);
+  p->add_option("--preset", ph->preset, "deformation preset (see --list)");
+  p->add_option("--seed", ph->seed, "random seed (noise, landmarks)");
+  p->add_option("--out", ph->out, "output folder");
+  p->add_flag("--list", ph->list, "list the presets and exit");
+  p->callback([ph, exit_code] {
+    if (!ph->list && (ph->preset.empty() || ph->out.empty())) {
+      std::fprintf(stderr, "error: phantom needs --preset and --out (or --list)\n");
+      *exit_code = 2;
+      return;
+    }
+    *exit_code = run_phantom(*ph);
+  });
+}
+
+}  // namespace brainshift::cli
