@@ -1,0 +1,151 @@
+#include "image/morphology.h"
+
+#include <algorithm>
+#include <string>
+#include <vector>
+
+#include "core/errors.h"
+#include "image/distance_map.h"
+
+namespace brainshift {
+namespace {
+
+struct Offset {
+  int di, dj, dk;
+};
+
+std::vector<Offset> neighbourhood(int connectivity) {
+  if (connectivity != 6 && connectivity != 26)
+    throw InputError("connectivity must be 6 or 26, got " + std::to_string(connectivity));
+  std::vector<Offset> offs;
+  for (int dk = -1; dk <= 1; ++dk)
+    for (int dj = -1; dj <= 1; ++dj)
+      for (int di = -1; di <= 1; ++di) {
+        const int manhattan = std::abs(di) + std::abs(dj) + std::abs(dk);
+        if (manhattan == 0 || (connectivity == 6 && manhattan != 1)) continue;
+        offs.push_back({di, dj, dk});
+      }
+  return offs;
+}
+
+// Flood fill from `seed` over voxels where accept(index) holds and label is 0.
+template <class Accept>
+void flood(const Grid3& g, std::size_t seed, std::int32_t id, const std::vector<Offset>& offs,
+           std::vector<std::int32_t>& label, Accept&& accept, std::vector<std::size_t>& stack) {
+  const std::size_t nx = g.dims[0], nxy = nx * g.dims[1];
+  label[seed] = id;
+  stack.assign(1, seed);
+  while (!stack.empty()) {
+    const std::size_t v = stack.back();
+    stack.pop_back();
+    const int i = static_cast<int>(v % nx), j = static_cast<int>((v / nx) % g.dims[1]),
+              k = static_cast<int>(v / nxy);
+    for (const Offset& o : offs) {
+      if (!g.contains(i + o.di, j + o.dj, k + o.dk)) continue;
+      const std::size_t n = g.index(i + o.di, j + o.dj, k + o.dk);
+      if (label[n] == 0 && accept(n)) {
+        label[n] = id;
+        stack.push_back(n);
+      }
+    }
+  }
+}
+
+Mask from_predicate(const Grid3& g, const ImageF& values, bool (*keep)(float, double), double r2) {
+  Mask out(g, 0);
+  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = keep(values.voxels[i], r2) ? 1 : 0;
+  return out;
+}
+
+// Slack so that a voxel exactly at radius_mm is inside despite float rounding.
+double radius_squared(double radius_mm) {
+  if (!(radius_mm >= 0.0)) throw InputError("morphology radius must be >= 0 mm, got " + std::to_string(radius_mm));
+  return radius_mm * radius_mm * (1.0 + 1e-6) + 1e-9;
+}
+
+}  // namespace
+
+Mask mask_of_labels(const LabelImage& labels, const std::vector<std::uint16_t>& values) {
+  std::vector<std::uint8_t> wanted(65536, 0);
+  for (std::uint16_t v : values) wanted[v] = 1;
+  Mask out(labels.grid, 0);
+  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = wanted[labels.voxels[i]];
+  return out;
+}
+
+Mask mask_of_labels(const LabelImage& labels, std::initializer_list<std::uint16_t> values) {
+  return mask_of_labels(labels, std::vector<std::uint16_t>(values));
+}
+
+Mask threshold(const ImageF& image, float lower, float upper) {
+  Mask out(image.grid, 0);
+  for (std::size_t i = 0; i < out.voxels.size(); ++i)
+    out.voxels[i] = image.voxels[i] >= lower && image.voxels[i] <= upper;
+  return out;
+}
+
+Image3<std::int32_t> connected_components(const Mask& mask, int connectivity, int* count) {
+  const auto offs = neighbourhood(connectivity);
+  Image3<std::int32_t> comp(mask.grid, 0);
+  std::vector<std::size_t> stack;
+  std::int32_t n = 0;
+  const std::uint8_t* m = mask.voxels.data();
+  for (std::size_t v = 0; v < mask.voxels.size(); ++v)
+    if (m[v] && comp.voxels[v] == 0)
+      flood(mask.grid, v, ++n, offs, comp.voxels, [m](std::size_t i) { return m[i] != 0; }, stack);
+  if (count) *count = n;
+  return comp;
+}
+
+Mask largest_component(const Mask& mask, int connectivity) {
+  int n = 0;
+  const auto comp = connected_components(mask, connectivity, &n);
+  Mask out(mask.grid, 0);
+  if (n == 0) return out;
+  std::vector<std::size_t> sizes(n + 1, 0);
+  for (std::int32_t c : comp.voxels) ++sizes[c];
+  sizes[0] = 0;
+  const auto best = static_cast<std::int32_t>(std::max_element(sizes.begin(), sizes.end()) - sizes.begin());
+  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = comp.voxels[i] == best;
+  return out;
+}
+
+Mask fill_holes(const Mask& mask) {
+  const Grid3& g = mask.grid;
+  const auto offs = neighbourhood(6);
+  std::vector<std::int32_t> reached(mask.voxels.size(), 0);
+  std::vector<std::size_t> stack;
+  const std::uint8_t* m = mask.voxels.data();
+  auto background = [m](std::size_t i) { return m[i] == 0; };
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const bool border = i == 0 || j == 0 || k == 0 || i == g.dims[0] - 1 || j == g.dims[1] - 1 ||
+                            k == g.dims[2] - 1;
+        if (!border) continue;
+        const std::size_t v = g.index(i, j, k);
+        if (background(v) && reached[v] == 0) flood(g, v, 1, offs, reached, background, stack);
+      }
+  Mask out(g, 0);
+  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = m[i] || reached[i] == 0;
+  return out;
+}
+
+Mask dilate(const Mask& mask, double radius_mm) {
+  const double r2 = radius_squared(radius_mm);
+  return from_predicate(mask.grid, squared_distance_to_mask_mm2(mask),
+                        [](float d2, double lim) { return d2 <= lim; }, r2);
+}
+
+Mask erode(const Mask& mask, double radius_mm) {
+  const double r2 = radius_squared(radius_mm);
+  Mask background(mask.grid, 0);
+  for (std::size_t i = 0; i < mask.voxels.size(); ++i) background.voxels[i] = mask.voxels[i] == 0;
+  return from_predicate(mask.grid, squared_distance_to_mask_mm2(background),
+                        [](float d2, double lim) { return d2 > lim; }, r2);
+}
+
+Mask close(const Mask& mask, double radius_mm) { return erode(dilate(mask, radius_mm), radius_mm); }
+Mask open(const Mask& mask, double radius_mm) { return dilate(erode(mask, radius_mm), radius_mm); }
+
+}  // namespace brainshift

@@ -1,0 +1,136 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "core/errors.h"
+#include "image/image_stats.h"
+#include "image/morphology.h"
+
+namespace brainshift {
+namespace {
+
+Grid3 grid(std::array<int, 3> dims, Eigen::Vector3d spacing = {1, 1, 1}) {
+  Grid3 g;
+  g.dims = dims;
+  g.world_from_voxel.diagonal().head<3>() = spacing;
+  return g;
+}
+
+// Lattice points with |(i,j,k) * spacing| <= r, counted directly.
+std::size_t lattice_points_in_ball(Eigen::Vector3d spacing, double r) {
+  std::size_t n = 0;
+  const int m = 40;
+  for (int k = -m; k <= m; ++k)
+    for (int j = -m; j <= m; ++j)
+      for (int i = -m; i <= m; ++i)
+        n += Eigen::Vector3d(i * spacing[0], j * spacing[1], k * spacing[2]).norm() <= r + 1e-9;
+  return n;
+}
+
+TEST(Morphology, DilatedPointIsExactAnisotropicBall) {
+  const Eigen::Vector3d sp(0.8, 1.0, 2.0);
+  Mask m(grid({41, 41, 21}, sp), 0);
+  m.at(20, 20, 10) = 1;
+  for (double r : {1.0, 2.0, 5.0, 7.3}) {
+    const Mask d = dilate(m, r);
+    EXPECT_EQ(count_nonzero(d), lattice_points_in_ball(sp, r)) << r;
+    // Large balls approach the continuous volume.
+    if (r > 7) {
+      EXPECT_NEAR(volume_ml(d), 4.0 / 3.0 * M_PI * r * r * r / 1000.0, 0.05 * 4.0 / 3.0 * M_PI * r * r * r / 1000.0);
+    }
+  }
+}
+
+TEST(Morphology, ErodeUndoesDilateOfBallAndOpenRemovesThinStrand) {
+  Mask ball(grid({31, 31, 31}), 0);
+  for (int k = 0; k < 31; ++k)
+    for (int j = 0; j < 31; ++j)
+      for (int i = 0; i < 31; ++i) ball.at(i, j, k) = Eigen::Vector3d(i - 15, j - 15, k - 15).norm() <= 8;
+  EXPECT_EQ(erode(dilate(ball, 3), 3).voxels, ball.voxels);
+  // Erosion by r keeps voxels whose nearest background is farther than r.
+  const Mask e = erode(ball, 3);
+  EXPECT_TRUE(e.at(15, 15, 15));
+  EXPECT_FALSE(e.at(15, 15, 15 + 6));
+  EXPECT_TRUE(e.at(15, 15, 15 + 5));
+  // A one-voxel strand sticking out of the ball disappears with open(1.5).
+  Mask strand = ball;
+  for (int i = 24; i < 30; ++i) strand.at(i, 15, 15) = 1;
+  const Mask opened = open(strand, 1.5);
+  EXPECT_FALSE(opened.at(27, 15, 15));
+  EXPECT_TRUE(opened.at(15, 15, 15));
+}
+
+TEST(Morphology, CloseFillsNarrowGap) {
+  Mask m(grid({20, 10, 10}), 0);
+  for (int k = 2; k < 8; ++k)
+    for (int j = 2; j < 8; ++j)
+      for (int i = 2; i < 18; ++i) m.at(i, j, k) = (i != 10);  // a one-voxel slit
+  const Mask c = close(m, 1.0);
+  EXPECT_TRUE(c.at(10, 5, 5));
+  int n = 0;
+  connected_components(m, 6, &n);
+  EXPECT_EQ(n, 2);
+  connected_components(c, 6, &n);
+  EXPECT_EQ(n, 1);
+}
+
+TEST(Morphology, ComponentCountsDependOnConnectivity) {
+  Mask m(grid({10, 10, 10}), 0);
+  m.at(1, 1, 1) = 1;
+  m.at(2, 2, 2) = 1;  // touches the first only at a corner
+  m.at(6, 6, 6) = 1;
+  m.at(6, 7, 6) = 1;  // face neighbour
+  m.at(6, 8, 6) = 1;
+  int n6 = 0, n26 = 0;
+  const auto c6 = connected_components(m, 6, &n6);
+  connected_components(m, 26, &n26);
+  EXPECT_EQ(n6, 3);
+  EXPECT_EQ(n26, 2);
+  EXPECT_EQ(c6.at(6, 6, 6), c6.at(6, 8, 6));
+  EXPECT_NE(c6.at(1, 1, 1), c6.at(2, 2, 2));
+  const Mask big = largest_component(m, 6);
+  EXPECT_EQ(count_nonzero(big), 3u);
+  EXPECT_TRUE(big.at(6, 7, 6));
+  EXPECT_THROW(connected_components(m, 18, nullptr), InputError);
+  EXPECT_EQ(count_nonzero(largest_component(Mask(m.grid, 0), 6)), 0u);
+}
+
+TEST(Morphology, FillHolesFillsEnclosedCavityOnly) {
+  Mask m(grid({12, 12, 12}), 0);
+  for (int k = 2; k <= 9; ++k)
+    for (int j = 2; j <= 9; ++j)
+      for (int i = 2; i <= 9; ++i) m.at(i, j, k) = !(i >= 4 && i <= 7 && j >= 4 && j <= 7 && k >= 4 && k <= 7);
+  // A second cavity opened to the outside through a tunnel is not a hole.
+  Mask open_cavity = m;
+  for (int i = 0; i <= 4; ++i) open_cavity.at(i, 5, 5) = 0;
+  const Mask filled = fill_holes(m);
+  EXPECT_EQ(count_nonzero(filled), 8u * 8 * 8);
+  const Mask not_filled = fill_holes(open_cavity);
+  EXPECT_EQ(not_filled.voxels, open_cavity.voxels);
+}
+
+TEST(Morphology, LabelsThresholdAndStats) {
+  LabelImage lab(grid({5, 4, 3}, {2, 1, 1}), 0);
+  lab.at(1, 1, 1) = 2;
+  lab.at(3, 2, 1) = 3;
+  lab.at(4, 3, 2) = 7;
+  const Mask m = mask_of_labels(lab, {2, 3});
+  EXPECT_EQ(count_nonzero(m), 2u);
+  EXPECT_DOUBLE_EQ(volume_ml(m), 2 * 2.0 / 1000.0);
+  const Eigen::Vector3d c = centroid_mm(m);
+  EXPECT_NEAR(c.x(), 4.0, 1e-12);  // voxel x 2 -> 4 mm
+  EXPECT_NEAR(c.y(), 1.5, 1e-12);
+  const VoxelBox box = bounding_box_voxels(m);
+  EXPECT_FALSE(box.empty);
+  EXPECT_EQ(box.lo, (std::array<int, 3>{1, 1, 1}));
+  EXPECT_EQ(box.hi, (std::array<int, 3>{3, 2, 1}));
+  EXPECT_TRUE(bounding_box_voxels(Mask(m.grid, 0)).empty);
+  EXPECT_THROW(centroid_mm(Mask(m.grid, 0)), InputError);
+  ImageF img(lab.grid, 0.f);
+  img.voxels[3] = 5.f;
+  img.voxels[4] = 10.f;
+  EXPECT_EQ(count_nonzero(threshold(img, 4.f, 6.f)), 1u);
+}
+
+}  // namespace
+}  // namespace brainshift

@@ -1,0 +1,102 @@
+#include <gtest/gtest.h>
+
+#include "image/resample.h"
+
+namespace brainshift {
+namespace {
+
+Grid3 grid(std::array<int, 3> dims, Eigen::Vector3d spacing, Eigen::Vector3d origin) {
+  Grid3 g;
+  g.dims = dims;
+  g.world_from_voxel.diagonal().head<3>() = spacing;
+  g.world_from_voxel.topRightCorner<3, 1>() = origin;
+  return g;
+}
+
+double linear_fn(const Eigen::Vector3d& p) { return 3.0 + 0.5 * p.x() - 1.25 * p.y() + 0.75 * p.z(); }
+
+ImageF image_of_linear_fn(const Grid3& g) {
+  ImageF img(g);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) img.at(i, j, k) = static_cast<float>(linear_fn(g.world_mm(i, j, k)));
+  return img;
+}
+
+TEST(Resample, IdentityReproducesImage) {
+  const Grid3 g = grid({6, 5, 4}, {1.0, 2.0, 0.5}, {-3, 4, 10});
+  ImageF img(g);
+  LabelImage lab(g);
+  for (std::size_t i = 0; i < img.voxels.size(); ++i) {
+    img.voxels[i] = static_cast<float>((i * 7919) % 101);
+    lab.voxels[i] = static_cast<std::uint16_t>(i % 5);
+  }
+  EXPECT_EQ(resample_linear(img, g).voxels, img.voxels);
+  EXPECT_EQ(resample_nearest(lab, g).voxels, lab.voxels);
+}
+
+TEST(Resample, IntegerTranslationShiftsVoxels) {
+  const Grid3 g = grid({8, 6, 5}, {1.0, 1.0, 2.0}, {0, 0, 0});
+  ImageF img(g);
+  LabelImage lab(g);
+  for (std::size_t i = 0; i < img.voxels.size(); ++i) {
+    img.voxels[i] = static_cast<float>(i);
+    lab.voxels[i] = static_cast<std::uint16_t>(i);
+  }
+  // src world = target world + (2, -1, 2 mm) -> one voxel along z.
+  Eigen::Matrix4d shift = Eigen::Matrix4d::Identity();
+  shift.topRightCorner<3, 1>() = Eigen::Vector3d(2, -1, 2);
+  const ImageF r = resample_linear(img, g, shift, -1.f);
+  const LabelImage rl = resample_nearest(lab, g, shift, 999);
+  for (int k = 0; k < 5; ++k)
+    for (int j = 0; j < 6; ++j)
+      for (int i = 0; i < 8; ++i) {
+        const bool inside = g.contains(i + 2, j - 1, k + 1);
+        EXPECT_EQ(r.at(i, j, k), inside ? img.at(i + 2, j - 1, k + 1) : -1.f);
+        EXPECT_EQ(rl.at(i, j, k), inside ? lab.at(i + 2, j - 1, k + 1) : 999);
+      }
+}
+
+TEST(Resample, TrilinearReproducesLinearFunctionsOnObliqueGrid) {
+  const Grid3 src = grid({20, 18, 16}, {1.0, 1.5, 2.0}, {-10, -12, -15});
+  const ImageF img = image_of_linear_fn(src);
+  Grid3 target;
+  target.dims = {9, 8, 7};
+  target.world_from_voxel.topLeftCorner<3, 3>() =
+      Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix() * 0.8;
+  target.world_from_voxel.topRightCorner<3, 1>() = Eigen::Vector3d(-3, -2, -4);
+  const ImageF r = resample_linear(img, target);
+  for (int k = 0; k < 7; ++k)
+    for (int j = 0; j < 8; ++j)
+      for (int i = 0; i < 9; ++i)
+        EXPECT_NEAR(r.at(i, j, k), linear_fn(target.world_mm(i, j, k)), 1e-4);
+  EXPECT_NEAR(sample_linear(img, Eigen::Vector3d(0.3, -2.7, 1.9), -100.f), linear_fn({0.3, -2.7, 1.9}), 1e-4);
+}
+
+TEST(Resample, OutsideValueBeyondHalfVoxel) {
+  const Grid3 g = grid({4, 4, 4}, {1, 1, 1}, {0, 0, 0});
+  const ImageF img(g, 5.f);
+  EXPECT_EQ(sample_linear(img, {-0.4, 1, 1}, -7.f), 5.f);  // within the voxel extent
+  EXPECT_EQ(sample_linear(img, {-0.6, 1, 1}, -7.f), -7.f);
+  EXPECT_EQ(sample_linear(img, {1, 3.6, 1}, -7.f), -7.f);
+  const LabelImage lab(g, 2);
+  EXPECT_EQ(sample_nearest(lab, {3.4, 0, 0}, 9), 2);
+  EXPECT_EQ(sample_nearest(lab, {3.6, 0, 0}, 9), 9);
+}
+
+TEST(Resample, NearestPicksClosestVoxelThroughWorld) {
+  // Source at 0.5 mm, target at 1 mm offset by 0.25 mm: nearest source voxel is well defined.
+  const Grid3 src = grid({10, 10, 10}, {0.5, 0.5, 0.5}, {0, 0, 0});
+  LabelImage lab(src);
+  for (int k = 0; k < 10; ++k)
+    for (int j = 0; j < 10; ++j)
+      for (int i = 0; i < 10; ++i) lab.at(i, j, k) = static_cast<std::uint16_t>(i + 10 * j + 100 * k);
+  const Grid3 target = grid({4, 4, 4}, {1, 1, 1}, {0.1, 0.1, 0.1});
+  const LabelImage r = resample_nearest(lab, target);
+  // world 1.1 -> source index 2.2 -> 2
+  EXPECT_EQ(r.at(1, 1, 1), 2 + 10 * 2 + 100 * 2);
+  EXPECT_EQ(r.at(3, 0, 2), 6 + 0 + 100 * 4);
+}
+
+}  // namespace
+}  // namespace brainshift

@@ -1,0 +1,37 @@
+#pragma once
+// Helpers to build NIfTI byte streams with deliberate defects.
+#include <cstdint>
+#include <cstring>
+#include <filesystem>
+#include <string>
+
+namespace brainshift::test {
+
+std::string gzip(const std::string& raw);
+std::string gunzip(const std::string& gz);
+void write_bytes(const std::filesystem::path& path, const std::string& bytes);
+std::filesystem::path temp_dir(const std::string& name);
+
+// Overwrites a value at a byte offset of an uncompressed NIfTI-1 header
+// (offsets from the NIfTI-1 specification; the writer is little-endian).
+template <class T>
+void poke(std::string& bytes, std::size_t offset, T value) {
+  std::memcpy(bytes.data() + offset, &value, sizeof(T));
+}
+
+namespace offsets {
+constexpr std::size_t dim = 40;          // int16[8]
+constexpr std::size_t intent_code = 68;  // int16
+constexpr std::size_t datatype = 70;     // int16
+constexpr std::size_t bitpix = 72;       // int16
+constexpr std::size_t pixdim = 76;       // float[8]
+constexpr std::size_t vox_offset = 108;  // float
+constexpr std::size_t scl_slope = 112;   // float
+constexpr std::size_t scl_inter = 116;   // float
+constexpr std::size_t qform_code = 252;  // int16
+constexpr std::size_t sform_code = 254;  // int16
+constexpr std::size_t srow_x = 280;      // float[4]
+constexpr std::size_t data = 352;
+}  // namespace offsets
+
+}  // namespace brainshift::test
