@@ -113,6 +113,20 @@ int run_register(const RegisterOptions& o) {
   return kExitError;
 }
 
+// The files a phantom case is made of; landmarks.json pairs intraop points
+// with their true preop points (world RAS mm).
+void write_phantom_case(const PhantomCase& c, const fs::path& dir) {
+  fs::create_directories(dir);
+  write_scalar_image(dir / "intraop_t1.nii.gz", c.intraop_t1);
+  write_label_image(dir / "intraop_labels.nii.gz", c.intraop_labels);
+  write_displacement_field(dir / "true_field.nii.gz", c.true_pullback_mm);
+  nlohmann::json landmarks = nlohmann::json::array();
+  for (const auto& [x, p] : c.landmarks_intraop_preop_mm)
+    landmarks.push_back({{"intraop_mm", {x.x(), x.y(), x.z()}}, {"preop_mm", {p.x(), p.y(), p.z()}}});
+  std::ofstream(dir / "landmarks.json") << landmarks.dump(1) << '\n';
+  std::ofstream(dir / "description.json") << c.description.dump(2) << '\n';
+}
+
 struct PhantomOptions {
   PreopPaths preop;
   std::string preset, out;

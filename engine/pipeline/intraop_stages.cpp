@@ -90,8 +90,9 @@ nlohmann::json label_metrics(const LabelImage& warped, const LabelImage& intraop
     const Mask a = mask_of_labels(warped, {e.value});
     const Mask b = mask_of_labels(intraop, {e.value});
     if (count_nonzero(b) == 0) continue;  // only structures the intraop segmentation has
-    const SurfaceDistances d = surface_distances_mm(a, b);
-    out[e.name] = {{"dice", dice(a, b)}, {"mean_surface_distance_mm", d.mean_mm}, {"hausdorff95_mm", d.p95_mm}};
+    const SurfaceDistance d = surface_distance(a, b);
+    const double dice = dice_per_label(warped, intraop, {e.value}).front().dice;
+    out[e.name] = {{"dice", dice}, {"mean_surface_distance_mm", d.mean_mm}, {"hausdorff95_mm", d.hd95_mm}};
   }
   return out;
 }
@@ -157,13 +158,13 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
   const Mask brain_region = outline_mask(input.labels);
   JacobianStats jac = jacobian_stats(result.pullback_field_mm, &brain_region);
-  if (failure.empty() && jac.min_determinant <= params.gates.min_jacobian_determinant) {
-    failure = "the non-rigid field folds (min Jacobian determinant " + std::to_string(jac.min_determinant) + ")";
+  if (failure.empty() && jac.min_det <= params.gates.min_jacobian_determinant) {
+    failure = "the non-rigid field folds (min Jacobian determinant " + std::to_string(jac.min_det) + ")";
     deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
     result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
     jac = jacobian_stats(result.pullback_field_mm, &brain_region);
   }
-  metrics["jacobian"] = {{"min", jac.min_determinant}, {"max", jac.max_determinant},
+  metrics["jacobian"] = {{"min", jac.min_det}, {"max", jac.max_det},
                          {"folded_voxels", jac.folded_voxels}};
   clock.done("field");
 
