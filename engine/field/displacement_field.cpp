@@ -1,0 +1,231 @@
+#include "field/displacement_field.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <string>
+
+#include "core/errors.h"
+#include "core/timer.h"
+#include "field/field_fill.h"
+#include "image/distance_map.h"
+#include "image/morphology.h"
+
+namespace brainshift {
+namespace {
+
+constexpr float kUncovered = -std::numeric_limits<float>::infinity();
+
+void validate(const TetMesh& mesh, const MeshDeformation& deformation, const Grid3& grid,
+              const FieldParameters& params) {
+  if (!(params.blend_distance_mm > 0.0) || !(params.barycentric_tolerance >= 0.0) ||
+      params.smoothing_sweeps < 0) {
+    throw InputError("pullback_field: parameters need blend_distance_mm > 0, "
+                     "barycentric_tolerance >= 0 and smoothing_sweeps >= 0");
+  }
+  if (deformation.nonrigid_mm.size() != mesh.node_count()) {
+    throw InputError("pullback_field: deformation has " +
+                     std::to_string(deformation.nonrigid_mm.size()) +
+                     " non-rigid vectors for a mesh of " + std::to_string(mesh.node_count()) +
+                     " nodes");
+  }
+  const int n = static_cast<int>(mesh.node_count());
+  for (const auto& tet : mesh.tets) {
+    for (const int node : tet) {
+      if (node < 0 || node >= n) {
+        throw InputError("pullback_field: a tet references node " + std::to_string(node) +
+                         " of a mesh with " + std::to_string(n) + " nodes");
+      }
+    }
+  }
+  if (grid.voxel_count() == 0) throw InputError("pullback_field: the intraop grid is empty");
+  if (grid.voxel_count() > std::numeric_limits<std::uint32_t>::max()) {
+    throw InputError("pullback_field: the intraop grid has more than 2^32 voxels");
+  }
+  const Eigen::Matrix3d a = deformation.intraop_from_preop.topLeftCorner<3, 3>();
+  if (!deformation.intraop_from_preop.allFinite() || std::abs(a.determinant()) < 1e-9) {
+    throw InputError("pullback_field: intraop_from_preop is singular or not finite");
+  }
+}
+
+// Per-voxel result of the rasterisation: the pulled-back preop point is written
+// into the field as u = p - x; depth = min barycentric coordinate of the owner.
+struct Raster {
+  VectorImage3* field;
+  std::vector<float> depth;
+};
+
+// lambda_m(i,j,k) = c[m] + g[m] . (i,j,k), m = 0..3, in voxel index coordinates
+// (barycentric coordinates are invariant under the affine voxel<->world map).
+struct TetScan {
+  std::array<double, 4> c;
+  std::array<Eigen::Vector3d, 4> g;
+  std::array<int, 3> lo, hi;  // voxel bounding box, clipped to the grid
+};
+
+bool make_scan(const std::array<Eigen::Vector3d, 4>& v, const Grid3& grid, double tol,
+               TetScan& scan, double& det) {
+  Eigen::Matrix3d t;
+  t << v[1] - v[0], v[2] - v[0], v[3] - v[0];
+  det = t.determinant();
+  const double scale = (v[1] - v[0]).norm() * (v[2] - v[0]).norm() * (v[3] - v[0]).norm();
+  if (!(std::abs(det) > 1e-12 * scale) || !std::isfinite(det)) return false;
+  const Eigen::Matrix3d inv = t.inverse();
+  scan.g[0] = -(inv.row(0) + inv.row(1) + inv.row(2)).transpose();
+  scan.c[0] = 1.0;
+  for (int m = 1; m < 4; ++m) {
+    scan.g[m] = inv.row(m - 1).transpose();
+    scan.c[m] = -scan.g[m].dot(v[0]);
+    scan.c[0] -= scan.c[m];
+  }
+  for (int a = 0; a < 3; ++a) {
+    const double mn = std::min({v[0][a], v[1][a], v[2][a], v[3][a]});
+    const double mx = std::max({v[0][a], v[1][a], v[2][a], v[3][a]});
+    scan.lo[a] = std::max(0, static_cast<int>(std::ceil(mn - 1e-6)));
+    scan.hi[a] = std::min(grid.dims[a] - 1, static_cast<int>(std::floor(mx + 1e-6)));
+  }
+  return true;
+}
+
+// Range of i on row (j,k) where every lambda >= -tol (lambda is linear in i).
+bool row_interval(const TetScan& s, int j, int k, double tol, int& i0, int& i1) {
+  double lo = s.lo[0], hi = s.hi[0];
+  for (int m = 0; m < 4; ++m) {
+    const double base = s.c[m] + s.g[m].y() * j + s.g[m].z() * k + tol;
+    const double slope = s.g[m].x();
+    if (slope > 0) {
+      lo = std::max(lo, -base / slope);
+    } else if (slope < 0) {
+      hi = std::min(hi, -base / slope);
+    } else if (base < 0) {
+      return false;
+    }
+  }
+  i0 = static_cast<int>(std::ceil(lo));
+  i1 = static_cast<int>(std::floor(hi));
+  return i0 <= i1;
+}
+
+void scan_tet(const TetScan& s, const std::array<Eigen::Vector3d, 4>& preop, const Grid3& grid,
+              double tol, Raster& raster) {
+  const Eigen::Matrix4d& w = grid.world_from_voxel;
+  for (int k = s.lo[2]; k <= s.hi[2]; ++k) {
+    for (int j = s.lo[1]; j <= s.hi[1]; ++j) {
+      int i0 = 0, i1 = -1;
+      if (!row_interval(s, j, k, tol, i0, i1)) continue;
+      for (int i = i0; i <= i1; ++i) {
+        const Eigen::Vector3d ijk(i, j, k);
+        std::array<double, 4> lambda;
+        for (int m = 0; m < 4; ++m) lambda[m] = s.c[m] + s.g[m].dot(ijk);
+        const double depth = std::min({lambda[0], lambda[1], lambda[2], lambda[3]});
+        const std::size_t v = grid.index(i, j, k);
+        if (depth <= raster.depth[v]) continue;
+        raster.depth[v] = static_cast<float>(depth);
+        const Eigen::Vector3d p =
+            lambda[0] * preop[0] + lambda[1] * preop[1] + lambda[2] * preop[2] + lambda[3] * preop[3];
+        const Eigen::Vector3d x = w.topLeftCorner<3, 3>() * ijk + w.topRightCorner<3, 1>();
+        raster.field->vectors[v] = (p - x).cast<float>();
+      }
+    }
+  }
+}
+
+void rasterise(const TetMesh& mesh, const MeshDeformation& def, const Grid3& grid,
+               double tol, Raster& raster, FieldStats& stats) {
+  const Eigen::Matrix4d voxel_from_world = grid.voxel_from_world();
+  std::vector<Eigen::Vector3d> node_voxel(mesh.node_count());
+  for (std::size_t n = 0; n < mesh.node_count(); ++n) {
+    const Eigen::Vector3d q = def.node_intraop_mm(mesh.nodes_mm[n], n);
+    node_voxel[n] = (voxel_from_world * q.homogeneous()).head<3>();
+  }
+  for (const auto& tet : mesh.tets) {
+    const std::array<Eigen::Vector3d, 4> v{node_voxel[tet[0]], node_voxel[tet[1]],
+                                           node_voxel[tet[2]], node_voxel[tet[3]]};
+    TetScan scan;
+    double det = 0;
+    if (!make_scan(v, grid, tol, scan, det)) {
+      ++stats.skipped_tets;
+      continue;
+    }
+    // Voxel axes may be left-handed, so orientation is judged against the grid's.
+    if (det * grid.world_from_voxel.topLeftCorner<3, 3>().determinant() < 0) ++stats.inverted_tets;
+    const std::array<Eigen::Vector3d, 4> preop{mesh.nodes_mm[tet[0]], mesh.nodes_mm[tet[1]],
+                                               mesh.nodes_mm[tet[2]], mesh.nodes_mm[tet[3]]};
+    scan_tet(scan, preop, grid, tol, raster);
+  }
+}
+
+double smoothstep(double t) {
+  t = std::clamp(t, 0.0, 1.0);
+  return t * t * (3.0 - 2.0 * t);
+}
+
+}  // namespace
+
+VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
+                            const Grid3& intraop_grid, const FieldParameters& params,
+                            FieldStats* stats_out) {
+  validate(preop_mesh, deformation, intraop_grid, params);
+  Stopwatch total;
+  FieldStats stats;
+  const Grid3& grid = intraop_grid;
+  VectorImage3 field(grid);
+  Raster raster{&field, std::vector<float>(grid.voxel_count(), kUncovered)};
+  rasterise(preop_mesh, deformation, grid, params.barycentric_tolerance, raster, stats);
+  stats.rasterise_seconds = total.seconds();
+
+  // Non-rigid remainder r = (x + u) - A^-1 x on covered voxels.
+  const Eigen::Matrix4d preop_from_intraop = deformation.intraop_from_preop.inverse();
+  const Eigen::Matrix3d lin = (preop_from_intraop.topLeftCorner<3, 3>() - Eigen::Matrix3d::Identity()) *
+                              grid.world_from_voxel.topLeftCorner<3, 3>();
+  const Eigen::Vector3d off = (preop_from_intraop.topLeftCorner<3, 3>() - Eigen::Matrix3d::Identity()) *
+                                  grid.world_from_voxel.topRightCorner<3, 1>() +
+                              preop_from_intraop.topRightCorner<3, 1>();
+  // affine pull-back at voxel (i,j,k): A^-1 x - x = lin * ijk + off.
+  const auto affine_u = [&](int i, int j, int k) { return lin * Eigen::Vector3d(i, j, k) + off; };
+
+  Mask region(grid, 0);
+  std::vector<std::uint8_t> known(grid.voxel_count(), 0);
+  std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
+  for (int k = 0; k < grid.dims[2]; ++k)
+    for (int j = 0; j < grid.dims[1]; ++j)
+      for (int i = 0; i < grid.dims[0]; ++i) {
+        const std::size_t v = grid.index(i, j, k);
+        if (raster.depth[v] == kUncovered) continue;
+        known[v] = 1;
+        region.voxels[v] = 1;
+        rest[v] = (field.vectors[v].cast<double>() - affine_u(i, j, k)).cast<float>();
+      }
+
+  Stopwatch fill_timer;
+  // Cavities (ventricles) are holes of the covered region: full weight there.
+  region = fill_holes(region);
+  const ImageF distance = distance_to_mask_mm(region);
+  std::vector<std::uint32_t> free_voxels;
+  std::vector<float> weight(grid.voxel_count(), 0.f);
+  for (std::size_t v = 0; v < grid.voxel_count(); ++v) {
+    weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
+    if (known[v]) {
+      ++stats.covered_voxels;
+      continue;
+    }
+    if (region.voxels[v]) ++stats.cavity_voxels;
+    else if (weight[v] > 0.f) ++stats.blended_voxels;
+    if (weight[v] > 0.f) free_voxels.push_back(static_cast<std::uint32_t>(v));
+  }
+  fill_push_pull(grid, known, rest);
+  relax_laplace(grid, free_voxels, params.smoothing_sweeps, rest);
+  for (int k = 0; k < grid.dims[2]; ++k)
+    for (int j = 0; j < grid.dims[1]; ++j)
+      for (int i = 0; i < grid.dims[0]; ++i) {
+        const std::size_t v = grid.index(i, j, k);
+        if (known[v]) continue;
+        field.vectors[v] = (affine_u(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
+      }
+  stats.fill_seconds = fill_timer.seconds();
+  stats.total_seconds = total.seconds();
+  if (stats_out) *stats_out = stats;
+  return field;
+}
+
+}  // namespace brainshift

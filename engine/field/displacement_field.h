@@ -1,0 +1,60 @@
+#pragma once
+// Dense pull-back displacement field on the intraop grid from a deformed
+// tetrahedral mesh (see core/deformation.h for the frames and the convention
+// x + u(x) = phi^-1(x)).
+//
+// Method:
+//  1. Rasterisation. Every tet is mapped forward, q_k = phi(p_k), and scanned
+//     over the intraop voxels it covers. phi is linear inside a tet (P1), so a
+//     voxel centre x with barycentric coordinates lambda in the deformed tet
+//     pulls back exactly to sum_k lambda_k p_k: u(x) = sum_k lambda_k p_k - x.
+//     A voxel counts as inside when every lambda >= -barycentric_tolerance, so
+//     faces shared by two tets leave no cracks; when several tets claim a voxel
+//     (shared faces, or folded elements) the one in which the voxel lies deepest
+//     (largest min lambda) wins, which makes the result independent of tet order.
+//  2. Continuation. Write u = (A^-1 x - x) + r(x): the affine pull-back plus a
+//     non-rigid remainder r, known on covered voxels. r is extended to the
+//     uncovered voxels by push-pull pyramid inpainting followed by a few
+//     Gauss-Seidel sweeps of the Laplace equation (covered voxels fixed), so the
+//     field is continuous across the mesh boundary and smooth inside the
+//     ventricle cavities. The extension is faded out with distance d from the
+//     "brain region" (covered voxels plus enclosed uncovered voxels, i.e.
+//     cavities): weight = 1 - smoothstep(d / blend_distance_mm). Beyond
+//     blend_distance_mm only the affine remains: u(x) = A^-1 x - x.
+//     Enclosed cavities keep the full non-rigid extension (weight 1).
+#include <cstddef>
+
+#include "core/deformation.h"
+#include "core/image.h"
+#include "core/tet_mesh.h"
+
+namespace brainshift {
+
+struct FieldParameters {
+  // Distance (mm) from the brain region over which the non-rigid part fades to 0.
+  double blend_distance_mm = 10.0;
+  // Barycentric slack for the inside test (dimensionless). Large enough to
+  // absorb round-off on shared faces, small enough not to extrapolate visibly.
+  double barycentric_tolerance = 1e-7;
+  // Laplace sweeps after the pyramid fill (0 = pyramid only).
+  int smoothing_sweeps = 30;
+};
+
+struct FieldStats {
+  std::size_t covered_voxels = 0;   // inside some deformed tet
+  std::size_t cavity_voxels = 0;    // uncovered but enclosed by covered voxels
+  std::size_t blended_voxels = 0;   // outside, 0 < weight < 1
+  std::size_t skipped_tets = 0;     // degenerate after deformation (zero volume)
+  std::size_t inverted_tets = 0;    // negative volume after deformation (folding)
+  double rasterise_seconds = 0.0;
+  double fill_seconds = 0.0;
+  double total_seconds = 0.0;
+};
+
+// Throws InputError when deformation.nonrigid_mm does not have one vector per
+// mesh node, a tet references a missing node, the grid is empty, or A is singular.
+VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
+                            const Grid3& intraop_grid, const FieldParameters& params,
+                            FieldStats* stats = nullptr);
+
+}  // namespace brainshift

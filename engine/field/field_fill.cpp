@@ -1,0 +1,176 @@
+#include "field/field_fill.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+namespace brainshift {
+namespace {
+
+struct Level {
+  std::array<int, 3> dims{1, 1, 1};
+  std::array<int, 3> factor{1, 1, 1};  // how this level was reduced from the finer one
+  std::array<double, 3> spacing{1, 1, 1};
+  std::vector<Eigen::Vector3f> values;  // normalised (weighted mean)
+  std::vector<float> weight;            // in [0, 1]
+
+  std::size_t index(int i, int j, int k) const {
+    return static_cast<std::size_t>(i) +
+           static_cast<std::size_t>(dims[0]) * (static_cast<std::size_t>(j) +
+                                                static_cast<std::size_t>(dims[1]) * k);
+  }
+  std::size_t size() const {
+    return static_cast<std::size_t>(dims[0]) * dims[1] * dims[2];
+  }
+};
+
+bool is_top(const Level& level) {
+  return level.dims[0] == 1 && level.dims[1] == 1 && level.dims[2] == 1;
+}
+
+Level reduce(const Level& fine) {
+  Level coarse;
+  const double finest = std::min({fine.spacing[0], fine.spacing[1], fine.spacing[2]});
+  for (int a = 0; a < 3; ++a) {
+    const bool halve = fine.dims[a] > 1 && fine.spacing[a] <= 1.5 * finest;
+    coarse.factor[a] = halve ? 2 : 1;
+    coarse.dims[a] = (fine.dims[a] + coarse.factor[a] - 1) / coarse.factor[a];
+    coarse.spacing[a] = fine.spacing[a] * coarse.factor[a];
+  }
+  std::vector<Eigen::Vector3f> sum(coarse.size(), Eigen::Vector3f::Zero());
+  std::vector<float> wsum(coarse.size(), 0.f);
+  for (int k = 0; k < fine.dims[2]; ++k) {
+    for (int j = 0; j < fine.dims[1]; ++j) {
+      const std::size_t crow = coarse.index(0, j / coarse.factor[1], k / coarse.factor[2]);
+      std::size_t f = fine.index(0, j, k);
+      for (int i = 0; i < fine.dims[0]; ++i, ++f) {
+        const float w = fine.weight[f];
+        if (w <= 0.f) continue;
+        const std::size_t c = crow + static_cast<std::size_t>(i / coarse.factor[0]);
+        sum[c] += w * fine.values[f];
+        wsum[c] += w;
+      }
+    }
+  }
+  coarse.values.resize(coarse.size());
+  coarse.weight.resize(coarse.size());
+  for (std::size_t c = 0; c < coarse.size(); ++c) {
+    coarse.values[c] = wsum[c] > 0.f ? Eigen::Vector3f(sum[c] / wsum[c]) : Eigen::Vector3f::Zero();
+    coarse.weight[c] = std::min(1.f, wsum[c]);
+  }
+  return coarse;
+}
+
+// Cell-centred correspondence: fine voxel i sits at coarse coordinate (i + 0.5)/f - 0.5.
+struct AxisWeights {
+  std::vector<int> lo, hi;
+  std::vector<float> t;
+};
+
+AxisWeights axis_weights(int fine_n, int coarse_n, int factor) {
+  AxisWeights w;
+  w.lo.resize(fine_n);
+  w.hi.resize(fine_n);
+  w.t.resize(fine_n);
+  for (int i = 0; i < fine_n; ++i) {
+    double c = (i + 0.5) / factor - 0.5;
+    c = std::clamp(c, 0.0, static_cast<double>(coarse_n - 1));
+    const int lo = std::min(static_cast<int>(std::floor(c)), coarse_n - 1);
+    w.lo[i] = lo;
+    w.hi[i] = std::min(lo + 1, coarse_n - 1);
+    w.t[i] = static_cast<float>(c - lo);
+  }
+  return w;
+}
+
+// fine = w * fine + (1 - w) * trilinear(coarse); afterwards fine is complete.
+void pull(const Level& coarse, Level& fine, bool write_weight) {
+  const AxisWeights ax = axis_weights(fine.dims[0], coarse.dims[0], coarse.factor[0]);
+  const AxisWeights ay = axis_weights(fine.dims[1], coarse.dims[1], coarse.factor[1]);
+  const AxisWeights az = axis_weights(fine.dims[2], coarse.dims[2], coarse.factor[2]);
+  for (int k = 0; k < fine.dims[2]; ++k) {
+    for (int j = 0; j < fine.dims[1]; ++j) {
+      std::size_t f = fine.index(0, j, k);
+      for (int i = 0; i < fine.dims[0]; ++i, ++f) {
+        const float w = fine.weight[f];
+        if (w >= 1.f) continue;
+        const auto at = [&](int a, int b, int c) -> const Eigen::Vector3f& {
+          return coarse.values[coarse.index(a, b, c)];
+        };
+        const float tx = ax.t[i], ty = ay.t[j], tz = az.t[k];
+        const int x0 = ax.lo[i], x1 = ax.hi[i], y0 = ay.lo[j], y1 = ay.hi[j], z0 = az.lo[k], z1 = az.hi[k];
+        const Eigen::Vector3f c00 = (1 - tx) * at(x0, y0, z0) + tx * at(x1, y0, z0);
+        const Eigen::Vector3f c10 = (1 - tx) * at(x0, y1, z0) + tx * at(x1, y1, z0);
+        const Eigen::Vector3f c01 = (1 - tx) * at(x0, y0, z1) + tx * at(x1, y0, z1);
+        const Eigen::Vector3f c11 = (1 - tx) * at(x0, y1, z1) + tx * at(x1, y1, z1);
+        const Eigen::Vector3f up =
+            (1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11);
+        fine.values[f] = w * fine.values[f] + (1.f - w) * up;
+        if (write_weight) fine.weight[f] = 1.f;
+      }
+    }
+  }
+}
+
+}  // namespace
+
+void fill_push_pull(const Grid3& grid, const std::vector<std::uint8_t>& known,
+                    std::vector<Eigen::Vector3f>& values) {
+  Level base;
+  base.dims = grid.dims;
+  const Eigen::Vector3d sp = grid.spacing_mm();
+  base.spacing = {sp.x(), sp.y(), sp.z()};
+  base.values = std::move(values);
+  base.weight.resize(base.size());
+  bool any_known = false;
+  for (std::size_t v = 0; v < base.size(); ++v) {
+    base.weight[v] = known[v] ? 1.f : 0.f;
+    any_known = any_known || known[v];
+  }
+  if (!any_known) {
+    std::fill(base.values.begin(), base.values.end(), Eigen::Vector3f::Zero());
+    values = std::move(base.values);
+    return;
+  }
+  std::vector<Level> pyramid;
+  pyramid.push_back(std::move(base));
+  while (!is_top(pyramid.back())) pyramid.push_back(reduce(pyramid.back()));
+  // The 1x1x1 top holds the mean of all known values and has weight 1.
+  for (std::size_t l = pyramid.size() - 1; l > 0; --l) {
+    pull(pyramid[l], pyramid[l - 1], /*write_weight=*/l - 1 > 0);
+  }
+  values = std::move(pyramid.front().values);
+}
+
+void relax_laplace(const Grid3& grid, const std::vector<std::uint32_t>& free_voxels,
+                   int sweeps, std::vector<Eigen::Vector3f>& values) {
+  const Eigen::Vector3d sp = grid.spacing_mm();
+  const std::array<float, 3> w{static_cast<float>(1.0 / (sp.x() * sp.x())),
+                               static_cast<float>(1.0 / (sp.y() * sp.y())),
+                               static_cast<float>(1.0 / (sp.z() * sp.z()))};
+  const std::array<std::size_t, 3> stride{1, static_cast<std::size_t>(grid.dims[0]),
+                                          static_cast<std::size_t>(grid.dims[0]) * grid.dims[1]};
+  for (int s = 0; s < sweeps; ++s) {
+    for (const std::uint32_t v : free_voxels) {
+      std::size_t rest = v;
+      const std::array<int, 3> ijk{static_cast<int>(rest % grid.dims[0]),
+                                   static_cast<int>((rest / grid.dims[0]) % grid.dims[1]),
+                                   static_cast<int>(rest / stride[2])};
+      Eigen::Vector3f sum = Eigen::Vector3f::Zero();
+      float wsum = 0.f;
+      for (int a = 0; a < 3; ++a) {
+        if (ijk[a] > 0) {
+          sum += w[a] * values[v - stride[a]];
+          wsum += w[a];
+        }
+        if (ijk[a] + 1 < grid.dims[a]) {
+          sum += w[a] * values[v + stride[a]];
+          wsum += w[a];
+        }
+      }
+      if (wsum > 0.f) values[v] = sum / wsum;
+    }
+  }
+}
+
+}  // namespace brainshift
