@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <thread>
 #include <vector>
 
 namespace brainshift {
@@ -37,46 +38,71 @@ void row_pass(const Grid3& g, double sx, IsFeature&& is_feature, std::vector<flo
 }
 
 // Lower envelope of parabolas on one line: d[q] = min_p (s^2 (q-p)^2 + f[p]).
+// Works with g[p] = f[p] + s^2 p^2 so each intersection costs one division.
 class LinePass {
  public:
-  explicit LinePass(int n) : f_(n), v_(n), z_(n + 1) {}
+  explicit LinePass(int n) : g_(n), v_(n), z_(n + 1) {}
 
-  void run(float* data, std::size_t n, std::size_t stride, double spacing) {
+  void run(float* data, int n, double spacing) {
     const double s2 = spacing * spacing;
-    for (std::size_t q = 0; q < n; ++q) f_[q] = data[q * stride];
     int k = -1;
-    for (int q = 0; q < static_cast<int>(n); ++q) {
-      if (std::isinf(f_[q])) continue;  // infinite parabolas never touch the envelope
-      const double fq = f_[q] + s2 * q * q;
+    for (int q = 0; q < n; ++q) {
+      if (std::isinf(data[q])) continue;  // infinite parabolas never touch the envelope
+      const double gq = data[q] + s2 * q * q;
+      g_[q] = gq;
+      double s = -std::numeric_limits<double>::infinity();
       while (k >= 0) {
         const int p = v_[k];
-        const double s = (fq - (f_[p] + s2 * p * p)) / (2.0 * s2 * (q - p));
-        if (s > z_[k]) {
-          z_[k + 1] = s;
-          break;
-        }
+        s = (gq - g_[p]) / (2.0 * s2 * (q - p));
+        if (s > z_[k]) break;
         --k;
       }
-      if (k < 0) z_[0] = -std::numeric_limits<double>::infinity();
       ++k;
       v_[k] = q;
-      if (k == 0) z_[0] = -std::numeric_limits<double>::infinity();
+      z_[k] = k == 0 ? -std::numeric_limits<double>::infinity() : s;
       z_[k + 1] = std::numeric_limits<double>::infinity();
     }
     if (k < 0) return;  // whole line infinite: leave as is
     int j = 0;
-    for (std::size_t q = 0; q < n; ++q) {
-      while (z_[j + 1] < static_cast<double>(q)) ++j;
-      const double dq = static_cast<double>(q) - v_[j];
-      data[q * stride] = static_cast<float>(s2 * dq * dq + f_[v_[j]]);
+    for (int q = 0; q < n; ++q) {
+      while (z_[j + 1] < q) ++j;
+      const int p = v_[j];
+      data[q] = static_cast<float>(g_[p] - s2 * p * p + s2 * (q - p) * (q - p));
     }
   }
 
  private:
-  std::vector<double> f_;
+  std::vector<double> g_;
   std::vector<int> v_;
   std::vector<double> z_;
 };
+
+// dst (cols x rows) = transpose of src (rows x cols, row-major), in cache-sized tiles.
+void transpose(const float* src, std::size_t rows, std::size_t cols, std::size_t src_stride, float* dst,
+               std::size_t dst_stride) {
+  constexpr std::size_t kTile = 16;
+  for (std::size_t r0 = 0; r0 < rows; r0 += kTile)
+    for (std::size_t c0 = 0; c0 < cols; c0 += kTile) {
+      const std::size_t r1 = std::min(rows, r0 + kTile), c1 = std::min(cols, c0 + kTile);
+      for (std::size_t r = r0; r < r1; ++r)
+        for (std::size_t c = c0; c < c1; ++c) dst[c * dst_stride + r] = src[r * src_stride + c];
+    }
+}
+
+// Runs fn(begin, end) on contiguous chunks of [0, n) in up to two threads: the
+// OR machines have two cores and this stage sits on the intraop critical path.
+template <class Fn>
+void parallel_chunks(int n, Fn&& fn) {
+  const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  const int workers = std::min({2, cores, std::max(1, n / 8)});
+  if (workers <= 1) {
+    fn(0, n);
+    return;
+  }
+  std::thread helper([&] { fn(n / 2, n); });
+  fn(0, n / 2);
+  helper.join();
+}
 
 template <class IsFeature>
 ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
@@ -88,30 +114,29 @@ ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
   float* d = out.voxels.data();
   // Lines along y and z are strided in memory; each slab is transposed into a
   // buffer where those lines are contiguous (3-4x faster than strided access).
-  std::vector<float> buf(static_cast<std::size_t>(nx) * std::max(ny, nz));
-  LinePass along_y(ny);
-  for (int k = 0; k < nz; ++k) {
-    float* slice = d + g.index(0, 0, k);
-    for (int j = 0; j < ny; ++j)
-      for (int i = 0; i < nx; ++i) buf[static_cast<std::size_t>(i) * ny + j] = slice[static_cast<std::size_t>(j) * nx + i];
-    for (int i = 0; i < nx; ++i) along_y.run(buf.data() + static_cast<std::size_t>(i) * ny, ny, 1, sp[1]);
-    for (int j = 0; j < ny; ++j)
-      for (int i = 0; i < nx; ++i) slice[static_cast<std::size_t>(j) * nx + i] = buf[static_cast<std::size_t>(i) * ny + j];
-  }
-  if (nz > 1) {
-    LinePass along_z(nz);
-    for (int j = 0; j < ny; ++j) {
-      for (int k = 0; k < nz; ++k) {
-        const float* row = d + g.index(0, j, k);
-        for (int i = 0; i < nx; ++i) buf[static_cast<std::size_t>(i) * nz + k] = row[i];
-      }
-      for (int i = 0; i < nx; ++i) along_z.run(buf.data() + static_cast<std::size_t>(i) * nz, nz, 1, sp[2]);
-      for (int k = 0; k < nz; ++k) {
-        float* row = d + g.index(0, j, k);
-        for (int i = 0; i < nx; ++i) row[i] = buf[static_cast<std::size_t>(i) * nz + k];
-      }
+  const std::size_t snx = nx, sny = ny, snz = nz, slab = snx * sny;
+  parallel_chunks(nz, [&](int k0, int k1) {
+    LinePass along_y(ny);
+    std::vector<float> buf(snx * sny);
+    for (int k = k0; k < k1; ++k) {
+      float* slice = d + k * slab;
+      transpose(slice, sny, snx, snx, buf.data(), sny);  // buf: nx lines of ny
+      for (std::size_t i = 0; i < snx; ++i) along_y.run(buf.data() + i * sny, ny, sp[1]);
+      transpose(buf.data(), snx, sny, sny, slice, snx);
     }
-  }
+  });
+  if (nz == 1) return out;
+  // The (x, z) plane at fixed y: rows of nx values, nx*ny apart.
+  parallel_chunks(ny, [&](int j0, int j1) {
+    LinePass along_z(nz);
+    std::vector<float> buf(snx * snz);
+    for (int j = j0; j < j1; ++j) {
+      float* plane = d + j * snx;
+      transpose(plane, snz, snx, slab, buf.data(), snz);  // buf: nx lines of nz
+      for (std::size_t i = 0; i < snx; ++i) along_z.run(buf.data() + i * snz, nz, sp[2]);
+      transpose(buf.data(), snx, snz, snz, plane, slab);
+    }
+  });
   return out;
 }
 

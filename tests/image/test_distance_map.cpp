@@ -1,6 +1,8 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
+#include <ctime>
 #include <limits>
 #include <random>
 
@@ -89,11 +91,14 @@ TEST(DistanceMap, SignedDistanceOfIntraopSizedGridIsFast) {
         m.at(i, j, k) = Eigen::Vector3d((i - 125) * 0.94, (j - 125) * 0.94, (k - 30) * 2.5).norm() < 70;
   signed_distance_mm(m);  // warm caches and pages
   Stopwatch sw;
+  const std::clock_t cpu0 = std::clock();
   const ImageF s = signed_distance_mm(m);
-  const double seconds = sw.seconds();
-  RecordProperty("signed_distance_256x256x60_s", std::to_string(seconds));
-  std::printf("signed_distance_mm 256x256x60: %.3f s\n", seconds);
-  EXPECT_LT(seconds, 0.25);  // budget 0.1 s in Release; slack for a loaded CI machine
+  const double cpu_seconds = double(std::clock() - cpu0) / CLOCKS_PER_SEC;  // summed over threads
+  const double wall_seconds = sw.seconds();
+  std::printf("signed_distance_mm 256x256x60: %.3f s wall, %.3f s CPU\n", wall_seconds, cpu_seconds);
+  // The budget is 0.1 s wall on an idle 2-core machine; CPU time is asserted
+  // because wall time on a shared CI machine measures the other jobs.
+  EXPECT_LT(cpu_seconds, 0.3);
   EXPECT_LT(s.at(125, 125, 30), -45.f);  // the ball is cut at +-50 mm in z
 }
 
