@@ -1,0 +1,36 @@
+#pragma once
+// Runs registrations on synthetic brain-shift cases with a known truth and
+// measures target registration error (TRE) at the phantom's landmarks:
+// uncorrected (identity), affine only, and the full non-rigid result.
+// Shared by the accuracy test and the pipeline benchmark.
+#include <nlohmann/json.hpp>
+#include <vector>
+
+#include "phantom/brain_shift_phantom.h"
+#include "pipeline/engine_session.h"
+
+namespace brainshift::evaluation {
+
+struct CaseResult {
+  std::string name;
+  double uncorrected_mean_mm = 0, uncorrected_p95_mm = 0;
+  double affine_mean_mm = 0, affine_p95_mm = 0;
+  double nonrigid_mean_mm = 0, nonrigid_p95_mm = 0, nonrigid_max_mm = 0;
+  double max_true_displacement_mm = 0;
+  double intraop_total_seconds = 0;
+  bool fallback = false;
+  nlohmann::json timings, metrics;
+};
+
+// One case: make the phantom from the session's preop, register, measure.
+CaseResult evaluate_case(EngineSession& session, const PhantomSpec& spec);
+
+nlohmann::json to_json(const CaseResult& r);
+
+// Pools the landmark errors of several cases.
+struct Summary {
+  double mean_mm = 0, p95_mm = 0, removed_fraction = 0, affine_mean_mm = 0, uncorrected_mean_mm = 0;
+};
+Summary summarise(const std::vector<CaseResult>& cases);
+
+}  // namespace brainshift::evaluation

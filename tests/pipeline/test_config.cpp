@@ -1,0 +1,62 @@
+#include <gtest/gtest.h>
+
+#include "config_file.h"
+#include "core/errors.h"
+
+using namespace brainshift;
+
+TEST(Config, DefaultsParseAndMatchTheDocumentedTable) {
+  const auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
+  ASSERT_EQ(p.label_table.entries.size(), 4u);
+  EXPECT_EQ(p.label_table.brain_label(), 1);
+  EXPECT_EQ(p.label_table.cavity_labels(), std::vector<std::uint16_t>{2});
+  EXPECT_EQ(p.label_table.find("corticospinal_tract")->value, 3);
+  EXPECT_EQ(p.label_table.find("tumor")->value, 4);
+  EXPECT_DOUBLE_EQ(p.label_table.find(1)->youngs_modulus_pa, 3000.0);
+  EXPECT_DOUBLE_EQ(p.label_table.find(1)->poisson_ratio, 0.45);
+  EXPECT_EQ(p.elastic.solver, SolverKind::direct_cholesky);
+  EXPECT_EQ(p.elastic.dirichlet, DirichletMethod::symmetric_elimination);
+}
+
+TEST(Config, ValuesOverrideDefaults) {
+  const auto p = config::pipeline_parameters_from_text(
+      "[mesh]\ncell_size_mm = 5.5\n[elastic]\nsolver = \"cg_gamg\"\n[surface.outer]\nmembrane_stiffness = 3.0\n", "t");
+  EXPECT_DOUBLE_EQ(p.meshing.cell_size_mm, 5.5);
+  EXPECT_EQ(p.elastic.solver, SolverKind::cg_gamg);
+  EXPECT_DOUBLE_EQ(p.outer_surface.membrane_stiffness, 3.0);
+}
+
+TEST(Config, TyposAndBadValuesAreErrorsNamingTheKey) {
+  auto message_of = [](const std::string& text) {
+    try {
+      config::pipeline_parameters_from_text(text, "bad.toml");
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(message_of("[mesh]\ncell_sise_mm = 3\n").find("cell_sise_mm"), std::string::npos);
+  EXPECT_NE(message_of("[mesh]\ncell_size_mm = \"big\"\n").find("cell_size_mm"), std::string::npos);
+  EXPECT_NE(message_of("[elastic]\nsolver = \"magic\"\n").find("magic"), std::string::npos);
+  EXPECT_NE(message_of("[nonsense]\nx = 1\n").find("nonsense"), std::string::npos);
+  EXPECT_NE(message_of("[mesh\n").find("bad.toml"), std::string::npos);
+}
+
+TEST(Config, LabelTableValidation) {
+  const char* two_parenchyma =
+      "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\n"
+      "[[label]]\nvalue = 2\nname = \"b\"\nrole = \"parenchyma\"\n";
+  EXPECT_THROW(config::label_table_from_text(two_parenchyma, "t"), InputError);
+  const char* bad_nu = "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\npoisson_ratio = 0.5\n";
+  EXPECT_THROW(config::label_table_from_text(bad_nu, "t"), InputError);
+  const char* duplicate = "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\n"
+                          "[[label]]\nvalue = 1\nname = \"b\"\n";
+  EXPECT_THROW(config::label_table_from_text(duplicate, "t"), InputError);
+  const char* bad_role = "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"bone\"\n";
+  EXPECT_THROW(config::label_table_from_text(bad_role, "t"), InputError);
+  const char* custom = "[[label]]\nvalue = 7\nname = \"cortex\"\nrole = \"parenchyma\"\nyoungs_modulus_pa = 2000.0\n"
+                       "[[label]]\nvalue = 9\nname = \"csf\"\nrole = \"cavity\"\n";
+  const auto t = config::label_table_from_text(custom, "t");
+  EXPECT_EQ(t.brain_label(), 7);
+  EXPECT_EQ(t.cavity_labels(), std::vector<std::uint16_t>{9});
+}

@@ -1,0 +1,176 @@
+// The pipeline end to end on a small synthetic head: an ellipsoidal brain with
+// two ventricles. Fast (coarse mesh); the Colin27 acceptance run is separate.
+#include <gtest/gtest.h>
+#include <mpi.h>
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+
+#include "config_file.h"
+#include "core/errors.h"
+#include "image/resample.h"
+#include "pipeline/engine_session.h"
+
+using namespace brainshift;
+namespace fs = std::filesystem;
+
+namespace {
+
+Grid3 grid(std::array<int, 3> dims, double spacing, Eigen::Vector3d origin) {
+  Grid3 g;
+  g.dims = dims;
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  g.world_from_voxel.topLeftCorner<3, 3>() *= spacing;
+  g.world_from_voxel.block<3, 1>(0, 3) = origin;
+  return g;
+}
+
+double ellipsoid(const Eigen::Vector3d& p, const Eigen::Vector3d& c, const Eigen::Vector3d& r) {
+  return (p - c).cwiseQuotient(r).squaredNorm();
+}
+
+PreopInput synthetic_head() {
+  const Grid3 g = grid({90, 100, 80}, 1.5, {-67.5, -75, -60});
+  PreopInput in{ImageF(g), LabelImage(g)};
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        std::uint16_t l = 0;
+        if (ellipsoid(p, {0, 0, 0}, {55, 65, 48}) < 1) l = 1;
+        if (ellipsoid(p, {-12, 5, 8}, {7, 22, 9}) < 1 || ellipsoid(p, {12, 5, 8}, {7, 22, 9}) < 1) l = 2;
+        if (ellipsoid(p, {25, -20, -10}, {6, 6, 6}) < 1) l = 4;
+        in.labels.at(i, j, k) = l;
+        in.t1.at(i, j, k) = l == 0 ? 10.f : l == 2 ? 30.f : l == 4 ? 150.f : 100.f;
+      }
+  return in;
+}
+
+PipelineParameters coarse_parameters() {
+  auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
+  p.meshing.cell_size_mm = 7;
+  p.meshing.facet_size_mm = 4;
+  p.meshing.facet_distance_mm = 1.5;
+  return p;
+}
+
+// The intraop labels: preop labels (brain 1 = everything but the ventricles)
+// on an anisotropic iMRI-like grid, moved by a rigid translation.
+IntraopInput translated_scan(const PreopInput& preop, const Eigen::Vector3d& shift_mm) {
+  const Grid3 g = grid({100, 110, 44}, 1.4, {-70, -77, -62});
+  Grid3 aniso = g;
+  aniso.world_from_voxel(2, 2) = 2.8;
+  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
+  preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
+  LabelImage labels = resample_nearest(preop.labels, aniso, preop_from_intraop);
+  for (auto& v : labels.voxels)
+    if (v == 4) v = 1;
+  IntraopInput in{labels, resample_linear(preop.t1, aniso, preop_from_intraop)};
+  return in;
+}
+
+class PipelineTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    preop_ = new PreopInput(synthetic_head());
+    session_ = new EngineSession(MPI_COMM_WORLD, coarse_parameters());
+    session_->load_preop(*preop_, nullptr);
+  }
+  static void TearDownTestSuite() {
+    delete session_;
+    delete preop_;
+  }
+  static PreopInput* preop_;
+  static EngineSession* session_;
+};
+PreopInput* PipelineTest::preop_ = nullptr;
+EngineSession* PipelineTest::session_ = nullptr;
+
+TEST_F(PipelineTest, WarmStateHasTheOuterAndVentricleSurfaces) {
+  ASSERT_TRUE(session_->ready());
+  EXPECT_GT(session_->mesh().node_count(), 1000u);
+  int outer = 0, wall = 0;
+  for (const auto& f : session_->mesh().boundary_faces) (f.neighbour_label == 0 ? outer : wall)++;
+  EXPECT_GT(outer, 100);
+  EXPECT_GT(wall, 20) << "the ventricle cavity has no wall";
+  const auto t = session_->preop_timings();
+  for (const char* key : {"atlas", "mesh", "assemble", "factorise", "total"}) EXPECT_TRUE(t.contains(key)) << key;
+}
+
+TEST_F(PipelineTest, RecoversARigidTranslationEverywhereInTheBrain) {
+  const Eigen::Vector3d shift(4.0, -3.0, 2.5);
+  const IntraopInput scan = translated_scan(*preop_, shift);
+  const ScanResult r = session_->register_scan(scan, nullptr);
+  EXPECT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  // Pull-back of a translation by s is -s at every voxel.
+  double worst = 0;
+  std::size_t n = 0;
+  for (std::size_t v = 0; v < scan.labels.voxels.size(); ++v) {
+    if (scan.labels.voxels[v] == 0) continue;
+    worst = std::max(worst, (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm());
+    ++n;
+  }
+  EXPECT_GT(n, 10000u);
+  EXPECT_LT(worst, 1.0) << "max error of the recovered translation inside the brain";
+  EXPECT_GT(r.metrics["labels"]["brain"]["dice"].get<double>(), 0.95);
+  for (const char* key : {"read", "affine", "surface", "solve", "field", "warp", "models", "total"})
+    EXPECT_TRUE(r.timings["intraop"].contains(key)) << key;
+  EXPECT_EQ(r.timings["mesh"]["nodes"].get<std::size_t>(), session_->mesh().node_count());
+  for (const char* model : {"brain", "ventricles", "tumor"}) EXPECT_TRUE(r.models.count(model)) << model;
+}
+
+TEST_F(PipelineTest, BadIntraopInputIsAClearErrorAndTheSessionKeepsServing) {
+  IntraopInput scan = translated_scan(*preop_, Eigen::Vector3d::Zero());
+  IntraopInput empty = scan;
+  std::fill(empty.labels.voxels.begin(), empty.labels.voxels.end(), 0);
+  EXPECT_THROW(session_->register_scan(empty, nullptr), InputError);
+  IntraopInput unknown = scan;
+  unknown.labels.voxels[unknown.labels.grid.index(50, 55, 22)] = 99;
+  EXPECT_THROW(session_->register_scan(unknown, nullptr), InputError);
+  IntraopInput mismatched = scan;
+  mismatched.t1->grid.world_from_voxel(0, 3) += 5.0;
+  EXPECT_THROW(session_->register_scan(mismatched, nullptr), InputError);
+  IntraopInput partial = scan;  // a field of view that misses most of the brain
+  for (int k = 0; k < partial.labels.grid.dims[2]; ++k)
+    for (int j = 0; j < partial.labels.grid.dims[1]; ++j)
+      for (int i = 0; i < partial.labels.grid.dims[0]; ++i)
+        if (k > 12) partial.labels.at(i, j, k) = 0;
+  EXPECT_THROW(session_->register_scan(partial, nullptr), InputError);
+  EXPECT_EQ(session_->register_scan(scan, nullptr).kind, ResultKind::nonrigid);
+}
+
+TEST_F(PipelineTest, AFailedPreopLoadKeepsTheWarmState) {
+  const std::size_t nodes = session_->mesh().node_count();
+  PreopInput bad = *preop_;
+  std::fill(bad.labels.voxels.begin(), bad.labels.voxels.end(), 0);
+  EXPECT_THROW(session_->load_preop(bad, nullptr), InputError);
+  ASSERT_TRUE(session_->ready());
+  EXPECT_EQ(session_->mesh().node_count(), nodes);
+  EXPECT_EQ(session_->register_scan(translated_scan(*preop_, {1, 0, 0}), nullptr).kind, ResultKind::nonrigid);
+}
+
+TEST_F(PipelineTest, OutputsAreWrittenCompletelyOrNotAtAll) {
+  const IntraopInput scan = translated_scan(*preop_, {2, 0, 0});
+  const ScanResult r = session_->register_scan(scan, nullptr);
+  const fs::path dir = fs::temp_directory_path() / ("brainshift-out-" + std::to_string(::getpid()));
+  write_scan_outputs(r, &*scan.t1, dir);
+  for (const char* f : {"field.nii.gz", "field.h5", "warped_image.nii.gz", "warped_labels.nii.gz", "metrics.json",
+                        "timings.json", "report.png", "models/brain.vtp", "models/ventricles.vtp"})
+    EXPECT_TRUE(fs::exists(dir / f)) << f;
+  fs::remove_all(dir);
+  const fs::path blocked = fs::temp_directory_path() / ("brainshift-file-" + std::to_string(::getpid()));
+  { std::ofstream(blocked) << "a file, not a folder"; }
+  EXPECT_ANY_THROW(write_scan_outputs(r, &*scan.t1, blocked / "out"));
+  EXPECT_FALSE(fs::exists(blocked / "out"));
+  fs::remove(blocked);
+}
+
+TEST(PipelineSession, RegisteringBeforeAPreopIsLoadedIsAnInputError) {
+  EngineSession session(MPI_COMM_WORLD, coarse_parameters());
+  IntraopInput scan;
+  EXPECT_THROW(session.register_scan(scan, nullptr), InputError);
+}
+
+}  // namespace
