@@ -1,0 +1,43 @@
+#pragma once
+// Internal helper for the typed parsers: reads fields of a JSON object and
+// throws ProtocolError(kInvalidRequest) naming the message and the field, so
+// every refusal tells the sender exactly what to fix.
+#include <cstdint>
+#include <optional>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "protocol/error_codes.h"
+
+namespace brainshift::protocol::detail {
+
+class FieldReader {
+ public:
+  FieldReader(const nlohmann::json& object, std::string context);
+
+  std::string string(const char* key) const;  // required, non-empty
+  std::optional<std::string> opt_string(const char* key) const;
+  std::uint64_t uint(const char* key) const;
+  std::optional<std::uint64_t> opt_uint(const char* key) const;
+  double number(const char* key) const;  // finite
+  double fraction(const char* key) const;  // in [0, 1]
+  bool boolean(const char* key, bool fallback) const;
+  const nlohmann::json& array(const char* key) const;
+  const nlohmann::json* opt_array(const char* key) const;
+  const nlohmann::json& object(const char* key) const;
+  const nlohmann::json* opt_object(const char* key) const;
+  bool has(const char* key) const { return object_.contains(key); }
+
+  [[noreturn]] void fail(const char* key, const std::string& what) const;
+
+ private:
+  const nlohmann::json* find(const char* key) const;
+  const nlohmann::json& object_;
+  std::string context_;
+};
+
+// Printable ASCII, 1..128 characters: ids chosen by clients or the server.
+bool is_valid_id(const std::string& id);
+
+}  // namespace brainshift::protocol::detail

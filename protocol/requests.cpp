@@ -1,0 +1,516 @@
+#include "protocol/requests.h"
+
+#include <algorithm>
+#include <array>
+#include <set>
+#include <utility>
+
+#include "protocol/fields.h"
+#include "protocol/media.h"
+#include "protocol/version.h"
+
+namespace brainshift::protocol {
+namespace {
+
+using nlohmann::json;
+using detail::FieldReader;
+
+template <class E, std::size_t N>
+using NameTable = std::array<std::pair<E, std::string_view>, N>;
+
+constexpr NameTable<ServerState, 4> kServerStates{{{ServerState::kIdle, "idle"},
+                                                   {ServerState::kLoadingPreop, "loading_preop"},
+                                                   {ServerState::kReady, "ready"},
+                                                   {ServerState::kProcessing, "processing"}}};
+constexpr NameTable<ScanState, 4> kScanStates{{{ScanState::kQueued, "queued"},
+                                               {ScanState::kProcessing, "processing"},
+                                               {ScanState::kDone, "done"},
+                                               {ScanState::kFailed, "failed"}}};
+constexpr NameTable<Structure, 4> kStructures{
+    {{Structure::kBrain, "brain"},
+     {Structure::kVentricles, "ventricles"},
+     {Structure::kCorticospinalTract, "corticospinal_tract"},
+     {Structure::kTumor, "tumor"}}};
+constexpr NameTable<ResultPart, 7> kParts{{{ResultPart::kDisplacement, "displacement"},
+                                           {ResultPart::kDisplacementItk, "displacement_itk"},
+                                           {ResultPart::kWarpedImage, "warped_image"},
+                                           {ResultPart::kWarpedLabels, "warped_labels"},
+                                           {ResultPart::kModels, "models"},
+                                           {ResultPart::kMetrics, "metrics"},
+                                           {ResultPart::kTimings, "timings"}}};
+
+template <class E, std::size_t N>
+std::string_view name_of(const NameTable<E, N>& table, E value) {
+  for (const auto& [e, n] : table)
+    if (e == value) return n;
+  throw std::logic_error("enum value without a wire name");
+}
+
+template <class E, std::size_t N>
+std::optional<E> value_of(const NameTable<E, N>& table, std::string_view name) {
+  for (const auto& [e, n] : table)
+    if (n == name) return e;
+  return std::nullopt;
+}
+
+std::string context_of(const Message& m) { return std::string(to_string(m.type())); }
+
+// Replies: an error reply is rethrown as the ProtocolError it describes, so a
+// client can call parse_*_reply directly on whatever came back.
+void expect_type(const Message& m, MessageType expected) {
+  if (kind_of(expected) == MessageKind::kReply) throw_if_error(m);
+  const auto actual = m.type();
+  if (actual != expected)
+    throw ProtocolError(ErrorCode::kInvalidRequest,
+                        "expected a " + std::string(to_string(expected)) + " message, got " +
+                            std::string(to_string(actual)),
+                        m.request_id());
+}
+
+// "Extra frames" are refused by name: each type lists the frames it may carry.
+void expect_frames(const Message& m, std::initializer_list<std::string_view> allowed) {
+  for (const auto& f : m.frames)
+    if (std::find(allowed.begin(), allowed.end(), f.name) == allowed.end())
+      throw ProtocolError(ErrorCode::kInvalidRequest,
+                          context_of(m) + ": unexpected frame \"" + f.name + "\"", m.request_id());
+}
+
+// A frame of that name, its media type accepted by `accepts`, content checked.
+template <class Accepts>
+std::optional<Frame> get_frame(const Message& m, std::string_view name, Accepts accepts) {
+  const Frame* f = m.find_frame(name);
+  if (!f) return std::nullopt;
+  if (!accepts(f->media_type))
+    throw ProtocolError(ErrorCode::kInvalidRequest,
+                        context_of(m) + ": frame \"" + f->name + "\" may not have media type " +
+                            f->media_type,
+                        m.request_id());
+  media::check_content(*f);
+  return *f;
+}
+
+bool nifti_media(std::string_view t) { return media::is_nifti(t); }
+bool json_media(std::string_view t) { return t == media::kJson; }
+
+// Attaches the request id to any field error found while parsing m.
+template <class Fn>
+auto with_request_id(const Message& m, Fn fn) {
+  try {
+    return fn();
+  } catch (ProtocolError& e) {
+    if (!e.request_id()) e.set_request_id(m.request_id());
+    throw;
+  }
+}
+
+Message with_frames(Message m, std::vector<Frame> frames) {
+  m.frames = std::move(frames);
+  return m;
+}
+
+json string_array(const std::vector<std::string>& v) { return json(v); }
+
+}  // namespace
+
+// ---- enumerations ----------------------------------------------------------
+
+std::string_view to_string(ServerState s) { return name_of(kServerStates, s); }
+std::string_view to_string(ScanState s) { return name_of(kScanStates, s); }
+std::string_view to_string(Structure s) { return name_of(kStructures, s); }
+std::string_view to_string(ResultPart p) { return name_of(kParts, p); }
+std::optional<ServerState> server_state_from_string(std::string_view s) {
+  return value_of(kServerStates, s);
+}
+std::optional<ScanState> scan_state_from_string(std::string_view s) {
+  return value_of(kScanStates, s);
+}
+std::optional<Structure> structure_from_string(std::string_view s) {
+  return value_of(kStructures, s);
+}
+std::optional<ResultPart> result_part_from_string(std::string_view s) {
+  return value_of(kParts, s);
+}
+const std::vector<Structure>& all_structures() {
+  static const std::vector<Structure> all{Structure::kBrain, Structure::kVentricles,
+                                          Structure::kCorticospinalTract, Structure::kTumor};
+  return all;
+}
+std::string frame_name(ResultPart part) {
+  if (part == ResultPart::kModels)
+    throw std::invalid_argument("frame_name: models travel as model.<structure> frames");
+  return std::string(to_string(part));
+}
+std::string model_frame_name(Structure s) { return "model." + std::string(to_string(s)); }
+
+// ---- label table -----------------------------------------------------------
+
+std::string make_label_table_json(const LabelTable& table) {
+  json structures = json::object();
+  for (const auto& [s, values] : table.structures) structures[std::string(to_string(s))] = values;
+  return json{{"v", 1}, {"structures", structures}}.dump(2);
+}
+
+LabelTable parse_label_table_json(std::string_view text) {
+  const json j = json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded()) throw ProtocolError(ErrorCode::kInvalidRequest, "label_table: not valid JSON");
+  const FieldReader f(j, "label_table");
+  if (f.uint("v") != 1) f.fail("v", "must be 1");
+  LabelTable table;
+  for (const auto& [name, values] : f.object("structures").items()) {
+    const auto s = structure_from_string(name);
+    if (!s) f.fail("structures", "names unknown structure \"" + name + "\"");
+    if (!values.is_array() || values.empty()) f.fail("structures", "\"" + name + "\" needs a non-empty array");
+    for (const auto& v : values) {
+      if (!v.is_number_unsigned() || v.get<std::uint64_t>() == 0 || v.get<std::uint64_t>() > 65535)
+        f.fail("structures", "\"" + name + "\" values must be label values in 1..65535");
+      table.structures[*s].push_back(v.get<std::uint16_t>());
+    }
+  }
+  if (!table.structures.count(Structure::kBrain))
+    f.fail("structures", "must define \"brain\"");
+  return table;
+}
+
+// ---- status ----------------------------------------------------------------
+
+Message make_status_request(const std::string& request_id) {
+  return make_message(MessageType::kStatus, request_id);
+}
+
+StatusRequest parse_status_request(const Message& m) {
+  expect_type(m, MessageType::kStatus);
+  expect_frames(m, {});
+  return {};
+}
+
+Message make_status_reply(const std::string& request_id, const StatusReply& r) {
+  Message m = make_message(MessageType::kStatusReply, request_id);
+  auto& h = m.header;
+  h["state"] = std::string(to_string(r.state));
+  if (r.progress) h["progress"] = {{"stage", r.progress->stage}, {"fraction", r.progress->fraction}};
+  h["versions"] = r.versions;
+  h["versions"]["protocol"] = std::to_string(kProtocolVersion);
+  if (r.preop_id) h["preop_id"] = *r.preop_id;
+  if (r.mesh) h["mesh"] = to_json_value(*r.mesh);
+  h["mpi_ranks"] = r.mpi_ranks;
+  h["queue"] = {{"depth", r.queue.depth}, {"capacity", r.queue.capacity}};
+  if (r.current_scan_id) h["current_scan_id"] = *r.current_scan_id;
+  if (r.last_error) h["last_error"] = to_json_value(*r.last_error);
+  return m;
+}
+
+StatusReply parse_status_reply(const Message& m) {
+  expect_type(m, MessageType::kStatusReply);
+  expect_frames(m, {});
+  const FieldReader f(m.header, "status.reply");
+  StatusReply r;
+  const auto state = server_state_from_string(f.string("state"));
+  if (!state) f.fail("state", "is not a known server state");
+  r.state = *state;
+  if (const json* p = f.opt_object("progress")) {
+    const FieldReader pf(*p, "status.reply.progress");
+    r.progress = Progress{pf.string("stage"), pf.fraction("fraction")};
+  }
+  for (const auto& [k, v] : f.object("versions").items()) {
+    if (!v.is_string()) f.fail("versions", "values must be strings");
+    r.versions[k] = v.get<std::string>();
+  }
+  r.preop_id = f.opt_string("preop_id");
+  if (const json* mesh = f.opt_object("mesh")) r.mesh = mesh_size_from_json(*mesh, "status.reply.mesh");
+  r.mpi_ranks = f.uint("mpi_ranks");
+  const FieldReader q(f.object("queue"), "status.reply.queue");
+  r.queue = {q.uint("depth"), q.uint("capacity")};
+  r.current_scan_id = f.opt_string("current_scan_id");
+  if (const json* e = f.opt_object("last_error"))
+    r.last_error = error_info_from_json(*e, "status.reply.last_error");
+  return r;
+}
+
+// ---- preop.load ------------------------------------------------------------
+
+Message make_preop_load_request(const std::string& request_id, const PreopLoadRequest& r) {
+  Message m = make_message(MessageType::kPreopLoad, request_id);
+  m.header["use_default_atlas"] = r.use_default_atlas;
+  for (const auto* f : {&r.t1, &r.labels, &r.label_table})
+    if (*f) m.frames.push_back(**f);
+  return m;
+}
+
+PreopLoadRequest parse_preop_load_request(const Message& m) {
+  expect_type(m, MessageType::kPreopLoad);
+  return with_request_id(m, [&] {
+    const FieldReader f(m.header, "preop.load");
+    PreopLoadRequest r;
+    r.use_default_atlas = f.boolean("use_default_atlas", false);
+    if (r.use_default_atlas) {
+      expect_frames(m, {});
+      return r;
+    }
+    expect_frames(m, {"t1", "labels", "label_table"});
+    r.t1 = get_frame(m, "t1", nifti_media);
+    r.labels = get_frame(m, "labels", nifti_media);
+    r.label_table = get_frame(m, "label_table", json_media);
+    if (!r.t1 || !r.labels)
+      throw ProtocolError(ErrorCode::kInvalidRequest,
+                          "preop.load: frames \"t1\" and \"labels\" are required unless "
+                          "use_default_atlas is true");
+    if (r.label_table) parse_label_table_json(r.label_table->bytes);
+    return r;
+  });
+}
+
+Message make_preop_load_reply(const std::string& request_id, const PreopLoadReply& r) {
+  Message m = make_message(MessageType::kPreopLoadReply, request_id);
+  m.header["preop_id"] = r.preop_id;
+  return m;
+}
+
+PreopLoadReply parse_preop_load_reply(const Message& m) {
+  expect_type(m, MessageType::kPreopLoadReply);
+  expect_frames(m, {});
+  return {FieldReader(m.header, "preop.load.reply").string("preop_id")};
+}
+
+// ---- scan.push -------------------------------------------------------------
+
+Message make_scan_push_request(const std::string& request_id, const ScanPushRequest& r) {
+  Message m = make_message(MessageType::kScanPush, request_id);
+  if (r.client_scan_id) m.header["client_scan_id"] = *r.client_scan_id;
+  m.frames.push_back(r.labels);
+  if (r.image) m.frames.push_back(*r.image);
+  return m;
+}
+
+ScanPushRequest parse_scan_push_request(const Message& m) {
+  expect_type(m, MessageType::kScanPush);
+  return with_request_id(m, [&] {
+    const FieldReader f(m.header, "scan.push");
+    expect_frames(m, {"labels", "image"});
+    auto labels = get_frame(m, "labels", nifti_media);
+    if (!labels) throw ProtocolError(ErrorCode::kInvalidRequest, "scan.push: frame \"labels\" is required");
+    ScanPushRequest r{std::move(*labels), get_frame(m, "image", nifti_media),
+                      f.opt_string("client_scan_id")};
+    if (r.client_scan_id && !detail::is_valid_id(*r.client_scan_id))
+      f.fail("client_scan_id", "must be 1..128 printable ASCII characters without spaces");
+    return r;
+  });
+}
+
+Message make_scan_push_reply(const std::string& request_id, const ScanPushReply& r) {
+  Message m = make_message(MessageType::kScanPushReply, request_id);
+  m.header["scan_id"] = r.scan_id;
+  m.header["duplicate"] = r.duplicate;
+  return m;
+}
+
+ScanPushReply parse_scan_push_reply(const Message& m) {
+  expect_type(m, MessageType::kScanPushReply);
+  expect_frames(m, {});
+  const FieldReader f(m.header, "scan.push.reply");
+  return {f.string("scan_id"), f.boolean("duplicate", false)};
+}
+
+// ---- scan.result -----------------------------------------------------------
+
+Message make_scan_result_request(const std::string& request_id, const ScanResultRequest& r) {
+  Message m = make_message(MessageType::kScanResult, request_id);
+  m.header["scan_id"] = r.scan_id;
+  std::vector<std::string> parts, structures;
+  for (auto p : r.parts) parts.emplace_back(to_string(p));
+  for (auto s : r.structures) structures.emplace_back(to_string(s));
+  m.header["parts"] = string_array(parts);
+  if (!structures.empty()) m.header["structures"] = string_array(structures);
+  return m;
+}
+
+namespace {
+template <class E, class FromString>
+std::vector<E> parse_name_list(const FieldReader& f, const char* key, const json& list,
+                               FromString from_string) {
+  std::vector<E> out;
+  for (const auto& item : list) {
+    const auto v = item.is_string() ? from_string(item.get<std::string>()) : std::nullopt;
+    if (!v) f.fail(key, "contains an unknown name " + item.dump());
+    if (std::find(out.begin(), out.end(), *v) != out.end()) f.fail(key, "repeats " + item.dump());
+    out.push_back(*v);
+  }
+  return out;
+}
+}  // namespace
+
+ScanResultRequest parse_scan_result_request(const Message& m) {
+  expect_type(m, MessageType::kScanResult);
+  return with_request_id(m, [&] {
+    expect_frames(m, {});
+    const FieldReader f(m.header, "scan.result");
+    ScanResultRequest r;
+    r.scan_id = f.string("scan_id");
+    r.parts = parse_name_list<ResultPart>(f, "parts", f.array("parts"), result_part_from_string);
+    if (r.parts.empty()) f.fail("parts", "must name at least one part");
+    if (const json* s = f.opt_array("structures"))
+      r.structures = parse_name_list<Structure>(f, "structures", *s, structure_from_string);
+    return r;
+  });
+}
+
+const Frame* ScanResultReply::find(std::string_view name) const {
+  for (const auto& f : frames)
+    if (f.name == name) return &f;
+  return nullptr;
+}
+
+Message make_scan_result_reply(const std::string& request_id, const ScanResultReply& r) {
+  Message m = with_frames(make_message(MessageType::kScanResultReply, request_id), r.frames);
+  m.header["scan_id"] = r.scan_id;
+  json unavailable = json::array();
+  for (const auto& u : r.unavailable) unavailable.push_back({{"part", u.part}, {"reason", u.reason}});
+  m.header["unavailable"] = unavailable;
+  return m;
+}
+
+namespace {
+// The media type each result frame must have (PROTOCOL.md, scan.result).
+bool result_media_ok(const std::string& name, std::string_view type) {
+  if (name == "displacement" || name == "warped_image" || name == "warped_labels")
+    return media::is_nifti(type);
+  if (name == "displacement_itk") return type == media::kItkH5;
+  if (name == "metrics" || name == "timings") return type == media::kJson;
+  if (name.rfind("model.", 0) == 0 && structure_from_string(name.substr(6)))
+    return type == media::kVtp;
+  return false;
+}
+}  // namespace
+
+ScanResultReply parse_scan_result_reply(const Message& m) {
+  expect_type(m, MessageType::kScanResultReply);
+  const FieldReader f(m.header, "scan.result.reply");
+  ScanResultReply r;
+  r.scan_id = f.string("scan_id");
+  for (const auto& frame : m.frames) {
+    if (!result_media_ok(frame.name, frame.media_type))
+      throw ProtocolError(ErrorCode::kInvalidRequest,
+                          "scan.result.reply: unexpected frame \"" + frame.name + "\" (" +
+                              frame.media_type + ")");
+    r.frames.push_back(frame);
+  }
+  if (const json* list = f.opt_array("unavailable"))
+    for (const auto& u : *list) {
+      const FieldReader uf(u, "scan.result.reply.unavailable");
+      r.unavailable.push_back({uf.string("part"), uf.opt_string("reason").value_or("")});
+    }
+  return r;
+}
+
+// ---- scan.list -------------------------------------------------------------
+
+Message make_scan_list_request(const std::string& request_id, const ScanListRequest& r) {
+  Message m = make_message(MessageType::kScanList, request_id);
+  m.header["limit"] = r.limit;
+  return m;
+}
+
+ScanListRequest parse_scan_list_request(const Message& m) {
+  expect_type(m, MessageType::kScanList);
+  return with_request_id(m, [&] {
+    expect_frames(m, {});
+    const FieldReader f(m.header, "scan.list");
+    ScanListRequest r;
+    r.limit = f.opt_uint("limit").value_or(r.limit);
+    if (r.limit < 1 || r.limit > kMaxScanListLimit)
+      f.fail("limit", "must lie in 1.." + std::to_string(kMaxScanListLimit));
+    return r;
+  });
+}
+
+Message make_scan_list_reply(const std::string& request_id, const ScanListReply& r) {
+  Message m = make_message(MessageType::kScanListReply, request_id);
+  json scans = json::array();
+  for (const auto& s : r.scans) {
+    json j{{"scan_id", s.scan_id}, {"state", std::string(to_string(s.state))},
+           {"received_at", s.received_at}};
+    if (s.client_scan_id) j["client_scan_id"] = *s.client_scan_id;
+    if (s.finished_at) j["finished_at"] = *s.finished_at;
+    if (s.stage) j["stage"] = *s.stage;
+    if (s.error) j["error"] = to_json_value(*s.error);
+    scans.push_back(std::move(j));
+  }
+  m.header["scans"] = std::move(scans);
+  return m;
+}
+
+ScanListReply parse_scan_list_reply(const Message& m) {
+  expect_type(m, MessageType::kScanListReply);
+  expect_frames(m, {});
+  const FieldReader f(m.header, "scan.list.reply");
+  ScanListReply r;
+  for (const auto& item : f.array("scans")) {
+    const FieldReader s(item, "scan.list.reply.scans[]");
+    ScanSummary sum;
+    sum.scan_id = s.string("scan_id");
+    sum.client_scan_id = s.opt_string("client_scan_id");
+    const auto state = scan_state_from_string(s.string("state"));
+    if (!state) s.fail("state", "is not a known scan state");
+    sum.state = *state;
+    sum.received_at = s.string("received_at");
+    sum.finished_at = s.opt_string("finished_at");
+    sum.stage = s.opt_string("stage");
+    if (const json* e = s.opt_object("error")) sum.error = error_info_from_json(*e, "scan.list.reply.scans[].error");
+    r.scans.push_back(std::move(sum));
+  }
+  return r;
+}
+
+// ---- shutdown --------------------------------------------------------------
+
+Message make_shutdown_request(const std::string& request_id, const ShutdownRequest& r) {
+  Message m = make_message(MessageType::kShutdown, request_id);
+  if (!r.reason.empty()) m.header["reason"] = r.reason;
+  return m;
+}
+
+ShutdownRequest parse_shutdown_request(const Message& m) {
+  expect_type(m, MessageType::kShutdown);
+  return with_request_id(m, [&] {
+    expect_frames(m, {});
+    return ShutdownRequest{FieldReader(m.header, "shutdown").opt_string("reason").value_or("")};
+  });
+}
+
+Message make_shutdown_reply(const std::string& request_id) {
+  return make_message(MessageType::kShutdownReply, request_id);
+}
+
+void parse_shutdown_reply(const Message& m) {
+  expect_type(m, MessageType::kShutdownReply);
+  expect_frames(m, {});
+}
+
+// ---- error -----------------------------------------------------------------
+
+Message make_error_reply(const std::string& request_id, ErrorCode code, const std::string& message) {
+  Message m = make_message(MessageType::kError, request_id);
+  m.header["error"] = to_json_value(ErrorInfo{code, message});
+  return m;
+}
+
+Message make_error_reply(const ProtocolError& error, const std::string& fallback_request_id) {
+  // An unreadable id (too long, not ASCII) must not make the error reply itself invalid.
+  std::string id = error.request_id().value_or(fallback_request_id);
+  if (id.size() > Limits{}.max_request_id_length || !detail::is_valid_id(id)) id.clear();
+  return make_error_reply(id, error.code(), error.what());
+}
+
+ErrorInfo parse_error_reply(const Message& m) {
+  if (m.type() != MessageType::kError)
+    throw ProtocolError(ErrorCode::kInvalidRequest,
+                        "expected an error message, got " + std::string(to_string(m.type())));
+  return error_info_from_json(FieldReader(m.header, "error").object("error"), "error.error");
+}
+
+void throw_if_error(const Message& m) {
+  if (m.type() != MessageType::kError) return;
+  const ErrorInfo e = parse_error_reply(m);
+  throw ProtocolError(e.code, e.message, m.request_id());
+}
+
+}  // namespace brainshift::protocol

@@ -1,0 +1,155 @@
+#include "protocol/timing_log.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <ctime>
+#include <regex>
+#include <stdexcept>
+#include <vector>
+
+#include "protocol/fields.h"
+#include "protocol/version.h"
+
+namespace brainshift::protocol {
+namespace {
+
+using nlohmann::json;
+
+bool is_stage_name(std::string_view s) {
+  if (s.empty() || s.size() > 32) return false;
+  for (char c : s)
+    if (!((c >= 'a' && c <= 'z') || c == '_')) return false;
+  return true;
+}
+
+double seconds_field(const detail::FieldReader& f, const char* key) {
+  const double s = f.number(key);
+  if (s < 0.0) f.fail(key, "must be >= 0 seconds");
+  return s;
+}
+
+}  // namespace
+
+std::string_view to_string(StageScope scope) {
+  return scope == StageScope::kPreop ? "preop" : "intraop";
+}
+
+bool is_known_stage(StageScope scope, std::string_view stage) {
+  static const std::vector<std::string_view> preop{"atlas", "mesh", "assemble", "factorise", "total"};
+  static const std::vector<std::string_view> intraop{"read",  "affine", "surface", "solve",
+                                                     "field", "warp",   "models",  "total"};
+  const auto& names = scope == StageScope::kPreop ? preop : intraop;
+  return std::find(names.begin(), names.end(), stage) != names.end();
+}
+
+std::string format_utc(std::chrono::system_clock::time_point when) {
+  using namespace std::chrono;
+  const auto ms = duration_cast<milliseconds>(when.time_since_epoch()).count();
+  const std::time_t secs = static_cast<std::time_t>(ms >= 0 ? ms / 1000 : (ms - 999) / 1000);
+  const int millis = static_cast<int>(ms - static_cast<long long>(secs) * 1000);
+  std::tm tm{};
+  gmtime_r(&secs, &tm);
+  char buf[64];  // room for any int year, which silences -Wformat-truncation
+  std::snprintf(buf, sizeof buf, "%04d-%02d-%02dT%02d:%02d:%02d.%03dZ", tm.tm_year + 1900,
+                tm.tm_mon + 1, tm.tm_mday, tm.tm_hour, tm.tm_min, tm.tm_sec, millis);
+  return buf;
+}
+
+std::string utc_now() { return format_utc(std::chrono::system_clock::now()); }
+
+bool is_iso8601_utc(std::string_view text) {
+  static const std::regex pattern(R"(\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d{1,9})?Z)");
+  return std::regex_match(text.begin(), text.end(), pattern);
+}
+
+json to_json_value(const StageTiming& t) {
+  json j{{"v", kTimingLogVersion}, {"event", "stage"}, {"scope", std::string(to_string(t.scope))}};
+  if (!t.scan_id.empty()) j["scan_id"] = t.scan_id;
+  if (!t.preop_id.empty()) j["preop_id"] = t.preop_id;
+  j["stage"] = t.stage;
+  j["seconds"] = t.seconds;
+  j["t"] = t.t;
+  return j;
+}
+
+StageTiming stage_timing_from_json(const json& j) {
+  const detail::FieldReader f(j, "timing log line");
+  const auto v = f.uint("v");
+  if (v != static_cast<std::uint64_t>(kTimingLogVersion))
+    f.fail("v", "is " + std::to_string(v) + "; this reader knows timing-log version " +
+                    std::to_string(kTimingLogVersion));
+  if (f.string("event") != "stage") f.fail("event", "must be \"stage\"");
+  StageTiming t;
+  const auto scope = f.string("scope");
+  if (scope != "preop" && scope != "intraop") f.fail("scope", "must be \"preop\" or \"intraop\"");
+  t.scope = scope == "preop" ? StageScope::kPreop : StageScope::kIntraop;
+  t.scan_id = f.opt_string("scan_id").value_or("");
+  t.preop_id = f.opt_string("preop_id").value_or("");
+  if (t.scope == StageScope::kIntraop && t.scan_id.empty())
+    f.fail("scan_id", "is required for an intraop stage");
+  if (t.scope == StageScope::kPreop && t.preop_id.empty())
+    f.fail("preop_id", "is required for a preop stage");
+  t.stage = f.string("stage");
+  if (!is_stage_name(t.stage)) f.fail("stage", "must match [a-z_]{1,32}");
+  t.seconds = seconds_field(f, "seconds");
+  t.t = f.string("t");
+  if (!is_iso8601_utc(t.t)) f.fail("t", "must be ISO-8601 UTC like 2024-05-01T12:34:56.789Z");
+  return t;
+}
+
+std::string make_stage_log_line(const StageTiming& timing) {
+  // Validate on the way out too: a bad line in the log is found by nobody.
+  json j = to_json_value(timing);
+  stage_timing_from_json(j);
+  return j.dump();
+}
+
+StageTiming parse_stage_log_line(std::string_view line) {
+  json j = json::parse(line, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded())
+    throw ProtocolError(ErrorCode::kMalformedJson, "timing log line is not valid JSON");
+  return stage_timing_from_json(j);
+}
+
+TimingLogFile::TimingLogFile(const std::string& path) : path_(path), out_(path, std::ios::app) {
+  if (!out_) throw std::runtime_error("cannot open timing log " + path + " for appending");
+}
+
+void TimingLogFile::write(const StageTiming& timing) {
+  out_ << make_stage_log_line(timing) << '\n';
+  out_.flush();
+  if (!out_) throw std::runtime_error("cannot write to timing log " + path_);
+}
+
+std::string make_timings_json(const ScanTimings& s) {
+  const auto& p = s.preop;
+  const auto& i = s.intraop;
+  json j{{"preop",
+          {{"atlas", p.atlas}, {"mesh", p.mesh}, {"assemble", p.assemble},
+           {"factorise", p.factorise}, {"total", p.total}}},
+         {"intraop",
+          {{"read", i.read}, {"affine", i.affine}, {"surface", i.surface}, {"solve", i.solve},
+           {"field", i.field}, {"warp", i.warp}, {"models", i.models}, {"total", i.total}}},
+         {"mesh", to_json_value(s.mesh)}};
+  return j.dump(2);
+}
+
+ScanTimings parse_timings_json(std::string_view text) {
+  json j = json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded())
+    throw ProtocolError(ErrorCode::kMalformedJson, "timings frame is not valid JSON");
+  const detail::FieldReader top(j, "timings");
+  const detail::FieldReader p(top.object("preop"), "timings.preop");
+  const detail::FieldReader i(top.object("intraop"), "timings.intraop");
+  ScanTimings s;
+  s.preop = {seconds_field(p, "atlas"), seconds_field(p, "mesh"), seconds_field(p, "assemble"),
+             seconds_field(p, "factorise"), seconds_field(p, "total")};
+  s.intraop = {seconds_field(i, "read"),  seconds_field(i, "affine"), seconds_field(i, "surface"),
+               seconds_field(i, "solve"), seconds_field(i, "field"),  seconds_field(i, "warp"),
+               seconds_field(i, "models"), seconds_field(i, "total")};
+  s.mesh = mesh_size_from_json(top.object("mesh"), "timings.mesh");
+  return s;
+}
+
+}  // namespace brainshift::protocol

@@ -1,0 +1,43 @@
+// Frame content checks by magic number.
+#include <gtest/gtest.h>
+
+#include "protocol/media.h"
+#include "test_util.h"
+
+namespace bp = brainshift::protocol;
+namespace media = brainshift::protocol::media;
+
+TEST(Media, NiftiFrameChoosesMediaTypeFromTheBytes) {
+  EXPECT_EQ(media::nifti_frame("a", bp::testing::fake_gzip(10)).media_type, media::kNiftiGz);
+  EXPECT_EQ(media::nifti_frame("a", bp::testing::fake_nifti(1, 1, 1)).media_type, media::kNifti);
+}
+
+TEST(Media, AcceptsWellFormedContent) {
+  EXPECT_NO_THROW(media::check_content(media::nifti_frame("a", bp::testing::fake_nifti(2, 2, 2))));
+  EXPECT_NO_THROW(media::check_content(media::nifti_frame("a", bp::testing::fake_gzip(10))));
+  EXPECT_NO_THROW(media::check_content({"m", std::string(media::kVtp), bp::testing::fake_vtp()}));
+  EXPECT_NO_THROW(media::check_content({"h", std::string(media::kItkH5), bp::testing::fake_h5()}));
+  EXPECT_NO_THROW(media::check_content(media::json_frame("j", R"({"a":1})")));
+}
+
+TEST(Media, RefusesContentThatContradictsTheMediaType) {
+  std::string nifti = bp::testing::fake_nifti(2, 2, 2);
+  std::string bad_magic = nifti;
+  bad_magic[345] = '2';  // "n+2" is not NIfTI-1
+  EXPECT_THROW(media::check_content({"a", std::string(media::kNifti), bad_magic}), bp::ProtocolError);
+  EXPECT_THROW(media::check_content({"a", std::string(media::kNifti), nifti.substr(0, 300)}),
+               bp::ProtocolError);
+  EXPECT_THROW(media::check_content({"a", std::string(media::kNiftiGz), nifti}), bp::ProtocolError);
+  EXPECT_THROW(media::check_content({"h", std::string(media::kItkH5), "not hdf5"}), bp::ProtocolError);
+  EXPECT_THROW(media::check_content({"m", std::string(media::kVtp), "<VTKFile type=\"UnstructuredGrid\">"}),
+               bp::ProtocolError);
+  EXPECT_THROW(media::check_content(media::json_frame("j", "{")), bp::ProtocolError);
+  EXPECT_THROW(media::check_content({"x", "image/png", "\x89PNG"}), bp::ProtocolError);
+}
+
+TEST(Media, AcceptsABigEndianNiftiHeader) {
+  std::string nifti = bp::testing::fake_nifti(1, 1, 1);
+  std::swap(nifti[0], nifti[3]);
+  std::swap(nifti[1], nifti[2]);
+  EXPECT_NO_THROW(media::check_content({"a", std::string(media::kNifti), nifti}));
+}

@@ -1,0 +1,293 @@
+// Every request and reply survives encode -> decode -> parse unchanged, and
+// the typed parsers refuse missing, extra or ill-typed fields and frames.
+#include <gtest/gtest.h>
+
+#include "protocol/media.h"
+#include "protocol/requests.h"
+#include "test_util.h"
+
+namespace bp = brainshift::protocol;
+using bp::ErrorCode;
+using nlohmann::json;
+
+namespace {
+
+// What a peer gets: the message after a trip through the wire format.
+bp::Message wire_trip(const bp::Message& m) { return bp::decode(bp::encode(m)); }
+
+template <class Fn>
+ErrorCode error_of(Fn fn) {
+  try {
+    fn();
+  } catch (const bp::ProtocolError& e) {
+    return e.code();
+  }
+  ADD_FAILURE() << "no ProtocolError thrown";
+  return ErrorCode::kInternal;
+}
+
+bp::Frame labels_frame() { return bp::media::nifti_frame("labels", bp::testing::fake_nifti(5, 4, 3)); }
+
+}  // namespace
+
+TEST(Status, RequestAndReplyRoundTrip) {
+  const auto req = wire_trip(bp::make_status_request("s1"));
+  EXPECT_NO_THROW(bp::parse_status_request(req));
+  EXPECT_EQ(req.request_id(), "s1");
+
+  bp::StatusReply r;
+  r.state = bp::ServerState::kLoadingPreop;
+  r.progress = bp::Progress{"mesh", 0.4};
+  r.versions = {{"brainshift", "0.1.0"}, {"petsc", "3.18.4"}};
+  r.preop_id = "p-1";
+  r.mpi_ranks = 2;
+  r.queue = {1, 8};
+  r.last_error = bp::ErrorInfo{ErrorCode::kInvalidRequest, "labels and t1 grids differ"};
+  const auto back = bp::parse_status_reply(wire_trip(bp::make_status_reply("s1", r)));
+  r.versions["protocol"] = "1";  // always added by the builder
+  EXPECT_EQ(back, r);
+
+  bp::StatusReply ready;
+  ready.state = bp::ServerState::kProcessing;
+  ready.mesh = bp::MeshSize{43733, 215037};
+  ready.current_scan_id = "s-000003";
+  const auto back2 = bp::parse_status_reply(wire_trip(bp::make_status_reply("s2", ready)));
+  EXPECT_EQ(back2.mesh, ready.mesh);
+  EXPECT_EQ(back2.current_scan_id, ready.current_scan_id);
+  EXPECT_FALSE(back2.progress.has_value());
+}
+
+TEST(Status, RequestWithAFrameIsRefused) {
+  auto m = bp::make_status_request("s1");
+  m.frames.push_back(labels_frame());
+  EXPECT_EQ(error_of([&] { bp::parse_status_request(wire_trip(m)); }), ErrorCode::kInvalidRequest);
+}
+
+TEST(Status, ReplyWithBadStateOrFractionIsRefused) {
+  auto m = bp::make_status_reply("s1", bp::StatusReply{});
+  m.header["state"] = "sleeping";
+  EXPECT_EQ(error_of([&] { bp::parse_status_reply(m); }), ErrorCode::kInvalidRequest);
+  m = bp::make_status_reply("s1", bp::StatusReply{.progress = bp::Progress{"mesh", 0.5}});
+  m.header["progress"]["fraction"] = 1.5;
+  EXPECT_EQ(error_of([&] { bp::parse_status_reply(m); }), ErrorCode::kInvalidRequest);
+}
+
+TEST(PreopLoad, DefaultAtlasRoundTrip) {
+  const auto back = bp::parse_preop_load_request(
+      wire_trip(bp::make_preop_load_request("p", {.use_default_atlas = true})));
+  EXPECT_TRUE(back.use_default_atlas);
+  EXPECT_FALSE(back.t1.has_value());
+}
+
+TEST(PreopLoad, FramesRoundTripWithLabelTable) {
+  bp::LabelTable table;
+  table.structures[bp::Structure::kBrain] = {1};
+  table.structures[bp::Structure::kCorticospinalTract] = {7, 8};
+  bp::PreopLoadRequest r;
+  r.t1 = bp::media::nifti_frame("t1", bp::testing::fake_gzip(4096));
+  r.labels = bp::media::nifti_frame("labels", bp::testing::fake_nifti(8, 8, 8));
+  r.label_table = bp::media::json_frame("label_table", bp::make_label_table_json(table));
+  const auto back = bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", r)));
+  EXPECT_FALSE(back.use_default_atlas);
+  ASSERT_TRUE(back.t1 && back.labels && back.label_table);
+  EXPECT_EQ(back.t1->bytes, r.t1->bytes);
+  EXPECT_EQ(back.labels->bytes, r.labels->bytes);
+  EXPECT_EQ(bp::parse_label_table_json(back.label_table->bytes), table);
+
+  const auto reply = bp::parse_preop_load_reply(wire_trip(bp::make_preop_load_reply("p", {"p-7"})));
+  EXPECT_EQ(reply.preop_id, "p-7");
+}
+
+TEST(PreopLoad, RefusesMissingFramesFramesWithDefaultAtlasAndBadContent) {
+  bp::PreopLoadRequest only_t1;
+  only_t1.t1 = bp::media::nifti_frame("t1", bp::testing::fake_nifti(2, 2, 2));
+  EXPECT_EQ(error_of([&] { bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", only_t1))); }),
+            ErrorCode::kInvalidRequest);
+
+  bp::PreopLoadRequest both = only_t1;
+  both.use_default_atlas = true;
+  EXPECT_EQ(error_of([&] { bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", both))); }),
+            ErrorCode::kInvalidRequest);
+
+  bp::PreopLoadRequest not_nifti = only_t1;
+  not_nifti.labels = bp::Frame{"labels", std::string(bp::media::kNifti), "this is a PNG"};
+  EXPECT_EQ(error_of([&] { bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", not_nifti))); }),
+            ErrorCode::kInvalidRequest);
+
+  bp::PreopLoadRequest bad_table = only_t1;
+  bad_table.labels = bp::media::nifti_frame("labels", bp::testing::fake_nifti(2, 2, 2));
+  bad_table.label_table = bp::media::json_frame("label_table", R"({"v":1,"structures":{"ventricles":[2]}})");
+  EXPECT_EQ(error_of([&] { bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", bad_table))); }),
+            ErrorCode::kInvalidRequest);
+}
+
+TEST(LabelTable, RefusesUnknownStructuresAndOutOfRangeValues) {
+  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[1],"liver":[9]}})"),
+               bp::ProtocolError);
+  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[70000]}})"),
+               bp::ProtocolError);
+  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[0]}})"),
+               bp::ProtocolError);
+  EXPECT_THROW(bp::parse_label_table_json("not json"), bp::ProtocolError);
+}
+
+TEST(ScanPush, RoundTripWithImageAndClientScanId) {
+  bp::ScanPushRequest r{labels_frame(), bp::media::nifti_frame("image", bp::testing::fake_gzip(2048)),
+                        "or1-scan-0042"};
+  const auto back = bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", r)));
+  EXPECT_EQ(back.labels.bytes, r.labels.bytes);
+  ASSERT_TRUE(back.image.has_value());
+  EXPECT_EQ(back.image->bytes, r.image->bytes);
+  EXPECT_EQ(back.image->media_type, bp::media::kNiftiGz);
+  EXPECT_EQ(back.client_scan_id, r.client_scan_id);
+
+  const auto reply = bp::parse_scan_push_reply(wire_trip(bp::make_scan_push_reply("q", {"s-000001", true})));
+  EXPECT_EQ(reply, (bp::ScanPushReply{"s-000001", true}));
+}
+
+TEST(ScanPush, LabelsOnlyIsEnough) {
+  const auto back = bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", {labels_frame()})));
+  EXPECT_FALSE(back.image.has_value());
+  EXPECT_FALSE(back.client_scan_id.has_value());
+}
+
+TEST(ScanPush, RefusesMissingLabelsExtraFramesAndBadIds) {
+  auto no_labels = bp::make_scan_push_request("q", {labels_frame()});
+  no_labels.frames[0].name = "image";
+  EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(no_labels)); }), ErrorCode::kInvalidRequest);
+
+  auto extra = bp::make_scan_push_request("q", {labels_frame()});
+  extra.frames.push_back(bp::media::json_frame("notes", "{}"));
+  try {
+    bp::parse_scan_push_request(wire_trip(extra));
+    FAIL();
+  } catch (const bp::ProtocolError& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kInvalidRequest);
+    EXPECT_EQ(e.request_id().value_or(""), "q");  // the server can still answer it
+    EXPECT_NE(std::string(e.what()).find("notes"), std::string::npos);
+  }
+
+  auto bad_id = bp::make_scan_push_request("q", {labels_frame()});
+  bad_id.header["client_scan_id"] = "two words";
+  EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(bad_id)); }), ErrorCode::kInvalidRequest);
+
+  auto wrong_media = bp::make_scan_push_request("q", {labels_frame()});
+  wrong_media.frames[0].media_type = std::string(bp::media::kVtp);
+  EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(wrong_media)); }), ErrorCode::kInvalidRequest);
+}
+
+TEST(ScanResult, RequestRoundTrip) {
+  bp::ScanResultRequest r{"s-000001",
+                          {bp::ResultPart::kDisplacement, bp::ResultPart::kModels, bp::ResultPart::kTimings},
+                          {bp::Structure::kBrain, bp::Structure::kTumor}};
+  EXPECT_EQ(bp::parse_scan_result_request(wire_trip(bp::make_scan_result_request("r", r))), r);
+}
+
+TEST(ScanResult, RequestRefusesEmptyRepeatedOrUnknownParts) {
+  auto m = bp::make_scan_result_request("r", {"s-1", {bp::ResultPart::kMetrics}, {}});
+  m.header["parts"] = json::array();
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
+  m.header["parts"] = {"metrics", "metrics"};
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
+  m.header["parts"] = {"jacobian"};
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
+  m.header["parts"] = {"metrics"};
+  m.header.erase("scan_id");
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
+}
+
+TEST(ScanResult, ReplyRoundTripWithEveryKindOfFrame) {
+  bp::ScanResultReply r;
+  r.scan_id = "s-000001";
+  r.frames = {bp::media::nifti_frame(bp::frame_name(bp::ResultPart::kDisplacement), bp::testing::fake_gzip(999)),
+              {bp::frame_name(bp::ResultPart::kDisplacementItk), std::string(bp::media::kItkH5), bp::testing::fake_h5()},
+              bp::media::nifti_frame("warped_labels", bp::testing::fake_nifti(3, 3, 3)),
+              {bp::model_frame_name(bp::Structure::kVentricles), std::string(bp::media::kVtp), bp::testing::fake_vtp()},
+              bp::media::json_frame("metrics", R"({"surface_rms_mm": 0.8})")};
+  r.unavailable = {{"warped_image", "no intraop image was pushed"}, {"model.tumor", "no tumor label"}};
+  const auto back = bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r)));
+  EXPECT_EQ(back.scan_id, r.scan_id);
+  ASSERT_EQ(back.frames.size(), r.frames.size());
+  for (std::size_t i = 0; i < r.frames.size(); ++i) {
+    EXPECT_EQ(back.frames[i].name, r.frames[i].name);
+    EXPECT_EQ(back.frames[i].bytes, r.frames[i].bytes);
+  }
+  EXPECT_EQ(back.unavailable, r.unavailable);
+  EXPECT_NE(back.find("model.ventricles"), nullptr);
+}
+
+TEST(ScanResult, ReplyRefusesAFrameWithTheWrongMediaType) {
+  bp::ScanResultReply r;
+  r.scan_id = "s-1";
+  r.frames = {bp::media::json_frame("displacement", "{}")};
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r))); }),
+            ErrorCode::kInvalidRequest);
+}
+
+TEST(ScanList, RoundTrip) {
+  EXPECT_EQ(bp::parse_scan_list_request(wire_trip(bp::make_scan_list_request("l", {25}))).limit, 25u);
+  EXPECT_EQ(bp::parse_scan_list_request(wire_trip(bp::make_scan_list_request("l"))).limit, 100u);
+  auto too_many = bp::make_scan_list_request("l", {5});
+  too_many.header["limit"] = bp::kMaxScanListLimit + 1;
+  EXPECT_EQ(error_of([&] { bp::parse_scan_list_request(too_many); }), ErrorCode::kInvalidRequest);
+
+  bp::ScanListReply r;
+  r.scans.push_back({"s-2", "c-2", bp::ScanState::kProcessing, "2024-05-01T10:00:00.000Z", std::nullopt,
+                     "solve", std::nullopt});
+  r.scans.push_back({"s-1", std::nullopt, bp::ScanState::kFailed, "2024-05-01T09:00:00.000Z",
+                     "2024-05-01T09:00:05.250Z", std::nullopt,
+                     bp::ErrorInfo{ErrorCode::kInvalidRequest, "labels have no brain voxels"}});
+  EXPECT_EQ(bp::parse_scan_list_reply(wire_trip(bp::make_scan_list_reply("l", r))), r);
+}
+
+TEST(Shutdown, RoundTrip) {
+  EXPECT_EQ(bp::parse_shutdown_request(wire_trip(bp::make_shutdown_request("x", {"end of case"}))).reason,
+            "end of case");
+  EXPECT_EQ(bp::parse_shutdown_request(wire_trip(bp::make_shutdown_request("x"))).reason, "");
+  EXPECT_NO_THROW(bp::parse_shutdown_reply(wire_trip(bp::make_shutdown_reply("x"))));
+}
+
+TEST(ErrorReply, RoundTripAndThrowIfError) {
+  const auto m = wire_trip(bp::make_error_reply("q9", ErrorCode::kBusy, "queue full (8 scans)"));
+  EXPECT_EQ(m.request_id(), "q9");
+  const auto info = bp::parse_error_reply(m);
+  EXPECT_EQ(info.code, ErrorCode::kBusy);
+  EXPECT_EQ(info.message, "queue full (8 scans)");
+  try {
+    bp::throw_if_error(m);
+    FAIL();
+  } catch (const bp::ProtocolError& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kBusy);
+    EXPECT_EQ(e.request_id().value_or(""), "q9");
+  }
+  EXPECT_NO_THROW(bp::throw_if_error(bp::make_status_request("ok")));
+}
+
+TEST(ErrorReply, TypedParsersRethrowAnErrorReply) {
+  const auto m = wire_trip(bp::make_error_reply("q", ErrorCode::kNotReady, "no preop loaded"));
+  EXPECT_EQ(error_of([&] { bp::parse_scan_push_reply(m); }), ErrorCode::kNotReady);
+}
+
+TEST(ErrorReply, BuiltFromADecodeFailureEchoesTheRequestId) {
+  try {
+    bp::decode({json{{"v", 2}, {"type", "status"}, {"request_id", "old-client-1"}}.dump()});
+    FAIL();
+  } catch (const bp::ProtocolError& e) {
+    const auto reply = wire_trip(bp::make_error_reply(e));
+    EXPECT_EQ(reply.request_id(), "old-client-1");
+    EXPECT_EQ(bp::parse_error_reply(reply).code, ErrorCode::kVersionMismatch);
+  }
+  try {
+    bp::decode({"not json"});
+    FAIL();
+  } catch (const bp::ProtocolError& e) {
+    const auto reply = wire_trip(bp::make_error_reply(e));
+    EXPECT_EQ(reply.request_id(), "");
+    EXPECT_EQ(bp::parse_error_reply(reply).code, ErrorCode::kMalformedJson);
+  }
+}
+
+TEST(TypedParsers, RefuseAMessageOfAnotherType) {
+  const auto m = wire_trip(bp::make_status_request("s"));
+  EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(m); }), ErrorCode::kInvalidRequest);
+}
