@@ -1,0 +1,130 @@
+#pragma once
+// The case store: one directory per case (patient session) holding, in HDF5,
+// the preop inputs, the mesh, every received scan and every result.
+//
+// Layout (every file is written under a temporary name, fsynced, then renamed,
+// so a kill -9 at any point leaves either the old state or the new one and the
+// store opens without repair; leftovers named *.tmp are deleted on open):
+//   <dir>/preop.h5                 t1, labels (+ world_from_voxel), meta JSON
+//   <dir>/mesh.h5                  nodes, tets, tet labels, boundary faces
+//   <dir>/scans/<scan_id>/scan.h5  the received NIfTI bytes (labels, image), meta
+//   <dir>/scans/<scan_id>/result.h5  output files as byte datasets, or a failure
+// A scan directory is created as scans/.tmp-<id> and renamed once scan.h5 is
+// durable: a scan exists exactly when it was acknowledged.
+//
+// Thread safety: all methods may be called from any thread. HDF5 calls run
+// under h5::hdf5_mutex(); read_result_file() uses pread() at offsets recorded
+// in the in-memory index, so serving results never waits for HDF5.
+#include <cstdint>
+#include <filesystem>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/image.h"
+#include "core/tet_mesh.h"
+
+namespace brainshift::server {
+
+struct PreopRecord {
+  std::string preop_id;
+  std::string source;  // "atlas", "files" or "upload"
+  ImageF t1;
+  LabelImage labels;
+  std::string label_table_json;  // protocol label-table JSON, "" when none was given
+};
+
+enum class StoredScanState { queued, done, failed };
+
+struct ScanRecord {
+  std::string scan_id;
+  std::uint64_t sequence = 0;
+  std::optional<std::string> client_scan_id;
+  std::string received_at;  // ISO-8601 UTC
+  std::string digest;       // of the received bytes, for idempotent pushes
+  std::string preop_id;     // the preop the scan was pushed against
+  bool has_image = false;
+  StoredScanState state = StoredScanState::queued;
+  std::optional<std::string> finished_at;
+  // Set when failed: protocol error code name, message and failing stage.
+  std::string error_code, error_message, error_stage;
+  // Set when done: "nonrigid" or "affine_only_fallback", and why.
+  std::string result_kind, fallback_reason;
+};
+
+struct ScanInput {
+  std::string labels_bytes;                // NIfTI bytes exactly as received
+  std::optional<std::string> image_bytes;  // idem
+};
+
+class CaseStore {
+ public:
+  // Creates the directory if needed, removes temporary leftovers and loads the
+  // index. Throws std::runtime_error when the directory is unusable.
+  explicit CaseStore(std::filesystem::path dir);
+
+  const std::filesystem::path& dir() const { return dir_; }
+
+  // ---- preop ---------------------------------------------------------------
+  bool has_preop() const;
+  // Replaces the stored preop atomically and drops a mesh of another preop.
+  void save_preop(const PreopRecord& preop);
+  PreopRecord load_preop() const;  // throws when there is none
+  void save_mesh(const std::string& preop_id, const TetMesh& mesh);
+  // nullopt when no mesh is stored or it belongs to another preop.
+  std::optional<TetMesh> load_mesh(const std::string& preop_id) const;
+
+  // ---- scans ---------------------------------------------------------------
+  // Durably stores a scan and returns its record (new id, state queued).
+  ScanRecord add_scan(const ScanInput& input, const std::optional<std::string>& client_scan_id,
+                      const std::string& digest, const std::string& preop_id);
+  std::optional<ScanRecord> find(const std::string& scan_id) const;
+  std::optional<ScanRecord> find_by_client_id(const std::string& client_scan_id) const;
+  std::vector<ScanRecord> list_newest_first(std::size_t limit) const;
+  std::vector<ScanRecord> queued_oldest_first() const;  // acknowledged, no result
+  ScanInput load_scan_input(const std::string& scan_id) const;
+
+  // Stores the result files (name -> bytes, names like "field.nii.gz" or
+  // "models/brain.vtp") and marks the scan done.
+  void save_result(const std::string& scan_id, const std::map<std::string, std::string>& files,
+                   const std::string& kind, const std::string& fallback_reason);
+  void save_failure(const std::string& scan_id, const std::string& error_code,
+                    const std::string& message, const std::string& stage);
+  std::vector<std::string> result_file_names(const std::string& scan_id) const;
+  // nullopt when the scan has no result or no file of that name.
+  std::optional<std::string> read_result_file(const std::string& scan_id,
+                                              const std::string& name) const;
+
+ private:
+  struct FileRef {
+    std::int64_t offset = -1;  // -1: empty file
+    std::uint64_t size = 0;
+  };
+  struct Entry {
+    ScanRecord record;
+    std::map<std::string, FileRef> files;
+  };
+
+  void remove_leftovers();
+  void load_index();
+  std::optional<Entry> read_scan_dir(const std::filesystem::path& scan_dir) const;
+  void write_result_file(const std::string& scan_id, const std::string& meta_json,
+                         const std::map<std::string, std::string>& files);
+  std::filesystem::path scan_dir(const std::string& scan_id) const;
+
+  std::filesystem::path dir_;
+  mutable std::mutex index_mutex_;
+  std::map<std::string, Entry> scans_;                 // by scan_id
+  std::map<std::string, std::string> by_client_id_;   // client_scan_id -> scan_id
+  std::uint64_t next_sequence_ = 1;
+};
+
+// A stable content digest (FNV-1a 64 over the frames, hex): equal bytes give
+// equal digests; used only to tell a repeated push from a conflicting one.
+std::string content_digest(const ScanInput& input);
+
+const char* to_string(StoredScanState state);
+
+}  // namespace brainshift::server

@@ -1,0 +1,65 @@
+#pragma once
+// What the daemon needs from the engine, as an interface: the shipped binary
+// implements it over EngineSession (engine_adapter.h); tests may substitute a
+// double, so the protocol, store and queue logic is tested without PETSc.
+//
+// All methods are called on rank 0's engine thread only (MPI_THREAD_FUNNELED).
+#include <cstddef>
+#include <filesystem>
+#include <functional>
+#include <map>
+#include <optional>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "core/tet_mesh.h"
+
+namespace brainshift::server {
+
+// stage, fraction of that stage in [0,1], seconds in it so far (final at 1).
+// Same shape as brainshift::ProgressFn.
+using StageProgressFn = std::function<void(const std::string& stage, double fraction, double seconds)>;
+
+struct PreopImages {
+  ImageF t1;
+  LabelImage labels;  // same grid as t1, default label values (1 brain, 2 ventricles, ...)
+};
+
+struct EngineScanOutput {
+  // Exactly the files `brainshift register --out` writes, by relative name:
+  // field.nii.gz, field.h5, warped_image.nii.gz, warped_labels.nii.gz,
+  // models/<structure>.vtp, metrics.json, timings.json, report.png.
+  std::map<std::string, std::string> files;
+  std::string kind = "nonrigid";  // or "affine_only_fallback"
+  std::string fallback_reason;
+  double intraop_seconds = 0.0;
+};
+
+class EnginePort {
+ public:
+  virtual ~EnginePort() = default;
+
+  // The default preop atlas (built once, cached in cache_dir).
+  virtual PreopImages load_default_atlas(const std::filesystem::path& cache_dir) = 0;
+  // Meshes (or reuses stored_mesh), assembles and factorises on all ranks.
+  // Throws InputError for bad input, other exceptions for failures; the
+  // previous warm state stays in place on failure.
+  virtual void load_preop(const PreopImages& preop, std::optional<TetMesh> stored_mesh,
+                          double atlas_seconds, const StageProgressFn& progress) = 0;
+  virtual bool ready() const = 0;
+  virtual const TetMesh& mesh() const = 0;  // requires ready()
+  virtual nlohmann::json preop_timings() const = 0;
+  // Runs the intraop stages and renders the output files; scratch_dir is a
+  // private empty directory the adapter may use and delete.
+  virtual EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
+                                         const std::filesystem::path& scratch_dir,
+                                         const StageProgressFn& progress) = 0;
+  virtual int ranks() const = 0;
+  // Bound on decompressed image bytes received from clients.
+  virtual std::size_t max_image_bytes() const = 0;
+  virtual void stop_workers() = 0;
+};
+
+}  // namespace brainshift::server

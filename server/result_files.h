@@ -1,0 +1,27 @@
+#pragma once
+// The mapping between result parts on the wire and the files `brainshift
+// register --out` writes, shared by the daemon (serving) and the client
+// (`pull` writes the same names).
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "protocol/requests.h"
+
+namespace brainshift::server {
+
+class CaseStore;
+
+// "field.nii.gz", "field.h5", "warped_image.nii.gz", "warped_labels.nii.gz",
+// "metrics.json", "timings.json"; "" for kModels (one file per structure).
+std::string result_file_name(protocol::ResultPart part);
+std::string model_file_name(protocol::Structure s);  // "models/brain.vtp"
+// The media type a frame carrying that file has.
+std::string result_media_type(const std::string& file_name, const std::string& bytes);
+
+// Frames of the requested parts of a done scan, with every missing part in
+// `unavailable` (e.g. no warped_image when the engine wrote none).
+protocol::ScanResultReply collect_result_frames(const CaseStore& store,
+                                                const protocol::ScanResultRequest& request);
+
+}  // namespace brainshift::server

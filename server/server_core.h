@@ -1,0 +1,102 @@
+#pragma once
+// The daemon's logic without sockets: request handling (socket thread), the
+// job loop (engine thread), shared state for status, events and the timing
+// log. daemon.cpp wires it to ZeroMQ and MPI; tests drive it directly.
+//
+// Threads: handle_*() run on the socket thread and never wait for the engine
+// (they read a snapshot under a short mutex). start()/step() run on the engine
+// thread, the only one that calls the EnginePort (MPI_THREAD_FUNNELED).
+#include <atomic>
+#include <chrono>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "protocol/message.h"
+#include "protocol/requests.h"
+#include "protocol/timing_log.h"
+#include "server/case_store.h"
+#include "server/engine_port.h"
+#include "server/scan_queue.h"
+#include "server/server_settings.h"
+
+namespace brainshift::server {
+
+class ServerCore {
+ public:
+  // Called from either thread with a complete event message; must be thread-safe.
+  using EventSink = std::function<void(protocol::Message)>;
+
+  ServerCore(ServerSettings settings, CaseStore& store, EnginePort& engine, EventSink events,
+             std::map<std::string, std::string> versions = {});
+  ~ServerCore();
+
+  // ---- socket thread -------------------------------------------------------
+  // Decodes and answers one request; never throws: every failure is a typed
+  // error reply. Returns nullopt only when nothing can be answered.
+  protocol::Message handle_wire(std::vector<std::string> wire);
+  protocol::Message handle(const protocol::Message& request);
+  protocol::StatusReply status() const;
+  bool shutdown_requested() const { return shutdown_.load(); }
+  const protocol::Limits& inbound_limits() const { return limits_; }
+
+  // ---- engine thread -------------------------------------------------------
+  // Restores the warm state from the store (or queues the configured default
+  // preop) and re-queues acknowledged scans that have no result.
+  void start();
+  // Runs one job (a preop warm-up first, else one scan) if one arrives within
+  // `wait`; returns whether a job ran.
+  bool step(std::chrono::milliseconds wait);
+  // Stops taking jobs (signal or shutdown request); wakes step().
+  void request_stop();
+
+ private:
+  struct PreopJob;
+  struct DecodedScan;
+
+  protocol::Message on_status(const protocol::Message& m);
+  protocol::Message on_preop_load(const protocol::Message& m);
+  protocol::Message on_scan_push(const protocol::Message& m);
+  protocol::Message on_scan_result(const protocol::Message& m);
+  protocol::Message on_scan_list(const protocol::Message& m);
+  protocol::Message on_shutdown(const protocol::Message& m);
+
+  void run_preop_job(PreopJob job);
+  void run_scan(const std::string& scan_id);
+  void fail_scan(const ScanRecord& record, protocol::ErrorCode code, const std::string& message,
+                 const std::string& stage);
+  void emit(protocol::Message event);
+  void log_stage(protocol::StageTiming timing);
+  DecodedScan decode_scan(const ScanInput& input) const;
+
+  ServerSettings settings_;
+  CaseStore& store_;
+  EnginePort& engine_;
+  EventSink events_;
+  std::map<std::string, std::string> versions_;
+  protocol::Limits limits_;
+  ScanQueue queue_;
+  std::unique_ptr<protocol::TimingLogFile> timing_log_;
+  std::atomic<bool> shutdown_{false};
+  std::atomic<bool> stopping_{false};
+
+  // Shared state, under mutex_.
+  mutable std::mutex mutex_;
+  protocol::ServerState state_ = protocol::ServerState::kIdle;
+  std::optional<protocol::Progress> progress_;
+  std::string loading_preop_id_;  // non-empty while a warm-up is pending or running
+  std::string ready_preop_id_;    // non-empty once the engine is warm
+  std::optional<protocol::MeshSize> mesh_size_;
+  std::optional<std::string> current_scan_;
+  std::optional<std::string> current_stage_;
+  std::optional<protocol::ErrorInfo> last_error_;
+  std::unique_ptr<PreopJob> pending_preop_;
+  std::map<std::string, std::shared_ptr<DecodedScan>> decoded_;  // pushed, not yet run
+  int ranks_ = 1;
+};
+
+}  // namespace brainshift::server

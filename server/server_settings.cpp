@@ -1,0 +1,150 @@
+#include "server/server_settings.h"
+
+#include <fstream>
+#include <set>
+#include <sstream>
+
+#include <toml++/toml.h>
+
+#include "core/errors.h"
+
+namespace brainshift::server {
+namespace {
+
+[[noreturn]] void fail(const std::string& source, const std::string& key, const std::string& what) {
+  throw InputError(source + ": [server] " + key + ": " + what);
+}
+
+std::string get_string(const toml::table& t, const char* key, const std::string& fallback,
+                       const std::string& source) {
+  const toml::node* n = t.get(key);
+  if (!n) return fallback;
+  if (!n->is_string()) fail(source, key, "must be a string");
+  return n->as_string()->get();
+}
+
+std::int64_t get_int(const toml::table& t, const char* key, std::int64_t fallback,
+                     std::int64_t lo, std::int64_t hi, const std::string& source) {
+  const toml::node* n = t.get(key);
+  if (!n) return fallback;
+  if (!n->is_integer()) fail(source, key, "must be an integer");
+  const std::int64_t v = n->as_integer()->get();
+  if (v < lo || v > hi)
+    fail(source, key, "must be in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " +
+                          std::to_string(v));
+  return v;
+}
+
+bool get_bool(const toml::table& t, const char* key, bool fallback, const std::string& source) {
+  const toml::node* n = t.get(key);
+  if (!n) return fallback;
+  if (!n->is_boolean()) fail(source, key, "must be true or false");
+  return n->as_boolean()->get();
+}
+
+// preop = "atlas" | "none" | { t1 = "...", labels = "...", label_table = "..." }
+DefaultPreop read_preop(const toml::table& t, const std::string& source) {
+  DefaultPreop p;
+  const toml::node* n = t.get("preop");
+  if (!n) return p;
+  if (n->is_string()) {
+    const std::string v = n->as_string()->get();
+    if (v == "atlas") p.kind = DefaultPreop::Kind::atlas;
+    else if (v == "none") p.kind = DefaultPreop::Kind::none;
+    else fail(source, "preop", "must be \"atlas\", \"none\" or a table {t1, labels}, got \"" + v + "\"");
+    return p;
+  }
+  if (!n->is_table()) fail(source, "preop", "must be \"atlas\", \"none\" or a table {t1, labels}");
+  const toml::table& pt = *n->as_table();
+  for (const auto& [k, v] : pt) {
+    const std::string key(k.str());
+    if (key != "t1" && key != "labels" && key != "label_table") fail(source, "preop." + key, "unknown key");
+  }
+  p.kind = DefaultPreop::Kind::files;
+  p.t1 = get_string(pt, "t1", "", source);
+  p.labels = get_string(pt, "labels", "", source);
+  p.label_table = get_string(pt, "label_table", "", source);
+  if (p.t1.empty() || p.labels.empty()) fail(source, "preop", "needs both t1 and labels paths");
+  return p;
+}
+
+}  // namespace
+
+std::filesystem::path ServerSettings::timing_log_path() const {
+  return timing_log.empty() ? store / "timing.log" : timing_log;
+}
+std::filesystem::path ServerSettings::atlas_cache_path() const {
+  return atlas_cache.empty() ? store / "atlas-cache" : atlas_cache;
+}
+
+ServerSettings server_settings_from_text(const std::string& toml_text, const std::string& source) {
+  toml::table root;
+  try {
+    root = toml::parse(toml_text, source);
+  } catch (const toml::parse_error& e) {
+    std::ostringstream os;
+    os << source << ": TOML parse error at line " << e.source().begin.line << ": " << e.description();
+    throw InputError(os.str());
+  }
+  ServerSettings s;
+  const toml::node* section = root.get("server");
+  if (!section) return s;
+  if (!section->is_table()) throw InputError(source + ": [server] must be a table");
+  const toml::table& t = *section->as_table();
+  static const std::set<std::string> known = {
+      "endpoint", "events", "store", "queue_depth", "max_frame_bytes", "timing_log",
+      "preop", "atlas_cache", "allow_plain_tcp_non_loopback"};
+  for (const auto& [k, v] : t)
+    if (!known.count(std::string(k.str()))) fail(source, std::string(k.str()), "unknown key");
+
+  s.endpoint = get_string(t, "endpoint", s.endpoint, source);
+  s.events = get_string(t, "events", s.events, source);
+  s.store = get_string(t, "store", s.store.string(), source);
+  if (s.store.empty()) fail(source, "store", "must not be empty");
+  s.queue_depth = static_cast<std::size_t>(get_int(t, "queue_depth", 4, 1, 1000, source));
+  // 1 KiB .. 2 GiB: a frame must at least hold a NIfTI header; above 2 GiB
+  // ZeroMQ and our buffers are not the right tool.
+  s.max_frame_bytes = static_cast<std::size_t>(
+      get_int(t, "max_frame_bytes", static_cast<std::int64_t>(s.max_frame_bytes), 1024,
+              std::int64_t{2} << 30, source));
+  s.timing_log = get_string(t, "timing_log", "", source);
+  s.atlas_cache = get_string(t, "atlas_cache", "", source);
+  s.preop = read_preop(t, source);
+  s.allow_plain_tcp_non_loopback =
+      get_bool(t, "allow_plain_tcp_non_loopback", s.allow_plain_tcp_non_loopback, source);
+  return s;
+}
+
+ServerSettings server_settings_from_file(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError(path.string() + ": cannot open the configuration file");
+  std::ostringstream text;
+  text << in.rdbuf();
+  return server_settings_from_text(text.str(), path.string());
+}
+
+bool is_local_endpoint(const std::string& endpoint) {
+  if (endpoint.rfind("ipc://", 0) == 0 || endpoint.rfind("inproc://", 0) == 0) return true;
+  if (endpoint.rfind("tcp://", 0) != 0) return false;
+  const std::string rest = endpoint.substr(6);
+  return rest.rfind("127.", 0) == 0 || rest.rfind("localhost:", 0) == 0 ||
+         rest.rfind("[::1]:", 0) == 0;
+}
+
+void validate_endpoints(const ServerSettings& s) {
+  for (const auto& [key, ep] : {std::pair<const char*, const std::string&>{"endpoint", s.endpoint},
+                                {"events", s.events}}) {
+    const bool known_scheme = ep.rfind("tcp://", 0) == 0 || ep.rfind("ipc://", 0) == 0 ||
+                              ep.rfind("inproc://", 0) == 0;
+    if (!known_scheme || ep.find("://") + 3 >= ep.size())
+      throw InputError(std::string("server.") + key + " \"" + ep +
+                       "\": expected tcp://HOST:PORT, ipc://PATH or inproc://NAME");
+    if (!is_local_endpoint(ep) && !s.allow_plain_tcp_non_loopback)
+      throw InputError(std::string("server.") + key + " \"" + ep +
+                       "\" is not a loopback address: plain TCP is refused there (set "
+                       "allow_plain_tcp_non_loopback = true only on an isolated network)");
+  }
+  if (s.endpoint == s.events) throw InputError("server.endpoint and server.events must differ");
+}
+
+}  // namespace brainshift::server
