@@ -34,7 +34,15 @@ void write_all(const ScanResult& r, const ImageF* intraop_t1, const fs::path& di
   for (const auto& [name, surface] : r.models) write_vtp(dir / "models" / (name + ".vtp"), surface);
   write_json(dir / "metrics.json", r.metrics);
   write_json(dir / "timings.json", r.timings);
-  if (intraop_t1) write_registration_report(dir / "report.png", *intraop_t1, r);
+  // The picture needs an intraop image to draw on; without one there is none.
+  if (intraop_t1) {
+    ReportInputs in;
+    in.intraop = intraop_t1;
+    in.warped_preop_affine = &r.warped_t1_affine_only;
+    in.warped_preop_nonrigid = &r.warped_t1;
+    in.warped_labels = &r.warped_labels;
+    write_report_png(dir / "report.png", in);
+  }
 }
 
 }  // namespace
