@@ -1,0 +1,272 @@
+#include "registration/active_surface.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include <Eigen/Sparse>
+#include <Eigen/SparseCholesky>
+
+#include "core/errors.h"
+#include "core/timer.h"
+#include "registration/linear_sampler.h"
+#include "image/resample.h"
+
+namespace brainshift {
+namespace {
+
+using SpMat = Eigen::SparseMatrix<double>;
+using Points = std::vector<Eigen::Vector3d>;
+
+void validate(const TriSurface& s, const ImageF& target, const ActiveSurfaceParameters& p) {
+  if (s.vertices_mm.empty() || s.triangles.empty()) {
+    throw InputError("active surface: the surface has no vertices or no triangles");
+  }
+  const int n = static_cast<int>(s.vertices_mm.size());
+  for (const auto& t : s.triangles)
+    for (int v : t)
+      if (v < 0 || v >= n) throw InputError("active surface: triangle refers to vertex " +
+                                            std::to_string(v) + " of " + std::to_string(n));
+  if (target.voxels.empty() || target.voxels.size() != target.grid.voxel_count()) {
+    throw InputError("active surface: the target signed distance map is empty");
+  }
+  if (!(p.step > 0 && p.step <= 1) || !(p.membrane_stiffness >= 0) || p.max_iterations < 1 ||
+      !(p.convergence_tolerance_mm > 0) || p.convergence_iterations < 1 || !(p.max_step_mm > 0) ||
+      !(p.force_smoothing_mm >= 0) || !(p.edge_weight >= 0) || !(p.edge_search_mm > 0)) {
+    throw InputError("active surface: invalid parameters (need 0 < step <= 1, stiffness >= 0, "
+                     "positive tolerances, iterations and step clip)");
+  }
+}
+
+// Lumped P1 mass (area/3 per vertex) and cotangent stiffness. Cotangents are
+// clamped so that a needle triangle cannot dominate the operator.
+void assemble_membrane(const TriSurface& s, Eigen::VectorXd* mass, SpMat* stiffness) {
+  const int n = static_cast<int>(s.vertices_mm.size());
+  std::vector<Eigen::Triplet<double>> trip;
+  trip.reserve(s.triangles.size() * 12);
+  *mass = Eigen::VectorXd::Zero(n);
+  for (const auto& t : s.triangles) {
+    const Eigen::Vector3d& a = s.vertices_mm[t[0]];
+    const Eigen::Vector3d& b = s.vertices_mm[t[1]];
+    const Eigen::Vector3d& c = s.vertices_mm[t[2]];
+    const double twice_area = (b - a).cross(c - a).norm();
+    if (!(twice_area > 1e-12)) continue;
+    for (int v : t) (*mass)[v] += twice_area / 6.0;
+    for (int corner = 0; corner < 3; ++corner) {
+      const int k = t[corner], i = t[(corner + 1) % 3], j = t[(corner + 2) % 3];
+      const Eigen::Vector3d ei = s.vertices_mm[i] - s.vertices_mm[k];
+      const Eigen::Vector3d ej = s.vertices_mm[j] - s.vertices_mm[k];
+      const double cot = std::clamp(ei.dot(ej) / twice_area, -20.0, 20.0);
+      const double w = 0.5 * cot;
+      trip.emplace_back(i, j, -w);
+      trip.emplace_back(j, i, -w);
+      trip.emplace_back(i, i, w);
+      trip.emplace_back(j, j, w);
+    }
+  }
+  // Vertices in no (valid) triangle: give them a typical mass so M stays positive.
+  const double typical = mass->sum() / std::max(1, n);
+  for (int v = 0; v < n; ++v)
+    if (!((*mass)[v] > 0)) (*mass)[v] = typical > 0 ? typical : 1.0;
+  stiffness->resize(n, n);
+  stiffness->setFromTriplets(trip.begin(), trip.end());
+}
+
+std::vector<std::vector<int>> vertex_neighbours(const TriSurface& s) {
+  std::vector<std::vector<int>> nb(s.vertices_mm.size());
+  for (const auto& t : s.triangles)
+    for (int c = 0; c < 3; ++c) {
+      nb[t[c]].push_back(t[(c + 1) % 3]);
+      nb[t[c]].push_back(t[(c + 2) % 3]);
+    }
+  for (auto& list : nb) {
+    std::sort(list.begin(), list.end());
+    list.erase(std::unique(list.begin(), list.end()), list.end());
+  }
+  return nb;
+}
+
+double mean_edge_length(const TriSurface& s) {
+  double sum = 0;
+  for (const auto& t : s.triangles)
+    for (int c = 0; c < 3; ++c) sum += (s.vertices_mm[t[c]] - s.vertices_mm[t[(c + 1) % 3]]).norm();
+  return sum / (3.0 * s.triangles.size());
+}
+
+Points area_weighted_normals(const TriSurface& s, const Points& x) {
+  Points n(x.size(), Eigen::Vector3d::Zero());
+  for (const auto& t : s.triangles) {
+    const Eigen::Vector3d fn = (x[t[1]] - x[t[0]]).cross(x[t[2]] - x[t[0]]);
+    for (int v : t) n[v] += fn;
+  }
+  for (auto& v : n) {
+    const double len = v.norm();
+    if (len > 0) v /= len;
+  }
+  return n;
+}
+
+// Offset along the normal (mm, within +-search) of the strongest intensity
+// step, by central differences on a 0.5 mm profile; 0 when the profile leaves the image.
+double edge_offset_mm(const ImageF& image, const Eigen::Vector3d& x, const Eigen::Vector3d& n,
+                      double search_mm) {
+  constexpr double h = 0.5;
+  const int half = static_cast<int>(std::ceil(search_mm / h)) + 1;
+  std::vector<float> profile(2 * half + 1);
+  for (int i = -half; i <= half; ++i) {
+    const float v = sample_linear(image, x + (i * h) * n, std::numeric_limits<float>::quiet_NaN());
+    if (std::isnan(v)) return 0.0;
+    profile[i + half] = v;
+  }
+  double best = 0, best_offset = 0;
+  for (int i = -half + 1; i <= half - 1; ++i) {
+    const double g = std::abs(profile[i + half + 1] - profile[i + half - 1]);
+    if (g > best) best = g, best_offset = i * h;
+  }
+  return best_offset;
+}
+
+struct ForceField {
+  Points force;
+  std::vector<char> has_data;
+};
+
+ForceField compute_force(const TriSurface& s, const Points& x, const LinearSampler& target,
+                         const ImageF* image, const ActiveSurfaceParameters& p) {
+  ForceField f{Points(x.size(), Eigen::Vector3d::Zero()), std::vector<char>(x.size(), 0)};
+  Points normals;
+  if (image && p.edge_weight > 0) normals = area_weighted_normals(s, x);
+  for (std::size_t v = 0; v < x.size(); ++v) {
+    double d;
+    Eigen::Vector3d g;
+    if (!target.sample(x[v], &d, &g)) continue;
+    const double len = g.norm();
+    // Near the medial axis of the distance map the gradient vanishes and its
+    // direction means nothing: no force there rather than a random one.
+    if (len < 0.2) continue;
+    f.has_data[v] = 1;
+    f.force[v] = -d * g / len;
+    if (!normals.empty()) {
+      f.force[v] += p.edge_weight * edge_offset_mm(*image, x[v], normals[v], p.edge_search_mm) * normals[v];
+    }
+  }
+  return f;
+}
+
+// Explicit diffusion along the mesh: each pass (beta = 1/2 toward the neighbour
+// mean) adds about h^2/4 of variance per axis, so 4 sigma^2 / h^2 passes
+// approximate a Gaussian of width sigma.
+void smooth_along_surface(Points* f, const std::vector<std::vector<int>>& nb, int passes) {
+  Points tmp(f->size());
+  for (int pass = 0; pass < passes; ++pass) {
+    for (std::size_t v = 0; v < f->size(); ++v) {
+      if (nb[v].empty()) {
+        tmp[v] = (*f)[v];
+        continue;
+      }
+      Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+      for (int w : nb[v]) mean += (*f)[w];
+      tmp[v] = 0.5 * (*f)[v] + 0.5 * mean / double(nb[v].size());
+    }
+    f->swap(tmp);
+  }
+}
+
+std::size_t count_flipped(const TriSurface& s, const Points& x) {
+  std::size_t flipped = 0;
+  for (const auto& t : s.triangles) {
+    const auto& p = s.vertices_mm;
+    const Eigen::Vector3d n0 = (p[t[1]] - p[t[0]]).cross(p[t[2]] - p[t[0]]);
+    const Eigen::Vector3d n1 = (x[t[1]] - x[t[0]]).cross(x[t[2]] - x[t[0]]);
+    if (!(n0.dot(n1) > 0)) ++flipped;
+  }
+  return flipped;
+}
+
+}  // namespace
+
+SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target_sdf,
+                                 const ActiveSurfaceParameters& p, const ImageF* intraop_image) {
+  validate(surface, target_sdf, p);
+  const Stopwatch clock;
+  const std::size_t n = surface.vertices_mm.size();
+
+  Eigen::VectorXd mass;
+  SpMat stiffness;
+  assemble_membrane(surface, &mass, &stiffness);
+  SpMat system = p.step * p.membrane_stiffness * stiffness;
+  system.diagonal() += mass;
+  Eigen::SimplicialLDLT<SpMat> solver(system);
+  SurfaceMatchResult r;
+  if (solver.info() != Eigen::Success) {
+    r.displacement_mm.assign(n, Eigen::Vector3d::Zero());
+    r.message = "failed: membrane matrix factorisation failed (degenerate surface?)";
+    return r;
+  }
+  const auto neighbours = vertex_neighbours(surface);
+  const double h = mean_edge_length(surface);
+  const int smoothing_passes = std::min(
+      20, static_cast<int>(std::lround(4 * p.force_smoothing_mm * p.force_smoothing_mm / (h * h))));
+  const LinearSampler target(target_sdf);
+  const ImageF* image = intraop_image && !intraop_image->voxels.empty() ? intraop_image : nullptr;
+
+  Eigen::MatrixXd u = Eigen::MatrixXd::Zero(n, 3);
+  Points x = surface.vertices_mm;
+  int quiet = 0;
+  for (r.iterations = 0; r.iterations < p.max_iterations;) {
+    ForceField f = compute_force(surface, x, target, image, p);
+    smooth_along_surface(&f.force, neighbours, smoothing_passes);
+    Eigen::MatrixXd rhs = u;
+    for (std::size_t v = 0; v < n; ++v) {
+      Eigen::Vector3d step = p.step * f.force[v];
+      const double len = step.norm();
+      if (len > p.max_step_mm) step *= p.max_step_mm / len;
+      rhs.row(v) += step.transpose();
+    }
+    rhs = mass.asDiagonal() * rhs;
+    const Eigen::MatrixXd u_new = solver.solve(rhs);
+    ++r.iterations;
+    const double update = (u_new - u).rowwise().norm().maxCoeff();
+    u = u_new;
+    for (std::size_t v = 0; v < n; ++v) x[v] = surface.vertices_mm[v] + u.row(v).transpose();
+    quiet = update < p.convergence_tolerance_mm ? quiet + 1 : 0;
+    if (quiet >= p.convergence_iterations) {
+      r.converged = true;
+      break;
+    }
+    if (!u.allFinite()) break;
+  }
+
+  r.displacement_mm.resize(n);
+  r.residual_distance_mm.assign(n, std::numeric_limits<double>::quiet_NaN());
+  double sum = 0;
+  std::size_t with_data = 0;
+  for (std::size_t v = 0; v < n; ++v) {
+    r.displacement_mm[v] = u.row(v).transpose();
+    double d;
+    Eigen::Vector3d g;
+    if (!target.sample(x[v], &d, &g)) continue;
+    r.residual_distance_mm[v] = std::abs(d);
+    sum += std::abs(d);
+    r.max_residual_mm = std::max(r.max_residual_mm, std::abs(d));
+    ++with_data;
+  }
+  r.vertices_without_data = n - with_data;
+  r.mean_residual_mm = with_data ? sum / double(with_data) : 0.0;
+  r.flipped_triangles = count_flipped(surface, x);
+  r.seconds = clock.seconds();
+
+  std::ostringstream msg;
+  msg.precision(3);
+  msg << (r.converged ? "converged" : "not converged (iteration limit)") << " after "
+      << r.iterations << " iterations; mean residual " << r.mean_residual_mm << " mm, max "
+      << r.max_residual_mm << " mm";
+  if (r.vertices_without_data) msg << "; " << r.vertices_without_data << " vertices outside the target image";
+  if (r.flipped_triangles) msg << "; " << r.flipped_triangles << " flipped triangles (folded surface)";
+  if (with_data == 0) msg << "; no vertex lies inside the target image";
+  r.message = msg.str();
+  return r;
+}
+
+}  // namespace brainshift

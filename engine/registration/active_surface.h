@@ -1,0 +1,82 @@
+#pragma once
+// Active-surface matching: an elastic membrane attached to a surface (the preop
+// brain outline or ventricle wall, already mapped by the affine into the
+// intraop frame) is pulled onto the zero level of an intraop signed distance
+// map. The membrane acts on the DISPLACEMENT u of the vertices, not on their
+// positions, so the shape is kept and only non-smooth motion is penalised.
+//
+// Continuous model: minimise  E(u) = 1/2 int D(x0+u)^2 dA + alpha/2 int |grad_S u|^2 dA,
+// D the target signed distance, grad_S the surface gradient. Discretised with
+// P1 finite elements on the triangle mesh: lumped mass matrix M (area / 3 per
+// vertex) and the cotangent stiffness matrix K (positive semi-definite for any
+// triangulation). Semi-implicit gradient flow with step tau, force f = -D n_D
+// (n_D the unit distance-map gradient, i.e. the step onto the zero level):
+//     (M + tau*alpha*K) u_{k+1} = M (u_k + tau * clip(f_k))
+// The matrix is factorised once (SimplicialLDLT). At the fixed point
+// alpha*K u = M f: with f ~ d - u (d the true normal offset) the result is the
+// membrane-filtered target, u = (M + alpha K)^-1 M d, i.e. alpha (mm^2) is the
+// square of a smoothing length. Components of wavelength lambda are attenuated
+// by 1 / (1 + alpha (2 pi / lambda)^2): alpha = 8 mm^2 keeps 98 % of a 40 mm
+// wide sinking and removes ~90 % of 1-voxel (3-4 mm wavelength) segmentation
+// noise. Because the stiffness is mesh-independent (it is a continuous
+// operator), the same alpha works for the 17k-vertex outline and the 3k-vertex
+// ventricles.
+//
+// Convergence: the largest vertex update stays below convergence_tolerance_mm for
+// convergence_iterations consecutive iterations.
+// Folding check: a triangle whose normal turned by more than 90 degrees from
+// the input surface (or collapsed to zero area) is counted as flipped; the
+// pipeline refuses results with flipped triangles.
+#include <cstddef>
+#include <string>
+#include <vector>
+
+#include <Eigen/Dense>
+
+#include "core/image.h"
+#include "core/tet_mesh.h"
+
+namespace brainshift {
+
+struct ActiveSurfaceParameters {
+  int max_iterations = 80;
+  double step = 1.0;                     // tau in (0, 1]; 1 = a full projection step each iteration
+  double membrane_stiffness = 8.0;       // alpha, mm^2 (see above)
+  double convergence_tolerance_mm = 0.01;
+  int convergence_iterations = 2;
+  double max_step_mm = 2.0;              // force clipped per iteration (avoids jumping to a far surface)
+  // Gaussian-like smoothing (sigma, mm) of the force along the surface before
+  // the membrane solve: damps the cell-to-cell jumps of the trilinear gradient.
+  double force_smoothing_mm = 1.0;
+  // Intensity edge force (only when an intraop image is given): weight of the
+  // pull toward the strongest intensity edge along the vertex normal, searched
+  // within +-edge_search_mm. Small: the label map is the primary evidence.
+  double edge_weight = 0.2;
+  double edge_search_mm = 2.0;
+};
+
+struct SurfaceMatchResult {
+  // Per vertex, intraop frame: from the input (affine-mapped) position to the
+  // matched position.
+  std::vector<Eigen::Vector3d> displacement_mm;
+  // |signed distance| at the final position; NaN for vertices outside the
+  // target image (no data there: they follow their neighbours through the membrane).
+  std::vector<double> residual_distance_mm;
+  double mean_residual_mm = 0, max_residual_mm = 0;  // over vertices with data
+  std::size_t vertices_without_data = 0;
+  int iterations = 0;
+  bool converged = false;
+  std::size_t flipped_triangles = 0;
+  double seconds = 0;
+  std::string message;
+};
+
+// Throws InputError for an empty surface, out-of-range triangle indices,
+// invalid parameters or an empty target image. Never throws for a poor match:
+// converged / flipped_triangles / message report it.
+SurfaceMatchResult match_surface(const TriSurface& surface_in_intraop_frame,
+                                 const ImageF& target_signed_distance_mm,
+                                 const ActiveSurfaceParameters& params,
+                                 const ImageF* intraop_image = nullptr);
+
+}  // namespace brainshift

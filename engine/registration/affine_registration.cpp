@@ -1,0 +1,310 @@
+#include "registration/affine_registration.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include <Eigen/Eigenvalues>
+
+#include "core/errors.h"
+#include "registration/linear_sampler.h"
+
+namespace brainshift {
+namespace {
+
+using Vec12 = Eigen::Matrix<double, 12, 1>;
+using Mat12 = Eigen::Matrix<double, 12, 12>;
+
+// x = B q + t with q = (p - centre) / radius: the normalisation makes the 9
+// linear parameters and the 3 translations comparable (all in mm of motion at
+// the typical point), which keeps the 12x12 normal equations well conditioned.
+struct AffineState {
+  Eigen::Matrix3d B = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d t = Eigen::Vector3d::Zero();
+};
+
+struct Term {
+  std::vector<Eigen::Vector3d> q;  // normalised preop points of this level
+  const ImageF* sdf = nullptr;
+  double weight = 0;               // structure weight / point count
+};
+
+struct Evaluation {
+  double cost = 0;
+  std::size_t valid = 0, total = 0, inliers = 0;
+  double sum_squares = 0;
+  Mat12 H = Mat12::Zero();
+  Vec12 b = Vec12::Zero();
+};
+
+// Geman-McClure: rho(r) = (c^2/2) r^2 / (c^2 + r^2); IRLS weight rho'(r)/r.
+double gm_rho(double r, double c) { return 0.5 * c * c * r * r / (c * c + r * r); }
+double gm_weight(double r, double c) {
+  const double d = c * c + r * r;
+  return c * c * c * c / (d * d);
+}
+
+Evaluation evaluate(const std::vector<Term>& terms, const AffineState& s, double c) {
+  Evaluation e;
+  for (const Term& term : terms) {
+    const LinearSampler sampler(*term.sdf);
+    for (const Eigen::Vector3d& q : term.q) {
+      ++e.total;
+      const Eigen::Vector3d x = s.B * q + s.t;
+      double r;
+      Eigen::Vector3d g;
+      if (!sampler.sample(x, &r, &g)) {
+        e.cost += term.weight * 0.5 * c * c;  // saturated loss: see header
+        continue;
+      }
+      ++e.valid;
+      e.sum_squares += r * r;
+      if (std::abs(r) < 2 * c) ++e.inliers;
+      e.cost += term.weight * gm_rho(r, c);
+      Vec12 J;
+      J << g.x() * q, g.y() * q, g.z() * q, g;
+      const double w = term.weight * gm_weight(r, c);
+      e.H.selfadjointView<Eigen::Lower>().rankUpdate(J, w);
+      e.b += w * r * J;
+    }
+  }
+  const Mat12 full = e.H.selfadjointView<Eigen::Lower>();
+  e.H = full;
+  return e;
+}
+
+AffineState apply_update(const AffineState& s, const Vec12& delta) {
+  AffineState n = s;
+  for (int row = 0; row < 3; ++row) n.B.row(row) += delta.segment<3>(3 * row).transpose();
+  n.t += delta.tail<3>();
+  return n;
+}
+
+double max_motion_mm(const std::vector<Term>& terms, const Vec12& delta) {
+  const AffineState zero{Eigen::Matrix3d::Zero(), Eigen::Vector3d::Zero()};
+  const AffineState d = apply_update(zero, delta);
+  double m = 0;
+  for (const Term& term : terms)
+    for (const auto& q : term.q) m = std::max(m, (d.B * q + d.t).norm());
+  return m;
+}
+
+struct LevelOutcome {
+  AffineState state;
+  Evaluation eval;
+  int iterations = 0;
+  bool converged = false;
+};
+
+// Levenberg-Marquardt on the IRLS normal equations; a step is kept only when
+// the robust cost decreases.
+LevelOutcome run_level(const std::vector<Term>& terms, AffineState state, double c,
+                       int max_iterations, double tolerance_mm) {
+  LevelOutcome out;
+  Evaluation eval = evaluate(terms, state, c);
+  double mu = 1e-3;
+  for (int it = 0; it < max_iterations && eval.valid >= 12; ++it) {
+    ++out.iterations;
+    Mat12 A = eval.H;
+    A.diagonal() += mu * eval.H.diagonal() + Vec12::Constant(1e-12 * eval.H.diagonal().maxCoeff());
+    const Vec12 delta = -A.ldlt().solve(eval.b);
+    if (!delta.allFinite()) break;
+    const double motion = max_motion_mm(terms, delta);
+    const AffineState trial = apply_update(state, delta);
+    Evaluation trial_eval = evaluate(terms, trial, c);
+    if (trial_eval.cost < eval.cost) {
+      state = trial;
+      eval = std::move(trial_eval);
+      mu = std::max(mu / 3, 1e-7);
+    } else {
+      mu *= 4;
+    }
+    // The proposed step is below tolerance: further progress is below what the
+    // voxelised data can resolve, whether or not this step was accepted.
+    if (motion < tolerance_mm) {
+      out.converged = true;
+      break;
+    }
+    if (mu > 1e8) break;  // no descent direction left: stalled, not converged
+  }
+  out.state = state;
+  out.eval = std::move(eval);
+  return out;
+}
+
+// Subsample sizes: geometric from coarse to fine.
+std::size_t level_points(const AffineRegistrationParameters& p, int level) {
+  if (p.levels <= 1) return static_cast<std::size_t>(p.fine_points);
+  const double f = double(level) / (p.levels - 1);
+  return static_cast<std::size_t>(p.coarse_points * std::pow(double(p.fine_points) / p.coarse_points, f));
+}
+
+std::vector<Term> make_terms(const PreopBoundarySamples& preop, const IntraopDistanceMaps& intraop,
+                             const AffineRegistrationParameters& p, int level,
+                             const Eigen::Vector3d& centre, double radius) {
+  std::vector<Term> terms;
+  const std::size_t n_outer = std::min(preop.outer_mm.size(), level_points(p, level));
+  const double fraction = double(n_outer) / std::max<std::size_t>(preop.outer_mm.size(), 1);
+  auto add = [&](const std::vector<Eigen::Vector3d>& pts, std::size_t n, const ImageF& sdf, double w) {
+    if (n == 0 || w <= 0 || sdf.voxels.empty()) return;
+    Term term;
+    term.sdf = &sdf;
+    term.weight = w / double(n);
+    term.q.reserve(n);
+    for (std::size_t i = 0; i < n; ++i) term.q.push_back((pts[i] - centre) / radius);
+    terms.push_back(std::move(term));
+  };
+  add(preop.outer_mm, n_outer, intraop.outer_sdf_mm, p.brain_weight);
+  // Ventricle points: the same fraction, but enough of them to count at coarse levels.
+  const std::size_t n_vent = std::min(
+      preop.ventricle_mm.size(),
+      std::max<std::size_t>(300, static_cast<std::size_t>(fraction * preop.ventricle_mm.size())));
+  add(preop.ventricle_mm, n_vent, intraop.ventricle_sdf_mm, p.ventricle_weight);
+  return terms;
+}
+
+// Eigenvectors sorted by decreasing eigenvalue; false when two eigenvalues are
+// too close for the axes to be meaningful.
+bool principal_axes(const Eigen::Matrix3d& cov, double min_ratio, Eigen::Matrix3d* axes) {
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);  // ascending
+  const Eigen::Vector3d ev = es.eigenvalues();
+  if (!(ev[0] > 0) || ev[1] / ev[0] < min_ratio || ev[2] / ev[1] < min_ratio) return false;
+  *axes = es.eigenvectors().rowwise().reverse();
+  return true;
+}
+
+// Rotation taking preop principal axes to intraop ones, with the sign choice
+// (axes are defined up to sign) closest to the identity: scanners share the
+// RAS convention, so heads are never upside down or reversed.
+Eigen::Matrix3d principal_axes_rotation(const Eigen::Matrix3d& preop_axes,
+                                        const Eigen::Matrix3d& intraop_axes) {
+  Eigen::Matrix3d best = Eigen::Matrix3d::Identity();
+  double best_trace = -std::numeric_limits<double>::infinity();
+  for (int signs = 0; signs < 8; ++signs) {
+    Eigen::Vector3d d;
+    for (int a = 0; a < 3; ++a) d[a] = (signs >> a & 1) ? -1.0 : 1.0;
+    const Eigen::Matrix3d R = intraop_axes * d.asDiagonal() * preop_axes.transpose();
+    if (R.determinant() < 0) continue;
+    if (R.trace() > best_trace) best_trace = R.trace(), best = R;
+  }
+  return best;
+}
+
+std::vector<AffineState> initial_candidates(const PreopBoundarySamples& preop,
+                                            const IntraopDistanceMaps& intraop,
+                                            const AffineRegistrationParameters& p, double radius) {
+  const MaskMoments& mp = preop.outer_moments;
+  const MaskMoments& mi = intraop.outer_moments;
+  const double volume_scale = std::cbrt(mi.volume_ml / mp.volume_ml);
+  std::vector<Eigen::Matrix3d> rotations{Eigen::Matrix3d::Identity()};
+  Eigen::Matrix3d ap, ai;
+  if (principal_axes(mp.covariance_mm2, p.principal_axes_min_eigen_ratio, &ap) &&
+      principal_axes(mi.covariance_mm2, p.principal_axes_min_eigen_ratio, &ai)) {
+    rotations.push_back(principal_axes_rotation(ap, ai));
+  }
+  // Unit scale as well: a field of view that crops the brain shrinks the
+  // intraop volume, and the volume ratio would then be wrong.
+  std::vector<double> scales{volume_scale};
+  if (std::abs(volume_scale - 1.0) > 0.02) scales.push_back(1.0);
+  std::vector<AffineState> out;
+  for (const auto& R : rotations)
+    for (double s : scales) out.push_back({s * radius * R, mi.centroid_mm});
+  return out;
+}
+
+Eigen::Matrix4d to_matrix(const AffineState& s, const Eigen::Vector3d& centre, double radius) {
+  Eigen::Matrix4d m = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d A = s.B / radius;
+  m.topLeftCorner<3, 3>() = A;
+  m.topRightCorner<3, 1>() = s.t - A * centre;
+  return m;
+}
+
+}  // namespace
+
+AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
+                                         const IntraopDistanceMaps& intraop,
+                                         const AffineRegistrationParameters& p) {
+  if (p.levels < 1 || p.coarse_points < 12 || p.fine_points < 12 || p.robust_scale_mm <= 0 ||
+      p.iterations_per_level < 1) {
+    throw InputError("affine registration: invalid parameters (levels, point counts, "
+                     "iterations must be positive; robust_scale_mm > 0)");
+  }
+  AffineRegistrationResult result;
+  if (preop.outer_mm.size() < 12 || intraop.outer_sdf_mm.voxels.empty() ||
+      !(preop.outer_moments.volume_ml > 0) || !(intraop.outer_moments.volume_ml > 0)) {
+    throw InputError("affine registration: empty brain outline in the preop or intraop label map");
+  }
+  const Eigen::Vector3d centre = preop.outer_moments.centroid_mm;
+  const double radius = std::sqrt(preop.outer_moments.covariance_mm2.trace());
+
+  // Coarse level from every candidate start; keep the lowest cost.
+  const double coarse_c = p.robust_scale_mm * std::pow(p.coarse_scale_factor, p.levels - 1);
+  const std::vector<Term> coarse_terms = make_terms(preop, intraop, p, 0, centre, radius);
+  const auto candidates = initial_candidates(preop, intraop, p, radius);
+  LevelOutcome best;
+  double best_cost = std::numeric_limits<double>::infinity();
+  for (const AffineState& start : candidates) {
+    LevelOutcome o = run_level(coarse_terms, start, coarse_c, p.iterations_per_level,
+                               p.levels == 1 ? p.tolerance_mm : p.coarse_tolerance_mm);
+    if (o.eval.cost < best_cost) best_cost = o.eval.cost, best = std::move(o);
+  }
+  int iterations = best.iterations;
+  bool converged = best.converged;
+  for (int level = 1; level < p.levels; ++level) {
+    const double c = p.robust_scale_mm * std::pow(p.coarse_scale_factor, p.levels - 1 - level);
+    const bool finest = level == p.levels - 1;
+    const auto terms = make_terms(preop, intraop, p, level, centre, radius);
+    best = run_level(terms, best.state, c, p.iterations_per_level,
+                     finest ? p.tolerance_mm : p.coarse_tolerance_mm);
+    iterations += best.iterations;
+    converged = best.converged;
+  }
+
+  const auto fine_terms = make_terms(preop, intraop, p, p.levels - 1, centre, radius);
+  const Evaluation initial = evaluate(fine_terms, candidates.front(), p.robust_scale_mm);
+  const Evaluation final_eval = evaluate(fine_terms, best.state, p.robust_scale_mm);
+  result.intraop_from_preop = to_matrix(best.state, centre, radius);
+  result.iterations = iterations;
+  result.initial_cost = initial.cost;
+  result.final_cost = final_eval.cost;
+  result.points_used = final_eval.valid;
+  if (final_eval.valid > 0) {
+    result.rms_surface_distance_mm = std::sqrt(final_eval.sum_squares / double(final_eval.valid));
+    result.inlier_fraction = double(final_eval.inliers) / double(final_eval.valid);
+  }
+  const double det = result.intraop_from_preop.topLeftCorner<3, 3>().determinant();
+  const double in_view = double(final_eval.valid) / std::max<std::size_t>(final_eval.total, 1);
+
+  std::ostringstream msg;
+  msg.precision(3);
+  const bool plausible = det > 0.5 && det < 2.0 && result.intraop_from_preop.allFinite();
+  const bool good_fit = result.inlier_fraction >= p.min_inlier_fraction && in_view >= 0.3;
+  result.converged = converged && plausible && good_fit;
+  if (result.converged) {
+    msg << "converged";
+  } else if (!plausible) {
+    msg << "failed: implausible affine (determinant " << det << ")";
+  } else if (!good_fit) {
+    msg << "poor fit: " << 100 * result.inlier_fraction << "% of surface points within "
+        << 2 * p.robust_scale_mm << " mm, " << 100 * in_view << "% inside the intraop image";
+  } else {
+    msg << "not converged: iteration limit or stalled at the finest level";
+  }
+  msg << " after " << iterations << " iterations; rms surface distance "
+      << result.rms_surface_distance_mm << " mm over " << result.points_used << " points";
+  result.message = msg.str();
+  return result;
+}
+
+AffineRegistrationResult register_affine(const LabelImage& preop_labels,
+                                         const LabelImage& intraop_labels,
+                                         const AffineRegistrationParameters& params,
+                                         std::uint16_t brain_label, std::uint16_t ventricle_label) {
+  const PreopBoundarySamples preop = prepare_preop_samples(preop_labels, brain_label, ventricle_label);
+  const IntraopDistanceMaps intraop = prepare_intraop_maps(intraop_labels, brain_label, ventricle_label);
+  return register_affine(preop, intraop, params);
+}
+
+}  // namespace brainshift

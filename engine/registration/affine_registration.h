@@ -1,0 +1,79 @@
+#pragma once
+// 12-parameter affine registration of the preop label map to the intraop one.
+//
+// Cost: points on the preop structure boundaries (the brain outline and the
+// ventricle wall), mapped by the affine x = A p + t, are scored by the intraop
+// signed distance map of the same structure:
+//   C(A,t) = sum_s  w_s / N_s  sum_i rho_c( D_s(A p_i + t) )
+// with rho_c the Geman-McClure loss (quadratic below c, saturating at c^2/2
+// above): brain shift moves part of the surface by 5-20 mm, and a redescending
+// loss lets those points stop pulling on the affine instead of dragging it.
+// Points mapped outside the intraop grid score the saturated loss c^2/2, so the
+// optimiser cannot lower the cost by pushing points out of the field of view.
+//
+// Minimiser: Levenberg-Marquardt on iteratively reweighted least squares, with
+// the analytic Jacobian (trilinear distance-map gradient times d x / d params).
+// Multi-resolution in the sense that matters for a distance-map cost: few points
+// and a wide robust scale first (large capture range), then more points and the
+// final scale c. Initialisation from moments (centroids; isotropic scale from
+// the volume ratio), plus the principal-axes rotation as a second candidate
+// when both covariances have well separated eigenvalues; each candidate runs the
+// coarse level and the lowest cost wins.
+#include <cstdint>
+#include <string>
+
+#include <Eigen/Dense>
+
+#include "core/image.h"
+#include "registration/boundary_samples.h"
+
+namespace brainshift {
+
+struct AffineRegistrationParameters {
+  int levels = 3;                   // coarse-to-fine stages (>= 1)
+  int coarse_points = 1500;         // outline points used at the coarsest level
+  int fine_points = 20000;          // ... at the finest level (geometric in between)
+  int iterations_per_level = 50;    // LM iterations cap per level
+  double robust_scale_mm = 1.0;     // Geman-McClure c at the finest level
+  double coarse_scale_factor = 2.5; // c multiplies by this per coarser level
+  double brain_weight = 1.0;        // weight of the outline term (normalised by its point count)
+  double ventricle_weight = 0.5;    // weight of the ventricle-wall term (0 disables it)
+  // A level has converged when the last update moved every sample point by
+  // less than this (mm).
+  double tolerance_mm = 0.002;
+  double coarse_tolerance_mm = 0.05;
+  // Principal axes are used as a candidate only when adjacent eigenvalues of
+  // both covariances differ by at least this ratio (otherwise the axes are
+  // ill-defined and the candidate would be noise).
+  double principal_axes_min_eigen_ratio = 1.1;
+  // Fit quality below which the result is reported as not converged: fraction
+  // of finest-level points within 2c of the intraop surface.
+  double min_inlier_fraction = 0.5;
+};
+
+struct AffineRegistrationResult {
+  Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
+  int iterations = 0;             // LM iterations over all levels (final candidate)
+  bool converged = false;         // finest level met tolerance_mm AND the fit is plausible
+  double initial_cost = 0;        // at the moment-based initialisation, finest-level cost
+  double final_cost = 0;          // same cost at the result
+  double rms_surface_distance_mm = 0;  // over finest-level points inside the intraop grid
+  double inlier_fraction = 0;          // of those points, |distance| < 2c
+  std::size_t points_used = 0;         // finest-level points inside the intraop grid
+  std::string message;                 // human-readable summary, says why when not converged
+};
+
+// Throws InputError when either map lacks brain_label or is empty. Never throws
+// for a hard case: converged is false and message explains.
+AffineRegistrationResult register_affine(const LabelImage& preop_labels,
+                                         const LabelImage& intraop_labels,
+                                         const AffineRegistrationParameters& params,
+                                         std::uint16_t brain_label = 1,
+                                         std::uint16_t ventricle_label = 2);
+
+// The same on prepared inputs (see boundary_samples.h).
+AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
+                                         const IntraopDistanceMaps& intraop,
+                                         const AffineRegistrationParameters& params);
+
+}  // namespace brainshift
