@@ -65,10 +65,21 @@ void validate_options(const ElasticOptions& o) {
     throw InputError("ElasticOptions: rtol must be in (0, 1) and max_iterations >= 1");
 }
 
-const Material& material_of(const ElasticOptions& o, int label) {
-  const auto it = o.material_by_label.find(label);
-  return it == o.material_by_label.end() ? o.default_material : it->second;
-}
+// Elasticity matrices per label, computed once; label -> D, default for the rest.
+class ElasticityByLabel {
+ public:
+  explicit ElasticityByLabel(const ElasticOptions& o) : fallback_(elasticity_matrix(o.default_material)) {
+    for (const auto& [label, material] : o.material_by_label) by_label_[label] = elasticity_matrix(material);
+  }
+  const Eigen::Matrix<double, 6, 6>& operator()(int label) const {
+    const auto it = by_label_.find(label);
+    return it == by_label_.end() ? fallback_ : it->second;
+  }
+
+ private:
+  Eigen::Matrix<double, 6, 6> fallback_;
+  std::map<int, Eigen::Matrix<double, 6, 6>> by_label_;
+};
 
 // Exact block-row preallocation from the node graph: for each owned node the
 // number of distinct neighbour nodes (itself included) inside / outside the
@@ -172,6 +183,7 @@ void ElasticModel::assemble() {
   Stopwatch clock;
   const TetMesh& mesh = *m.mesh;
   Eigen::Matrix<double, 12, 12, Eigen::RowMajor> ke;  // PETSc reads values row-major
+  const ElasticityByLabel elasticity(m.options);
   std::string bad_tet;  // first invalid tet on this rank
   for (std::size_t t = 0; t < mesh.tet_count() && bad_tet.empty(); ++t) {
     const auto& tet = mesh.tets[t];
@@ -180,7 +192,7 @@ void ElasticModel::assemble() {
     const std::array<Eigen::Vector3d, 4> x{mesh.nodes_mm[tet[0]], mesh.nodes_mm[tet[1]],
                                            mesh.nodes_mm[tet[2]], mesh.nodes_mm[tet[3]]};
     try {
-      ke = p1_element_stiffness(x, material_of(m.options, mesh.tet_labels[t]));
+      ke = p1_element_stiffness(x, elasticity(mesh.tet_labels[t]));
     } catch (const InputError& e) {
       bad_tet = "tet " + std::to_string(t) + ": " + e.what();
       break;

@@ -29,6 +29,11 @@ Eigen::Matrix<double, 6, 6> elasticity_matrix(const Material& m) {
 
 Eigen::Matrix<double, 12, 12> p1_element_stiffness(const std::array<Eigen::Vector3d, 4>& x,
                                                    const Material& material) {
+  return p1_element_stiffness(x, elasticity_matrix(material));
+}
+
+Eigen::Matrix<double, 12, 12> p1_element_stiffness(const std::array<Eigen::Vector3d, 4>& x,
+                                                   const Eigen::Matrix<double, 6, 6>& d) {
   Eigen::Matrix3d edges;  // columns: edges from node 0
   edges << x[1] - x[0], x[2] - x[0], x[3] - x[0];
   const double volume = edges.determinant() / 6.0;
@@ -57,7 +62,7 @@ Eigen::Matrix<double, 12, 12> p1_element_stiffness(const std::array<Eigen::Vecto
     b(5, c) = g.y();
     b(5, c + 1) = g.x();
   }
-  Eigen::Matrix<double, 12, 12> k = volume * b.transpose() * elasticity_matrix(material) * b;
+  Eigen::Matrix<double, 12, 12> k = volume * b.transpose() * d * b;
   // Exact symmetry matters: CHOLMOD/MUMPS Cholesky read one triangle only.
   return 0.5 * (k + k.transpose());
 }

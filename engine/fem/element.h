@@ -32,6 +32,11 @@ Eigen::Matrix<double, 6, 6> elasticity_matrix(const Material& material);
 Eigen::Matrix<double, 12, 12> p1_element_stiffness(const std::array<Eigen::Vector3d, 4>& nodes_mm,
                                                    const Material& material);
 
+// Same with a precomputed elasticity_matrix(): assembly computes D once per
+// label instead of once per tet.
+Eigen::Matrix<double, 12, 12> p1_element_stiffness(const std::array<Eigen::Vector3d, 4>& nodes_mm,
+                                                   const Eigen::Matrix<double, 6, 6>& elasticity);
+
 // Consistent nodal loads M * b for a body-force density b given at the nodes
 // (P1 interpolated): per tet M_ij = V/20 (1 + delta_ij). Using the consistent
 // mass matrix (not a lumped one) keeps the load second-order accurate.
