@@ -37,7 +37,10 @@ DefaultAtlas build_default_atlas(
 // Builds once and caches t1.nii.gz, labels.nii.gz and provenance.json in
 // cache_dir; later calls reload them. The cache is rebuilt when a file is
 // missing, unreadable, the provenance version differs, or the two images do not
-// share a grid.
-DefaultAtlas load_or_build_default_atlas(const std::filesystem::path& cache_dir);
+// share a grid. Files are written under temporary names and renamed, the
+// provenance last, so an interrupted build is detected as a missing cache.
+DefaultAtlas load_or_build_default_atlas(
+    const std::filesystem::path& cache_dir,
+    const std::filesystem::path& templates_dir = "/usr/share/mricron/templates");
 
 }  // namespace brainshift
