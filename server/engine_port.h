@@ -52,9 +52,11 @@ class EnginePort {
   virtual const TetMesh& mesh() const = 0;  // requires ready()
   virtual nlohmann::json preop_timings() const = 0;
   // Runs the intraop stages and renders the output files; scratch_dir is a
-  // private empty directory the adapter may use and delete.
+  // private empty directory the adapter may use and delete. read_seconds (the
+  // daemon's decoding of the pushed bytes) is added to the "read" timing, as
+  // `brainshift register` adds its file reading.
   virtual EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
-                                         const std::filesystem::path& scratch_dir,
+                                         double read_seconds, const std::filesystem::path& scratch_dir,
                                          const StageProgressFn& progress) = 0;
   virtual int ranks() const = 0;
   // Bound on decompressed image bytes received from clients.

@@ -10,18 +10,11 @@
 
 namespace brainshift::server {
 
-class CaseStore;
-
 // "field.nii.gz", "field.h5", "warped_image.nii.gz", "warped_labels.nii.gz",
 // "metrics.json", "timings.json"; "" for kModels (one file per structure).
 std::string result_file_name(protocol::ResultPart part);
 std::string model_file_name(protocol::Structure s);  // "models/brain.vtp"
 // The media type a frame carrying that file has.
 std::string result_media_type(const std::string& file_name, const std::string& bytes);
-
-// Frames of the requested parts of a done scan, with every missing part in
-// `unavailable` (e.g. no warped_image when the engine wrote none).
-protocol::ScanResultReply collect_result_frames(const CaseStore& store,
-                                                const protocol::ScanResultRequest& request);
 
 }  // namespace brainshift::server

@@ -58,6 +58,33 @@ bool valid_stage_name(const std::string& s) {
   return true;
 }
 
+// Frames of the requested parts of a done scan, with every missing part in
+// `unavailable` (e.g. no warped_image when the engine wrote none).
+ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRequest& request) {
+  ScanResultReply reply;
+  reply.scan_id = request.scan_id;
+  auto add = [&](const std::string& frame, const std::string& file, const char* why_missing) {
+    auto bytes = store.read_result_file(request.scan_id, file);
+    if (!bytes) {
+      reply.unavailable.push_back({frame, why_missing});
+      return;
+    }
+    const std::string media = result_media_type(file, *bytes);
+    reply.frames.push_back(Frame{frame, media, std::move(*bytes)});
+  };
+  for (ResultPart part : request.parts) {
+    if (part != ResultPart::kModels) {
+      add(frame_name(part), result_file_name(part),
+          part == ResultPart::kWarpedImage ? "the engine wrote no warped image" : "not in this result");
+      continue;
+    }
+    const auto& wanted = request.structures.empty() ? all_structures() : request.structures;
+    for (Structure s : wanted)
+      add(model_frame_name(s), model_file_name(s), "no model of this structure (label absent from the preop)");
+  }
+  return reply;
+}
+
 }  // namespace
 
 struct ServerCore::PreopJob {
@@ -500,7 +527,7 @@ void ServerCore::run_scan(const std::string& scan_id) {
     progress("read", 1.0, decoded->read_seconds);
     fs::remove_all(scratch);
     fs::create_directories(scratch);
-    EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, scratch, progress);
+    EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, scratch, progress);
     stage = "store";
     store_.save_result(scan_id, out.files, out.kind, out.fallback_reason);
     fs::remove_all(scratch);

@@ -71,7 +71,9 @@ DefaultPreop read_preop(const toml::table& t, const std::string& source) {
 }  // namespace
 
 std::filesystem::path ServerSettings::timing_log_path() const {
-  return timing_log.empty() ? store / "timing.log" : timing_log;
+  // Relative paths live inside the store, with the case they describe.
+  if (timing_log.empty()) return store / "timing.jsonl";
+  return timing_log.is_absolute() ? timing_log : store / timing_log;
 }
 std::filesystem::path ServerSettings::atlas_cache_path() const {
   return atlas_cache.empty() ? store / "atlas-cache" : atlas_cache;

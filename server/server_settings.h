@@ -25,9 +25,9 @@ struct ServerSettings {
   std::filesystem::path store = "brainshift-store";
   std::size_t queue_depth = 4;  // scans waiting beyond the running one
   std::size_t max_frame_bytes = std::size_t{256} << 20;
-  std::filesystem::path timing_log;  // empty: <store>/timing.log
+  std::filesystem::path timing_log;  // relative: inside the store; empty: <store>/timing.jsonl
   DefaultPreop preop;
-  std::filesystem::path atlas_cache;  // empty: <store>/atlas-cache
+  std::filesystem::path atlas_cache;  // relative to the working directory; empty: <store>/atlas-cache
   // Plain (unauthenticated, unencrypted) TCP is allowed on loopback only,
   // unless this is set: a hospital network is not a trusted one.
   bool allow_plain_tcp_non_loopback = false;

@@ -1,0 +1,82 @@
+#include "connection.h"
+
+#include <unistd.h>
+
+#include "protocol/error_codes.h"
+#include "protocol/requests.h"
+#include "protocol/transport.h"
+
+namespace brainshift::cli {
+
+Connection::Connection(std::string endpoint, std::chrono::milliseconds timeout)
+    : endpoint_(std::move(endpoint)), timeout_(timeout), context_(1) {
+  reconnect();
+}
+
+Connection::~Connection() = default;
+
+void Connection::reconnect() {
+  socket_ = std::make_unique<zmq::socket_t>(context_, zmq::socket_type::dealer);
+  // Never block the exit on unsent requests to a server that is not there.
+  socket_->set(zmq::sockopt::linger, 0);
+  try {
+    socket_->connect(endpoint_);
+  } catch (const zmq::error_t& e) {
+    throw CommandError(kExitUsage, "bad endpoint \"" + endpoint_ + "\": " + e.what());
+  }
+}
+
+std::string Connection::next_request_id() {
+  return "cli-" + std::to_string(::getpid()) + "-" + std::to_string(++counter_);
+}
+
+protocol::Message Connection::call_raw(const protocol::Message& request) {
+  namespace t = protocol::transport;
+  t::send_request(*socket_, request);
+  const auto deadline = std::chrono::steady_clock::now() + timeout_;
+  for (;;) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+    if (left.count() <= 0) break;
+    std::optional<protocol::Message> reply;
+    try {
+      reply = t::receive_reply(*socket_, protocol::Limits::client_inbound(), left);
+    } catch (const protocol::ProtocolError& e) {
+      throw CommandError(kExitServerError, std::string("unreadable reply from the server: ") + e.what());
+    }
+    if (!reply) break;
+    // A late reply to an earlier, timed-out request is not ours.
+    if (reply->request_id() == request.request_id() || reply->request_id().empty()) return *reply;
+  }
+  // A fresh socket drops whatever the server may still send for this request.
+  reconnect();
+  throw CommandError(kExitUnreachable, "no reply from " + endpoint_ + " within " +
+                                           std::to_string(timeout_.count() / 1000.0).substr(0, 5) +
+                                           " s: is brainshiftd running there? (see --server, --timeout)");
+}
+
+protocol::Message Connection::call(const protocol::Message& request) {
+  protocol::Message reply = call_raw(request);
+  if (reply.type() == protocol::MessageType::kError) {
+    const protocol::ErrorInfo e = protocol::parse_error_reply(reply);
+    throw CommandError(e.code == protocol::ErrorCode::kScanFailed ? kExitScanFailed : kExitServerError,
+                       "server error " + std::string(protocol::to_string(e.code)) + ": " + e.message);
+  }
+  return reply;
+}
+
+EventStream::EventStream(const std::string& endpoint, const std::string& topic_prefix)
+    : context_(1), socket_(context_, zmq::socket_type::sub) {
+  socket_.set(zmq::sockopt::linger, 0);
+  socket_.set(zmq::sockopt::subscribe, topic_prefix);
+  try {
+    socket_.connect(endpoint);
+  } catch (const zmq::error_t& e) {
+    throw CommandError(kExitUsage, "bad events endpoint \"" + endpoint + "\": " + e.what());
+  }
+}
+
+std::optional<protocol::Message> EventStream::next(std::chrono::milliseconds timeout) {
+  return protocol::transport::receive_event(socket_, protocol::Limits::client_inbound(), timeout);
+}
+
+}  // namespace brainshift::cli

@@ -1,0 +1,69 @@
+#pragma once
+// The client's side of the protocol: one DEALER connection for requests and a
+// SUB connection for events, with timeouts that become clear messages and
+// exit codes instead of a hang.
+#include <chrono>
+#include <memory>
+#include <optional>
+#include <stdexcept>
+#include <string>
+
+#include <zmq.hpp>
+
+#include "protocol/message.h"
+
+namespace brainshift::cli {
+
+// Exit codes of the network commands (also in `brainshift --help`).
+inline constexpr int kExitOk = 0;
+inline constexpr int kExitServerError = 1;  // the server answered with an error
+inline constexpr int kExitUsage = 2;        // bad command line or local input file
+inline constexpr int kExitUnreachable = 3;  // no answer within the timeout
+inline constexpr int kExitScanFailed = 4;   // the scan's registration failed
+
+// Carries the exit code the command should end with.
+class CommandError : public std::runtime_error {
+ public:
+  CommandError(int exit_code, const std::string& message) : std::runtime_error(message), exit_code_(exit_code) {}
+  int exit_code() const { return exit_code_; }
+
+ private:
+  int exit_code_;
+};
+
+class Connection {
+ public:
+  Connection(std::string endpoint, std::chrono::milliseconds timeout);
+  ~Connection();
+
+  // Sends the request and returns the reply. Throws CommandError: kExitUnreachable
+  // on timeout, kExitServerError for an error reply (its code and message).
+  protocol::Message call(const protocol::Message& request);
+  // As call() but returns error replies instead of throwing on them.
+  protocol::Message call_raw(const protocol::Message& request);
+  std::string next_request_id();
+  const std::string& endpoint() const { return endpoint_; }
+
+ private:
+  void reconnect();
+
+  std::string endpoint_;
+  std::chrono::milliseconds timeout_;
+  zmq::context_t context_;
+  std::unique_ptr<zmq::socket_t> socket_;
+  unsigned counter_ = 0;
+};
+
+class EventStream {
+ public:
+  // topic_prefix "" = every event.
+  EventStream(const std::string& endpoint, const std::string& topic_prefix = "");
+  // nullopt when nothing arrived within timeout.
+  std::optional<protocol::Message> next(std::chrono::milliseconds timeout);
+
+ private:
+  zmq::context_t context_;
+  zmq::socket_t socket_;
+};
+
+}  // namespace brainshift::cli

@@ -1,0 +1,37 @@
+// brainshift: the command-line client of brainshiftd, plus the offline
+// commands (register, phantom) that run the engine in this process.
+#include <iostream>
+
+#include <CLI/CLI.hpp>
+
+#include "connection.h"
+#include "network_commands.h"
+#ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
+#include "offline_commands.h"
+#endif
+
+int main(int argc, char** argv) {
+  CLI::App app{"brainshift: client of the brainshiftd registration daemon"};
+  app.footer(
+      "Exit codes: 0 ok; 1 the server answered with an error; 2 usage or unreadable local file; "
+      "3 timeout or server unreachable; 4 the scan's registration failed.");
+  app.require_subcommand(1);
+  brainshift::cli::NetworkOptions options;
+  app.add_option("--server", options.server, "request endpoint of brainshiftd")->capture_default_str();
+  app.add_option("--events", options.events, "event endpoint of brainshiftd")->capture_default_str();
+  app.add_option("--timeout", options.timeout_s, "seconds to wait for each reply")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  int exit_code = 0;
+  brainshift::cli::add_network_commands(app, options, &exit_code);
+#ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
+  brainshift::cli::add_offline_commands(app, &exit_code);
+#endif
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    const int code = app.exit(e);
+    return code == 0 ? 0 : brainshift::cli::kExitUsage;
+  }
+  return exit_code;
+}

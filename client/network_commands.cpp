@@ -1,0 +1,423 @@
+#include "network_commands.h"
+
+#include <unistd.h>
+
+#include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <sstream>
+#include <thread>
+
+#include "connection.h"
+#include "protocol/events.h"
+#include "protocol/media.h"
+#include "protocol/requests.h"
+#include "server/result_files.h"
+
+namespace brainshift::cli {
+namespace fs = std::filesystem;
+using namespace protocol;
+using namespace std::chrono_literals;
+
+namespace {
+
+std::atomic<bool> g_interrupted{false};
+extern "C" void on_interrupt(int) { g_interrupted = true; }
+
+std::chrono::milliseconds as_ms(double seconds) {
+  return std::chrono::milliseconds(static_cast<long long>(std::max(0.05, seconds) * 1000.0));
+}
+
+std::string read_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw CommandError(kExitUsage, path + ": cannot open");
+  std::ostringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+// Atomic per file: a reader never sees half a field.
+void write_file(const fs::path& path, const std::string& bytes) {
+  fs::create_directories(path.parent_path());
+  const fs::path tmp = path.string() + ".partial";
+  {
+    std::ofstream out(tmp, std::ios::binary);
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+    if (!out) throw CommandError(kExitUsage, tmp.string() + ": cannot write");
+  }
+  fs::rename(tmp, path);
+}
+
+Frame nifti_file_frame(const std::string& name, const std::string& path) {
+  Frame f = media::nifti_frame(name, read_file(path));
+  try {
+    media::check_content(f);
+  } catch (const ProtocolError& e) {
+    throw CommandError(kExitUsage, path + ": " + e.what());
+  }
+  return f;
+}
+
+template <class Fn>
+void run(int* exit_code, Fn&& fn) {
+  try {
+    *exit_code = fn();
+  } catch (const CommandError& e) {
+    std::cerr << "brainshift: " << e.what() << '\n';
+    *exit_code = e.exit_code();
+  } catch (const std::exception& e) {
+    std::cerr << "brainshift: " << e.what() << '\n';
+    *exit_code = kExitServerError;
+  }
+}
+
+std::string describe_event(const Message& e) {
+  std::ostringstream os;
+  char buf[64];
+  switch (e.type()) {
+    case MessageType::kEventStage: {
+      const StageTiming t = parse_stage_event(e).timing;
+      std::snprintf(buf, sizeof buf, "%8.3f s", t.seconds);
+      os << "stage    " << (t.scan_id.empty() ? t.preop_id : t.scan_id) << ' ' << t.stage << ' ' << buf;
+      break;
+    }
+    case MessageType::kEventScanProgress: {
+      const auto p = parse_scan_progress_event(e);
+      os << "progress " << p.scan_id << ' ' << p.stage << ' ' << static_cast<int>(std::lround(p.fraction * 100)) << '%';
+      break;
+    }
+    case MessageType::kEventScanDone: {
+      const auto d = parse_scan_done_event(e);
+      std::snprintf(buf, sizeof buf, "%.3f s", d.seconds);
+      os << "done     " << d.scan_id << ' ' << buf;
+      break;
+    }
+    case MessageType::kEventScanFailed: {
+      const auto f = parse_scan_failed_event(e);
+      os << "FAILED   " << f.scan_id << " in " << f.stage << ": " << f.error.message;
+      break;
+    }
+    case MessageType::kEventPreopProgress: {
+      const auto p = parse_preop_progress_event(e);
+      os << "preop    " << p.preop_id << ' ' << p.stage << ' ' << static_cast<int>(std::lround(p.fraction * 100)) << '%';
+      break;
+    }
+    case MessageType::kEventPreopReady: {
+      const auto r = parse_preop_ready_event(e);
+      std::snprintf(buf, sizeof buf, "%.2f s", r.seconds);
+      os << "ready    " << r.preop_id << ' ' << r.mesh.nodes << " nodes " << r.mesh.tets << " tets " << buf;
+      break;
+    }
+    case MessageType::kEventPreopFailed: {
+      const auto f = parse_preop_failed_event(e);
+      os << "FAILED   " << f.preop_id << ": " << f.error.message;
+      break;
+    }
+    case MessageType::kEventServerShutdown:
+      os << "shutdown " << parse_server_shutdown_event(e).reason;
+      break;
+    default:
+      os << to_string(e.type());
+  }
+  return os.str();
+}
+
+// ---- status ----------------------------------------------------------------
+
+int cmd_status(const NetworkOptions& o, bool json) {
+  Connection c(o.server, as_ms(o.timeout_s));
+  const Message reply = c.call(make_status_request(c.next_request_id()));
+  if (json) {
+    std::cout << reply.header.dump() << '\n';
+    return kExitOk;
+  }
+  const StatusReply s = parse_status_reply(reply);
+  std::cout << "state:   " << to_string(s.state);
+  if (s.progress) std::cout << " (" << s.progress->stage << ", " << std::lround(s.progress->fraction * 100) << "%)";
+  std::cout << "\npreop:   " << s.preop_id.value_or("-") << '\n';
+  if (s.mesh) std::cout << "mesh:    " << s.mesh->nodes << " nodes, " << s.mesh->tets << " tets\n";
+  std::cout << "ranks:   " << s.mpi_ranks << "\nqueue:   " << s.queue.depth << " / " << s.queue.capacity << '\n';
+  if (s.current_scan_id) std::cout << "running: " << *s.current_scan_id << '\n';
+  if (s.last_error) std::cout << "last error: " << to_string(s.last_error->code) << ": " << s.last_error->message << '\n';
+  for (const auto& [k, v] : s.versions) std::cout << "version " << k << ": " << v << '\n';
+  return kExitOk;
+}
+
+// Polls status until the warm-up ends; progress on stderr.
+int wait_preop_ready(Connection& c, const std::string& preop_id, double wait_s) {
+  const auto deadline = std::chrono::steady_clock::now() + as_ms(wait_s);
+  std::string last;
+  while (std::chrono::steady_clock::now() < deadline && !g_interrupted) {
+    const StatusReply s = parse_status_reply(c.call(make_status_request(c.next_request_id())));
+    if (s.state == ServerState::kLoadingPreop) {
+      std::ostringstream line;
+      if (s.progress) line << "warming up: " << s.progress->stage << ' ' << std::lround(s.progress->fraction * 100) << '%';
+      if (line.str() != last) std::cerr << (last = line.str()) << '\n';
+    } else if (s.preop_id == preop_id && (s.state == ServerState::kReady || s.state == ServerState::kProcessing)) {
+      std::cerr << "preop " << preop_id << " ready";
+      if (s.mesh) std::cerr << ": " << s.mesh->nodes << " nodes, " << s.mesh->tets << " tets";
+      std::cerr << '\n';
+      return kExitOk;
+    } else {
+      throw CommandError(kExitServerError, "preop " + preop_id + " failed: " +
+                                               (s.last_error ? s.last_error->message : std::string("no detail")));
+    }
+    std::this_thread::sleep_for(250ms);
+  }
+  throw CommandError(kExitUnreachable, "preop " + preop_id + " not ready within " + std::to_string(wait_s) + " s");
+}
+
+struct LoadPreopArgs {
+  std::string image, labels, label_table;
+  bool default_atlas = false, wait = false;
+  double wait_s = 1800;
+};
+
+int cmd_load_preop(const NetworkOptions& o, const LoadPreopArgs& a) {
+  PreopLoadRequest r;
+  if (a.default_atlas) {
+    if (!a.image.empty() || !a.labels.empty()) throw CommandError(kExitUsage, "--default-atlas excludes --image/--labels");
+    r.use_default_atlas = true;
+  } else {
+    if (a.image.empty() || a.labels.empty())
+      throw CommandError(kExitUsage, "give --image and --labels, or --default-atlas");
+    r.t1 = nifti_file_frame("t1", a.image);
+    r.labels = nifti_file_frame("labels", a.labels);
+    if (!a.label_table.empty()) r.label_table = media::json_frame("label_table", read_file(a.label_table));
+  }
+  Connection c(o.server, as_ms(std::max(o.timeout_s, 60.0)));  // the upload of a 1 mm head takes a moment
+  const std::string id = parse_preop_load_reply(c.call(make_preop_load_request(c.next_request_id(), r))).preop_id;
+  std::cout << id << '\n' << std::flush;
+  return a.wait ? wait_preop_ready(c, id, a.wait_s) : kExitOk;
+}
+
+// ---- push ------------------------------------------------------------------
+
+struct PushArgs {
+  std::string labels, image, id;
+  bool wait = false;
+  double wait_s = 600;
+};
+
+int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, double wait_s) {
+  const auto deadline = std::chrono::steady_clock::now() + as_ms(wait_s);
+  auto next_poll = std::chrono::steady_clock::now();
+  while (std::chrono::steady_clock::now() < deadline && !g_interrupted) {
+    // Events give live progress; the poll decides (an event can be missed).
+    if (auto e = events.next(100ms)) {
+      try {
+        const std::string text = describe_event(*e);
+        if (text.find(scan_id) != std::string::npos) std::cerr << text << '\n';
+      } catch (const std::exception&) {
+      }
+    }
+    if (std::chrono::steady_clock::now() < next_poll) continue;
+    next_poll = std::chrono::steady_clock::now() + 200ms;
+    const Message reply = c.call_raw(make_scan_result_request(c.next_request_id(), {scan_id, {ResultPart::kTimings}, {}}));
+    if (reply.type() != MessageType::kError) {
+      const auto r = parse_scan_result_reply(reply);
+      if (const Frame* t = r.find("timings")) {
+        try {
+          std::cerr << "result ready: intraop " << parse_timings_json(t->bytes).intraop.total << " s\n";
+        } catch (const std::exception&) {
+          std::cerr << "result ready\n";
+        }
+      }
+      return kExitOk;
+    }
+    const ErrorInfo err = parse_error_reply(reply);
+    if (err.code == ErrorCode::kScanFailed) throw CommandError(kExitScanFailed, err.message);
+    if (err.code != ErrorCode::kNotReady)
+      throw CommandError(kExitServerError, "server error " + std::string(to_string(err.code)) + ": " + err.message);
+  }
+  throw CommandError(kExitUnreachable, scan_id + ": no result within " + std::to_string(static_cast<int>(wait_s)) + " s");
+}
+
+int cmd_push(const NetworkOptions& o, const PushArgs& a) {
+  ScanPushRequest r;
+  r.labels = nifti_file_frame("labels", a.labels);
+  if (!a.image.empty()) r.image = nifti_file_frame("image", a.image);
+  if (!a.id.empty()) r.client_scan_id = a.id;
+  // Subscribed before the push so that no event of this scan is missed.
+  std::optional<EventStream> events;
+  if (a.wait) events.emplace(o.events, "event.");
+  Connection c(o.server, as_ms(o.timeout_s));
+  const ScanPushReply reply = parse_scan_push_reply(c.call(make_scan_push_request(c.next_request_id(), r)));
+  std::cout << reply.scan_id << '\n' << std::flush;
+  if (reply.duplicate) std::cerr << "note: client scan id already pushed; this is the same scan\n";
+  return a.wait ? wait_scan(c, *events, reply.scan_id, a.wait_s) : kExitOk;
+}
+
+// ---- pull ------------------------------------------------------------------
+
+struct PullArgs {
+  std::string scan, out;
+  std::vector<std::string> parts;
+};
+
+std::optional<ResultPart> part_from_cli(const std::string& name) {
+  if (name == "field") return ResultPart::kDisplacement;
+  if (name == "field_h5") return ResultPart::kDisplacementItk;
+  if (name == "warped_image") return ResultPart::kWarpedImage;
+  if (name == "warped_labels") return ResultPart::kWarpedLabels;
+  if (name == "models") return ResultPart::kModels;
+  if (name == "metrics") return ResultPart::kMetrics;
+  if (name == "timings") return ResultPart::kTimings;
+  return std::nullopt;
+}
+
+// The file a frame is written to, named as `register --out` names it.
+std::string file_for_frame(const std::string& frame) {
+  for (Structure s : all_structures())
+    if (frame == model_frame_name(s)) return server::model_file_name(s);
+  for (ResultPart p : {ResultPart::kDisplacement, ResultPart::kDisplacementItk, ResultPart::kWarpedImage,
+                       ResultPart::kWarpedLabels, ResultPart::kMetrics, ResultPart::kTimings})
+    if (frame == frame_name(p)) return server::result_file_name(p);
+  return "";
+}
+
+int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
+  ScanResultRequest req;
+  req.scan_id = a.scan;
+  bool want_report = false;
+  for (const auto& name : a.parts) {
+    if (name == "report") {
+      want_report = true;
+      continue;
+    }
+    const auto p = part_from_cli(name);
+    if (!p) throw CommandError(kExitUsage, "unknown part \"" + name + "\"");
+    if (std::find(req.parts.begin(), req.parts.end(), *p) == req.parts.end()) req.parts.push_back(*p);
+  }
+  if (want_report)
+    std::cerr << "note: report.png is kept in the daemon's store but protocol v" << 1
+              << " has no result part for it; export it with `brainshiftd --export-result`\n";
+  if (req.parts.empty()) return kExitOk;
+  Connection c(o.server, as_ms(std::max(o.timeout_s, 30.0)));  // a field is tens of MB
+  const ScanResultReply r = parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req)));
+  for (const Frame& f : r.frames) {
+    const std::string file = file_for_frame(f.name);
+    if (file.empty()) {
+      std::cerr << "note: ignoring unknown frame " << f.name << '\n';
+      continue;
+    }
+    write_file(fs::path(a.out) / file, f.bytes);
+    std::cout << (fs::path(a.out) / file).string() << '\n';
+  }
+  for (const auto& u : r.unavailable) std::cerr << "note: " << u.part << " not available: " << u.reason << '\n';
+  return kExitOk;
+}
+
+// ---- list, watch, shutdown -------------------------------------------------
+
+int cmd_list(const NetworkOptions& o, std::uint64_t limit) {
+  Connection c(o.server, as_ms(o.timeout_s));
+  const ScanListReply r = parse_scan_list_reply(c.call(make_scan_list_request(c.next_request_id(), {limit})));
+  for (const auto& s : r.scans) {
+    std::cout << s.scan_id << '\t' << to_string(s.state) << '\t' << s.received_at << '\t'
+              << s.client_scan_id.value_or("-");
+    if (s.stage) std::cout << "\tstage " << *s.stage;
+    if (s.error) std::cout << '\t' << s.error->message;
+    std::cout << '\n';
+  }
+  return kExitOk;
+}
+
+int cmd_watch(const NetworkOptions& o, bool json, long count, double duration_s) {
+  EventStream events(o.events);
+  std::signal(SIGINT, on_interrupt);
+  std::signal(SIGTERM, on_interrupt);
+  const auto until = std::chrono::steady_clock::now() + as_ms(duration_s > 0 ? duration_s : 1e9);
+  long seen = 0;
+  while (!g_interrupted && std::chrono::steady_clock::now() < until && (count <= 0 || seen < count)) {
+    std::optional<Message> e;
+    try {
+      e = events.next(200ms);
+    } catch (const ProtocolError& err) {
+      std::cerr << "brainshift: unreadable event: " << err.what() << '\n';
+      continue;
+    }
+    if (!e) continue;
+    ++seen;
+    if (json) {
+      // Stage events print exactly the timing-log line.
+      if (e->type() == MessageType::kEventStage) std::cout << make_stage_log_line(parse_stage_event(*e).timing) << '\n';
+      else std::cout << e->header.dump() << '\n';
+    } else {
+      std::cout << describe_event(*e) << '\n';
+    }
+    std::cout.flush();
+  }
+  return kExitOk;
+}
+
+int cmd_shutdown(const NetworkOptions& o, const std::string& reason) {
+  Connection c(o.server, as_ms(o.timeout_s));
+  c.call(make_shutdown_request(c.next_request_id(), {reason}));
+  std::cerr << "brainshiftd at " << o.server << " is shutting down\n";
+  return kExitOk;
+}
+
+}  // namespace
+
+void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
+  auto* status = app.add_subcommand("status", "server state, preop, mesh size, queue");
+  auto json_status = std::make_shared<bool>(false);
+  status->add_flag("--json", *json_status, "print the status reply header as JSON");
+  status->callback([&o, exit_code, json_status] { run(exit_code, [&] { return cmd_status(o, *json_status); }); });
+
+  auto lp = std::make_shared<LoadPreopArgs>();
+  auto* load = app.add_subcommand("load-preop", "send the preop T1 and labels (or choose the default atlas)");
+  load->add_option("--image", lp->image, "preop T1 (NIfTI)");
+  load->add_option("--labels", lp->labels, "preop label map on the T1's grid (NIfTI)");
+  load->add_option("--label-table", lp->label_table, "label table JSON (PROTOCOL.md) when labels are not 1..4");
+  load->add_flag("--default-atlas", lp->default_atlas, "use the daemon's default atlas (Colin27)");
+  load->add_flag("--wait", lp->wait, "return once the warm-up is done (progress on stderr)");
+  load->add_option("--wait-timeout", lp->wait_s, "seconds to wait with --wait");
+  load->callback([&o, exit_code, lp] { run(exit_code, [&] { return cmd_load_preop(o, *lp); }); });
+
+  auto pa = std::make_shared<PushArgs>();
+  auto* push = app.add_subcommand("push", "send an intraop scan; prints its scan id on the first line");
+  push->add_option("--labels", pa->labels, "intraop labels (1 brain, 2 ventricles), NIfTI")->required();
+  push->add_option("--image", pa->image, "intraop T1 on the labels' grid, NIfTI");
+  push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");
+  push->add_flag("--wait", pa->wait, "return once the result is ready (exit 4 if the scan failed)");
+  push->add_option("--wait-timeout", pa->wait_s, "seconds to wait with --wait");
+  push->callback([&o, exit_code, pa] { run(exit_code, [&] { return cmd_push(o, *pa); }); });
+
+  auto pl = std::make_shared<PullArgs>();
+  pl->parts = {"field", "field_h5", "warped_image", "warped_labels", "models", "metrics", "timings"};
+  auto* pull = app.add_subcommand("pull", "fetch a scan's result into a folder (same names as register --out)");
+  pull->add_option("--scan", pl->scan, "scan id")->required();
+  pull->add_option("--out", pl->out, "output folder")->required();
+  pull->add_option("--parts", pl->parts, "field,field_h5,warped_image,warped_labels,models,metrics,timings,report")
+      ->delimiter(',');
+  pull->callback([&o, exit_code, pl] { run(exit_code, [&] { return cmd_pull(o, *pl); }); });
+
+  auto limit = std::make_shared<std::uint64_t>(100);
+  auto* list = app.add_subcommand("list", "scans, newest first");
+  list->add_option("--limit", *limit, "at most this many (1..1000)");
+  list->callback([&o, exit_code, limit] { run(exit_code, [&] { return cmd_list(o, *limit); }); });
+
+  struct WatchArgs {
+    bool json = false;
+    long count = 0;
+    double duration = 0;
+  };
+  auto wa = std::make_shared<WatchArgs>();
+  auto* watch = app.add_subcommand("watch", "live stage timings and events, one line each (Ctrl-C stops)");
+  watch->add_flag("--json", wa->json, "one JSON object per line (stage events: the timing-log line)");
+  watch->add_option("--count", wa->count, "stop after this many events");
+  watch->add_option("--for", wa->duration, "stop after this many seconds");
+  watch->callback([&o, exit_code, wa] { run(exit_code, [&] { return cmd_watch(o, wa->json, wa->count, wa->duration); }); });
+
+  auto reason = std::make_shared<std::string>();
+  auto* shutdown = app.add_subcommand("shutdown", "stop the daemon cleanly");
+  shutdown->add_option("--reason", *reason, "logged by the daemon");
+  shutdown->callback([&o, exit_code, reason] { run(exit_code, [&] { return cmd_shutdown(o, *reason); }); });
+}
+
+}  // namespace brainshift::cli

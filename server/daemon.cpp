@@ -1,0 +1,145 @@
+#include "server/daemon.h"
+
+#include <unistd.h>
+
+#include <deque>
+#include <fstream>
+#include <mutex>
+#include <thread>
+
+#include <spdlog/spdlog.h>
+#include <zmq.hpp>
+
+#include "protocol/events.h"
+#include "protocol/transport.h"
+#include "server/case_store.h"
+#include "server/server_core.h"
+
+namespace brainshift::server {
+namespace fs = std::filesystem;
+using namespace std::chrono_literals;
+
+namespace {
+
+// Events come from both threads; only the socket thread touches the PUB socket.
+class EventOutbox {
+ public:
+  void push(protocol::Message m) {
+    std::lock_guard lock(mutex_);
+    events_.push_back(std::move(m));
+  }
+  std::deque<protocol::Message> drain() {
+    std::lock_guard lock(mutex_);
+    return std::exchange(events_, {});
+  }
+
+ private:
+  std::mutex mutex_;
+  std::deque<protocol::Message> events_;
+};
+
+void write_ready_file(const fs::path& path, const std::string& endpoint, const std::string& events) {
+  const fs::path tmp = path.string() + ".tmp";
+  {
+    std::ofstream out(tmp);
+    out << nlohmann::json{{"endpoint", endpoint}, {"events", events}, {"pid", ::getpid()}}.dump() << '\n';
+  }
+  fs::rename(tmp, path);
+}
+
+void publish_all(zmq::socket_t& pub, EventOutbox& outbox) {
+  for (const auto& event : outbox.drain()) {
+    try {
+      protocol::transport::publish(pub, event);
+    } catch (const std::exception& e) {
+      spdlog::warn("event not published: {}", e.what());
+    }
+  }
+}
+
+// Answers requests and publishes events until `running` is cleared. Never
+// waits for the engine: ServerCore's handlers only take short locks.
+void socket_loop(zmq::socket_t& router, zmq::socket_t& pub, ServerCore& core, EventOutbox& outbox,
+                 const std::atomic<bool>& running) {
+  while (running) {
+    try {
+      auto request = protocol::transport::receive_request(router, 10ms);
+      if (request) {
+        if (request->wire.empty()) {
+          spdlog::warn("dropped a message without an envelope delimiter (cannot be answered)");
+        } else {
+          const protocol::Message reply = core.handle_wire(std::move(request->wire));
+          protocol::transport::send_reply(router, request->envelope, reply);
+        }
+      }
+    } catch (const std::exception& e) {
+      // A peer that vanished mid-reply must not stop the others being served.
+      spdlog::warn("socket loop: {}", e.what());
+    }
+    publish_all(pub, outbox);
+  }
+}
+
+}  // namespace
+
+int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atomic<bool>& stop) {
+  const ServerSettings& s = options.settings;
+  std::unique_ptr<CaseStore> store;
+  zmq::context_t context(1);
+  zmq::socket_t router(context, zmq::socket_type::router);
+  zmq::socket_t pub(context, zmq::socket_type::pub);
+  protocol::Limits limits = protocol::Limits::server_inbound();
+  limits.max_frame_bytes = s.max_frame_bytes;
+  try {
+    store = std::make_unique<CaseStore>(s.store);
+    // Refuse oversized frames at the socket before they are allocated.
+    protocol::transport::apply_hard_frame_cap(router, limits);
+    router.set(zmq::sockopt::linger, 0);
+    // Replies to a client that does not read them are dropped, not queued forever.
+    router.set(zmq::sockopt::router_mandatory, 0);
+    router.set(zmq::sockopt::sndhwm, 100);
+    pub.set(zmq::sockopt::linger, 200);
+    router.bind(s.endpoint);
+    pub.bind(s.events);
+  } catch (const std::exception& e) {
+    spdlog::critical("cannot start: {}", e.what());
+    engine.stop_workers();
+    return 1;
+  }
+  const std::string endpoint = router.get(zmq::sockopt::last_endpoint);
+  const std::string events = pub.get(zmq::sockopt::last_endpoint);
+
+  EventOutbox outbox;
+  int exit_code = 0;
+  {
+    ServerCore core(s, *store, engine, [&outbox](protocol::Message m) { outbox.push(std::move(m)); },
+                    {{"brainshiftd", "0.1.0"}});
+    std::atomic<bool> sockets_running{true};
+    std::thread socket_thread(socket_loop, std::ref(router), std::ref(pub), std::ref(core), std::ref(outbox),
+                              std::cref(sockets_running));
+    try {
+      core.start();
+      if (!options.ready_file.empty()) write_ready_file(options.ready_file, endpoint, events);
+      spdlog::info("brainshiftd listening on {} (events {}), store {}, {} MPI rank(s)", endpoint, events,
+                   s.store.string(), engine.ranks());
+      while (!stop && !core.shutdown_requested()) core.step(50ms);
+    } catch (const std::exception& e) {
+      spdlog::critical("engine loop: {}", e.what());
+      exit_code = 1;
+    }
+    core.request_stop();
+    outbox.push(protocol::make_event(protocol::ServerShutdownEvent{
+        stop ? "signal" : (core.shutdown_requested() ? "shutdown request" : "error")}));
+    // Give the socket thread a moment to answer the shutdown request and
+    // publish the last events before it stops.
+    std::this_thread::sleep_for(100ms);
+    sockets_running = false;
+    socket_thread.join();
+    publish_all(pub, outbox);
+  }
+  engine.stop_workers();
+  spdlog::info("brainshiftd stopped");
+  return exit_code;
+}
+
+}  // namespace brainshift::server

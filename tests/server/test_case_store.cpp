@@ -1,0 +1,172 @@
+#include <gtest/gtest.h>
+
+#include <unistd.h>
+
+#include <fstream>
+
+#include "server/case_store.h"
+#include "test_support.h"
+
+using namespace brainshift;
+using namespace brainshift::server;
+using brainshift::test::TempDir;
+namespace fs = std::filesystem;
+
+namespace {
+
+PreopRecord sample_preop(const std::string& id) {
+  PreopRecord p;
+  p.preop_id = id;
+  p.source = "upload";
+  p.labels = test::ball_labels(9);
+  p.t1 = test::ramp_image(p.labels.grid);
+  p.label_table_json = R"({"v":1,"structures":{"brain":[1]}})";
+  return p;
+}
+
+ScanInput sample_input(char fill, bool image) {
+  ScanInput in;
+  in.labels_bytes = std::string(1000, fill);
+  in.labels_bytes[10] = '\0';  // binary-safe
+  if (image) in.image_bytes = std::string(333, static_cast<char>(fill + 1));
+  return in;
+}
+
+}  // namespace
+
+TEST(CaseStore, PreopRoundTripKeepsVoxelsAndGeometry) {
+  TempDir dir;
+  CaseStore store(dir.path());
+  EXPECT_FALSE(store.has_preop());
+  const PreopRecord p = sample_preop("preop-a");
+  store.save_preop(p);
+  EXPECT_TRUE(store.has_preop());
+  CaseStore reopened(dir.path());
+  const PreopRecord q = reopened.load_preop();
+  EXPECT_EQ(q.preop_id, "preop-a");
+  EXPECT_EQ(q.source, "upload");
+  EXPECT_EQ(q.label_table_json, p.label_table_json);
+  EXPECT_TRUE(q.t1.grid.same_geometry(p.t1.grid, 0.0));
+  EXPECT_EQ(q.t1.voxels, p.t1.voxels);
+  EXPECT_EQ(q.labels.voxels, p.labels.voxels);
+}
+
+TEST(CaseStore, MeshRoundTripIsExactAndTiedToItsPreop) {
+  TempDir dir;
+  CaseStore store(dir.path());
+  store.save_preop(sample_preop("preop-a"));
+  const TetMesh m = test::two_tet_mesh();
+  store.save_mesh("preop-a", m);
+  const auto back = store.load_mesh("preop-a");
+  ASSERT_TRUE(back);
+  EXPECT_EQ(back->nodes_mm, m.nodes_mm);
+  EXPECT_EQ(back->tets, m.tets);
+  EXPECT_EQ(back->tet_labels, m.tet_labels);
+  ASSERT_EQ(back->boundary_faces.size(), 2u);
+  EXPECT_EQ(back->boundary_faces[1].nodes, m.boundary_faces[1].nodes);
+  EXPECT_EQ(back->boundary_faces[1].neighbour_label, 2);
+  EXPECT_FALSE(store.load_mesh("preop-b"));
+  // A new preop drops the old preop's mesh: it must never be reused.
+  store.save_preop(sample_preop("preop-b"));
+  EXPECT_FALSE(fs::exists(dir.path() / "mesh.h5"));
+}
+
+TEST(CaseStore, ScansAndResultsSurviveReopen) {
+  TempDir dir;
+  std::string id1, id2;
+  const std::map<std::string, std::string> files = {
+      {"field.nii.gz", std::string("\x1f\x8b\0binary", 9)}, {"models/brain.vtp", "<VTKFile/>"}, {"empty.json", ""}};
+  {
+    CaseStore store(dir.path());
+    const ScanInput a = sample_input('a', true);
+    id1 = store.add_scan(a, std::string("client-1"), content_digest(a), "preop-a").scan_id;
+    id2 = store.add_scan(sample_input('b', false), std::nullopt, "d2", "preop-a").scan_id;
+    EXPECT_NE(id1, id2);
+    store.save_result(id1, files, "nonrigid", "");
+    store.save_failure(id2, "scan_failed", "solver diverged", "solve");
+    EXPECT_EQ(*store.read_result_file(id1, "field.nii.gz"), files.at("field.nii.gz"));
+  }
+  CaseStore store(dir.path());
+  const auto r1 = store.find(id1);
+  ASSERT_TRUE(r1);
+  EXPECT_EQ(r1->state, StoredScanState::done);
+  EXPECT_EQ(r1->client_scan_id.value(), "client-1");
+  EXPECT_TRUE(r1->has_image);
+  EXPECT_EQ(r1->result_kind, "nonrigid");
+  EXPECT_TRUE(r1->finished_at.has_value());
+  EXPECT_EQ(store.find_by_client_id("client-1")->scan_id, id1);
+  for (const auto& [name, bytes] : files) EXPECT_EQ(store.read_result_file(id1, name).value(), bytes) << name;
+  EXPECT_FALSE(store.read_result_file(id1, "nope"));
+  EXPECT_EQ(store.result_file_names(id1).size(), 3u);
+  const ScanInput in = store.load_scan_input(id1);
+  EXPECT_EQ(in.labels_bytes, sample_input('a', true).labels_bytes);
+  EXPECT_EQ(in.image_bytes.value(), sample_input('a', true).image_bytes.value());
+  const auto r2 = store.find(id2);
+  EXPECT_EQ(r2->state, StoredScanState::failed);
+  EXPECT_EQ(r2->error_stage, "solve");
+  EXPECT_EQ(r2->error_message, "solver diverged");
+  EXPECT_FALSE(store.load_scan_input(id2).image_bytes);
+  // New ids continue after the stored ones.
+  const auto id3 = store.add_scan(sample_input('c', false), std::nullopt, "d3", "preop-a").scan_id;
+  EXPECT_GT(id3, id2);
+  const auto listed = store.list_newest_first(2);
+  ASSERT_EQ(listed.size(), 2u);
+  EXPECT_EQ(listed[0].scan_id, id3);
+  EXPECT_EQ(listed[1].scan_id, id2);
+  const auto queued = store.queued_oldest_first();
+  ASSERT_EQ(queued.size(), 1u);
+  EXPECT_EQ(queued[0].scan_id, id3);
+}
+
+TEST(CaseStore, HalfWrittenFilesAreIgnoredAndRemovedOnOpen) {
+  TempDir dir;
+  std::string id;
+  {
+    CaseStore store(dir.path());
+    id = store.add_scan(sample_input('a', false), std::nullopt, "d", "p").scan_id;
+  }
+  // What a kill -9 in the middle of writes leaves behind.
+  fs::create_directories(dir.path() / "scans" / ".tmp-scan-000099");
+  std::ofstream(dir.path() / "scans" / ".tmp-scan-000099" / "scan.h5") << "half an HDF5 file";
+  std::ofstream(dir.path() / "scans" / id / "result.h5.tmp") << "half a result";
+  std::ofstream(dir.path() / "preop.h5.tmp") << "half a preop";
+  // And a damaged scan directory (not produced by us, but must not stop the store).
+  fs::create_directories(dir.path() / "scans" / "scan-000050");
+  std::ofstream(dir.path() / "scans" / "scan-000050" / "scan.h5") << "garbage";
+
+  CaseStore store(dir.path());
+  EXPECT_FALSE(fs::exists(dir.path() / "scans" / ".tmp-scan-000099"));
+  EXPECT_FALSE(fs::exists(dir.path() / "scans" / id / "result.h5.tmp"));
+  EXPECT_FALSE(fs::exists(dir.path() / "preop.h5.tmp"));
+  EXPECT_FALSE(store.has_preop());
+  EXPECT_FALSE(store.find("scan-000099"));
+  EXPECT_FALSE(store.find("scan-000050"));
+  const auto r = store.find(id);
+  ASSERT_TRUE(r);
+  EXPECT_EQ(r->state, StoredScanState::queued);  // its result never completed: run again
+  EXPECT_EQ(store.queued_oldest_first().size(), 1u);
+}
+
+TEST(CaseStore, DigestSeparatesContent) {
+  EXPECT_EQ(content_digest(sample_input('a', true)), content_digest(sample_input('a', true)));
+  EXPECT_NE(content_digest(sample_input('a', true)), content_digest(sample_input('a', false)));
+  EXPECT_NE(content_digest(sample_input('a', false)), content_digest(sample_input('b', false)));
+}
+
+TEST(CaseStore, UnusableDirectoryIsReported) {
+  TempDir dir;
+  std::ofstream(dir.path() / "file") << "x";
+  EXPECT_THROW(CaseStore(dir.path() / "file" / "store"), std::runtime_error);
+  if (::geteuid() != 0) {  // root ignores permissions
+    fs::create_directories(dir.path() / "ro");
+    fs::permissions(dir.path() / "ro", fs::perms::owner_read | fs::perms::owner_exec);
+    EXPECT_THROW(CaseStore(dir.path() / "ro"), std::runtime_error);
+  }
+}
+
+TEST(CaseStore, UnknownScanResultIsRefused) {
+  TempDir dir;
+  CaseStore store(dir.path());
+  EXPECT_THROW(store.save_result("scan-404", {}, "nonrigid", ""), std::invalid_argument);
+  EXPECT_FALSE(store.read_result_file("scan-404", "field.nii.gz"));
+}

@@ -1,0 +1,325 @@
+// Request handling through ServerCore with the engine double: every reply is
+// checked for its type or its typed error, and the server keeps serving.
+#include <gtest/gtest.h>
+
+#include <mutex>
+
+#include "image/nifti_io.h"
+#include "protocol/events.h"
+#include "protocol/media.h"
+#include "server/case_store.h"
+#include "server/server_core.h"
+#include "test_support.h"
+
+using namespace brainshift;
+using namespace brainshift::server;
+using namespace brainshift::protocol;
+using namespace std::chrono_literals;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Harness {
+  test::TempDir dir;
+  ServerSettings settings;
+  std::unique_ptr<CaseStore> store;
+  test::FakeEngine engine;
+  std::mutex events_mutex;
+  std::vector<Message> events;
+  std::unique_ptr<ServerCore> core;
+
+  explicit Harness(std::size_t queue_depth = 4) {
+    settings.store = dir.path() / "store";
+    settings.queue_depth = queue_depth;
+    settings.preop.kind = DefaultPreop::Kind::none;
+    open();
+  }
+  void open() {
+    core.reset();
+    store = std::make_unique<CaseStore>(settings.store);
+    core = std::make_unique<ServerCore>(settings, *store, engine, [this](Message m) {
+      std::lock_guard lock(events_mutex);
+      events.push_back(std::move(m));
+    });
+    core->start();
+  }
+  Message call(const Message& request) { return core->handle_wire(encode(request)); }
+  int count_events(MessageType type) {
+    std::lock_guard lock(events_mutex);
+    int n = 0;
+    for (const auto& e : events) n += e.type() == type;
+    return n;
+  }
+  std::string load_preop() {
+    PreopLoadRequest r;
+    const LabelImage labels = test::ball_labels(10);
+    r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
+    r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
+    const Message reply = call(make_preop_load_request("p1", r));
+    EXPECT_EQ(reply.type(), MessageType::kPreopLoadReply) << reply.header.dump();
+    EXPECT_TRUE(core->step(10ms));
+    return parse_preop_load_reply(reply).preop_id;
+  }
+  Message push(const LabelImage& labels, std::optional<std::string> client_id = std::nullopt, bool image = false) {
+    ScanPushRequest r;
+    r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, true));
+    if (image) r.image = media::nifti_frame("image", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
+    r.client_scan_id = client_id;
+    return call(make_scan_push_request("push", r));
+  }
+};
+
+void expect_error(const Message& reply, ErrorCode code, const std::string& request_id = "") {
+  ASSERT_EQ(reply.type(), MessageType::kError) << reply.header.dump();
+  EXPECT_EQ(parse_error_reply(reply).code, code) << reply.header.dump();
+  if (!request_id.empty()) EXPECT_EQ(reply.request_id(), request_id);
+}
+
+LabelImage intraop_labels(int n = 12) {
+  LabelImage l = test::ball_labels(n);
+  return l;
+}
+
+}  // namespace
+
+TEST(ServerCore, IdleServerAnswersStatusAndRefusesScans) {
+  Harness h;
+  const StatusReply s = parse_status_reply(h.call(make_status_request("s1")));
+  EXPECT_EQ(s.state, ServerState::kIdle);
+  EXPECT_EQ(s.versions.at("protocol"), "1");
+  EXPECT_EQ(s.queue.capacity, 4u);
+  expect_error(h.push(intraop_labels()), ErrorCode::kNotReady, "push");
+  EXPECT_TRUE(h.store->list_newest_first(10).empty());
+}
+
+TEST(ServerCore, PreopLoadWarmsUpAndIsStoredWithItsMesh) {
+  Harness h;
+  const std::string id = h.load_preop();
+  const StatusReply s = parse_status_reply(h.call(make_status_request("s")));
+  EXPECT_EQ(s.state, ServerState::kReady);
+  EXPECT_EQ(s.preop_id.value(), id);
+  EXPECT_EQ(s.mesh->nodes, 5u);
+  EXPECT_EQ(s.mesh->tets, 2u);
+  EXPECT_EQ(h.count_events(MessageType::kEventPreopReady), 1);
+  EXPECT_GE(h.count_events(MessageType::kEventPreopProgress), 2);
+  EXPECT_EQ(h.count_events(MessageType::kEventStage), 1);  // "mesh" finished
+  EXPECT_EQ(h.store->load_preop().preop_id, id);
+  EXPECT_TRUE(h.store->load_mesh(id));
+}
+
+TEST(ServerCore, PreopWithLabelTableIsMappedToEngineLabels) {
+  Harness h;
+  PreopLoadRequest r;
+  LabelImage labels = test::ball_labels(10);
+  for (auto& v : labels.voxels) v = v == 1 ? 17 : (v == 2 ? 43 : 0);
+  r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
+  r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
+  LabelTable table;
+  table.structures[Structure::kBrain] = {17};
+  table.structures[Structure::kVentricles] = {43};
+  r.label_table = media::json_frame("label_table", make_label_table_json(table));
+  EXPECT_EQ(h.call(make_preop_load_request("p", r)).type(), MessageType::kPreopLoadReply);
+  ASSERT_TRUE(h.core->step(10ms));
+  const LabelImage& seen = h.engine.last_preop.labels;
+  for (std::size_t i = 0; i < seen.voxels.size(); ++i)
+    ASSERT_EQ(seen.voxels[i], labels.voxels[i] == 17 ? 1 : (labels.voxels[i] == 43 ? 2 : 0));
+}
+
+TEST(ServerCore, BadPreopIsATypedErrorAndNothingChanges) {
+  Harness h;
+  PreopLoadRequest r;
+  LabelImage labels = test::ball_labels(10);
+  labels.voxels[0] = 9;  // not a default label, no table
+  r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
+  r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
+  expect_error(h.call(make_preop_load_request("bad1", r)), ErrorCode::kInvalidRequest, "bad1");
+  r.labels = media::nifti_frame("labels", "\x1f\x8b garbage that is not gzip");
+  expect_error(h.call(make_preop_load_request("bad2", r)), ErrorCode::kInvalidRequest, "bad2");
+  LabelImage other = test::ball_labels(11);
+  r.labels = media::nifti_frame("labels", label_image_to_bytes(other, false));
+  expect_error(h.call(make_preop_load_request("bad3", r)), ErrorCode::kInvalidRequest, "bad3");
+  EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).state, ServerState::kIdle);
+  EXPECT_FALSE(h.store->has_preop());
+}
+
+TEST(ServerCore, FailedWarmUpIsReportedInStatusAndEvents) {
+  Harness h;
+  h.engine.fail_preop = true;
+  PreopLoadRequest r;
+  r.use_default_atlas = true;
+  EXPECT_EQ(h.call(make_preop_load_request("p", r)).type(), MessageType::kPreopLoadReply);
+  EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).state, ServerState::kLoadingPreop);
+  ASSERT_TRUE(h.core->step(10ms));
+  const StatusReply s = parse_status_reply(h.call(make_status_request("s")));
+  EXPECT_EQ(s.state, ServerState::kIdle);
+  ASSERT_TRUE(s.last_error);
+  EXPECT_EQ(s.last_error->code, ErrorCode::kInvalidRequest);
+  EXPECT_EQ(h.count_events(MessageType::kEventPreopFailed), 1);
+  EXPECT_FALSE(h.store->has_preop());
+}
+
+TEST(ServerCore, PushRunPullReturnsExactlyTheEngineOutput) {
+  Harness h;
+  h.load_preop();
+  const LabelImage labels = intraop_labels();
+  const Message reply = h.push(labels, std::string("scanner-7"), true);
+  ASSERT_EQ(reply.type(), MessageType::kScanPushReply) << reply.header.dump();
+  const ScanPushReply pushed = parse_scan_push_reply(reply);
+  EXPECT_FALSE(pushed.duplicate);
+  // Acknowledged means stored.
+  EXPECT_EQ(h.store->find(pushed.scan_id)->state, StoredScanState::queued);
+  expect_error(h.call(make_scan_result_request("r0", {pushed.scan_id, {ResultPart::kDisplacement}, {}})),
+               ErrorCode::kNotReady, "r0");
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_EQ(h.count_events(MessageType::kEventScanDone), 1);
+
+  ScanResultRequest req{pushed.scan_id,
+                        {ResultPart::kDisplacement, ResultPart::kWarpedImage, ResultPart::kWarpedLabels,
+                         ResultPart::kModels, ResultPart::kMetrics, ResultPart::kTimings},
+                        {}};
+  const Message result = h.call(make_scan_result_request("r1", req));
+  ASSERT_EQ(result.type(), MessageType::kScanResultReply) << result.header.dump();
+  const ScanResultReply r = parse_scan_result_reply(result);
+  const auto expected = test::FakeEngine::files_for(labels, true);
+  EXPECT_EQ(r.find("displacement")->bytes, expected.at("field.nii.gz"));
+  EXPECT_EQ(r.find("warped_image")->bytes, expected.at("warped_image.nii.gz"));
+  EXPECT_EQ(r.find("warped_labels")->bytes, expected.at("warped_labels.nii.gz"));
+  EXPECT_EQ(r.find("model.brain")->bytes, expected.at("models/brain.vtp"));
+  EXPECT_EQ(r.find("metrics")->bytes, expected.at("metrics.json"));
+  EXPECT_EQ(r.find("timings")->bytes, expected.at("timings.json"));
+  // The engine wrote no ventricle/tract/tumor model and no ITK file: said so.
+  EXPECT_EQ(r.unavailable.size(), 3u);
+  EXPECT_EQ(r.find("model.ventricles"), nullptr);
+
+  const ScanListReply list = parse_scan_list_reply(h.call(make_scan_list_request("l")));
+  ASSERT_EQ(list.scans.size(), 1u);
+  EXPECT_EQ(list.scans[0].state, ScanState::kDone);
+  EXPECT_EQ(list.scans[0].client_scan_id.value(), "scanner-7");
+  // Timing log: one line per finished stage.
+  EXPECT_TRUE(fs::exists(h.settings.timing_log_path()));
+  EXPECT_GE(h.count_events(MessageType::kEventStage), 4);  // mesh, read, affine, solve
+}
+
+TEST(ServerCore, IdempotentPushAndConflict) {
+  Harness h;
+  h.load_preop();
+  const LabelImage labels = intraop_labels();
+  const auto first = parse_scan_push_reply(h.push(labels, std::string("c1")));
+  const auto again = parse_scan_push_reply(h.push(labels, std::string("c1")));
+  EXPECT_EQ(first.scan_id, again.scan_id);
+  EXPECT_TRUE(again.duplicate);
+  LabelImage other = labels;
+  other.voxels[5] = 2;
+  expect_error(h.push(other, std::string("c1")), ErrorCode::kConflict, "push");
+  EXPECT_EQ(h.store->list_newest_first(10).size(), 1u);
+}
+
+TEST(ServerCore, FullQueueAnswersBusyAndStoresNothing) {
+  Harness h(2);
+  h.load_preop();
+  const LabelImage labels = intraop_labels();
+  EXPECT_EQ(h.push(labels).type(), MessageType::kScanPushReply);
+  EXPECT_EQ(h.push(labels).type(), MessageType::kScanPushReply);
+  expect_error(h.push(labels), ErrorCode::kBusy, "push");
+  EXPECT_EQ(h.store->list_newest_first(10).size(), 2u);
+  EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).queue.depth, 2u);
+  // A preop.load would swap the preop under queued scans: refused as busy.
+  PreopLoadRequest atlas;
+  atlas.use_default_atlas = true;
+  expect_error(h.call(make_preop_load_request("p2", atlas)), ErrorCode::kBusy, "p2");
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_EQ(h.push(labels).type(), MessageType::kScanPushReply);
+}
+
+TEST(ServerCore, BadScansAreTypedErrorsAndTheServerKeepsServing) {
+  Harness h;
+  h.load_preop();
+  ScanPushRequest r;
+  r.labels = media::nifti_frame("labels", std::string(400, 'x'));
+  expect_error(h.call(make_scan_push_request("b1", r)), ErrorCode::kInvalidRequest, "b1");
+  const LabelImage labels = intraop_labels();
+  r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
+  r.image = media::nifti_frame("image", scalar_image_to_bytes(test::ramp_image(test::small_grid(7)), VoxelType::float32, false));
+  expect_error(h.call(make_scan_push_request("b2", r)), ErrorCode::kInvalidRequest, "b2");
+  EXPECT_TRUE(h.store->list_newest_first(10).empty());
+
+  // Protocol-level garbage.
+  expect_error(h.core->handle_wire({"not json"}), ErrorCode::kMalformedJson);
+  expect_error(h.core->handle_wire({R"({"v":2,"type":"status","request_id":"x","frames":[]})"}),
+               ErrorCode::kVersionMismatch, "x");
+  expect_error(h.core->handle_wire({R"({"v":1,"type":"scan.teleport","request_id":"y","frames":[]})"}),
+               ErrorCode::kUnknownType, "y");
+  expect_error(h.core->handle_wire({R"({"v":1,"type":"status","request_id":"z","frames":[]})", "extra"}),
+               ErrorCode::kFrameCountMismatch, "z");
+  // A reply type sent as a request.
+  expect_error(h.call(make_shutdown_reply("w")), ErrorCode::kUnknownType, "w");
+  expect_error(h.call(make_scan_result_request("nf", {"scan-999999", {ResultPart::kMetrics}, {}})),
+               ErrorCode::kNotFound, "nf");
+  // Still serving.
+  EXPECT_EQ(h.call(make_status_request("ok")).type(), MessageType::kStatusReply);
+  EXPECT_EQ(h.push(labels).type(), MessageType::kScanPushReply);
+}
+
+TEST(ServerCore, OversizedFrameIsRefused) {
+  Harness h;
+  h.settings.max_frame_bytes = 4096;
+  h.open();
+  h.load_preop();
+  ScanPushRequest r;
+  r.labels = media::nifti_frame("labels", label_image_to_bytes(intraop_labels(20), false));
+  expect_error(h.call(make_scan_push_request("big", r)), ErrorCode::kTooLarge);
+}
+
+TEST(ServerCore, EngineFailureIsStoredReportedAndServedAsScanFailed) {
+  Harness h;
+  h.load_preop();
+  h.engine.fail_next_scan = true;
+  const auto id = parse_scan_push_reply(h.push(intraop_labels(), std::string("f1"))).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_EQ(h.count_events(MessageType::kEventScanFailed), 1);
+  expect_error(h.call(make_scan_result_request("r", {id, {ResultPart::kDisplacement}, {}})), ErrorCode::kScanFailed, "r");
+  const auto list = parse_scan_list_reply(h.call(make_scan_list_request("l")));
+  EXPECT_EQ(list.scans.at(0).state, ScanState::kFailed);
+  EXPECT_EQ(list.scans.at(0).error->code, ErrorCode::kScanFailed);
+  // The next scan runs normally.
+  const auto id2 = parse_scan_push_reply(h.push(intraop_labels())).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_EQ(h.store->find(id2)->state, StoredScanState::done);
+}
+
+TEST(ServerCore, RestartRestoresPreopMeshQueueAndResults) {
+  Harness h;
+  const std::string preop = h.load_preop();
+  const LabelImage labels = intraop_labels();
+  const auto done_id = parse_scan_push_reply(h.push(labels)).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  const auto pending_id = parse_scan_push_reply(h.push(labels, std::string("late"))).scan_id;
+  const Message before = h.call(make_scan_result_request("r", {done_id, {ResultPart::kDisplacement}, {}}));
+
+  // "Restart": a new core and a cold engine on the same store.
+  h.engine = test::FakeEngine{};
+  h.open();
+  EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).state, ServerState::kLoadingPreop);
+  ASSERT_TRUE(h.core->step(10ms));  // warm-up from the store
+  ASSERT_TRUE(h.engine.last_stored_mesh) << "the stored mesh must be reused, never re-meshed";
+  EXPECT_EQ(h.engine.last_stored_mesh->tets, test::two_tet_mesh().tets);
+  const StatusReply s = parse_status_reply(h.call(make_status_request("s")));
+  EXPECT_EQ(s.state, ServerState::kReady);
+  EXPECT_EQ(s.preop_id.value(), preop);
+  EXPECT_EQ(s.queue.depth, 1u);
+  const Message after = h.call(make_scan_result_request("r", {done_id, {ResultPart::kDisplacement}, {}}));
+  EXPECT_EQ(parse_scan_result_reply(after).find("displacement")->bytes,
+            parse_scan_result_reply(before).find("displacement")->bytes);
+  ASSERT_TRUE(h.core->step(10ms));  // the acknowledged scan is run again
+  EXPECT_EQ(h.store->find(pending_id)->state, StoredScanState::done);
+  EXPECT_EQ(h.engine.scans_run, 1);
+  // Idempotence survives the restart.
+  EXPECT_TRUE(parse_scan_push_reply(h.push(labels, std::string("late"))).duplicate);
+}
+
+TEST(ServerCore, ShutdownRequestStopsTheEngineLoop) {
+  Harness h;
+  EXPECT_EQ(h.call(make_shutdown_request("bye")).type(), MessageType::kShutdownReply);
+  EXPECT_TRUE(h.core->shutdown_requested());
+  EXPECT_FALSE(h.core->step(10ms));
+}

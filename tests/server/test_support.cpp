@@ -1,0 +1,107 @@
+#include "test_support.h"
+
+#include <random>
+
+#include "core/errors.h"
+#include "image/nifti_io.h"
+
+namespace brainshift::test {
+namespace fs = std::filesystem;
+
+TempDir::TempDir() {
+  std::random_device rd;
+  path_ = fs::temp_directory_path() / ("bs-server-test-" + std::to_string(rd()) + std::to_string(rd()));
+  fs::create_directories(path_);
+}
+TempDir::~TempDir() {
+  std::error_code ec;
+  fs::remove_all(path_, ec);
+}
+
+Grid3 small_grid(int n) {
+  Grid3 g;
+  g.dims = {n, n, n};
+  const Eigen::Matrix3d r = Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  g.world_from_voxel.topLeftCorner<3, 3>() = r * 1.5;
+  g.world_from_voxel.topRightCorner<3, 1>() = Eigen::Vector3d(-20, 5, 12.5);
+  return g;
+}
+
+LabelImage ball_labels(int n) {
+  LabelImage l(small_grid(n));
+  const double c = (n - 1) / 2.0, r = n / 3.0;
+  for (int k = 0; k < n; ++k)
+    for (int j = 0; j < n; ++j)
+      for (int i = 0; i < n; ++i) {
+        const double d = std::sqrt((i - c) * (i - c) + (j - c) * (j - c) + (k - c) * (k - c));
+        l.at(i, j, k) = d < r / 3 ? 2 : (d < r ? 1 : 0);
+      }
+  return l;
+}
+
+ImageF ramp_image(const Grid3& grid) {
+  ImageF im(grid);
+  for (std::size_t i = 0; i < im.voxels.size(); ++i) im.voxels[i] = static_cast<float>(i % 97);
+  return im;
+}
+
+TetMesh two_tet_mesh() {
+  TetMesh m;
+  m.nodes_mm = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}, {0, 0, 1}, {1, 1, 1}};
+  m.tets = {{0, 1, 2, 3}, {1, 2, 3, 4}};
+  m.tet_labels = {1, 3};
+  m.boundary_faces = {{{0, 2, 1}, 0}, {{1, 2, 4}, 2}};
+  return m;
+}
+
+server::PreopImages FakeEngine::load_default_atlas(const fs::path&) {
+  LabelImage labels = ball_labels(10);
+  return {ramp_image(labels.grid), labels};
+}
+
+void FakeEngine::load_preop(const server::PreopImages& preop, std::optional<TetMesh> stored_mesh, double,
+                            const server::StageProgressFn& progress) {
+  if (fail_preop) throw InputError("fake: preop refused");
+  last_preop = preop;
+  last_stored_mesh = stored_mesh;
+  progress("mesh", 0.0, 0.0);
+  progress("mesh", 1.0, 0.01);
+  mesh_ = stored_mesh ? *stored_mesh : two_tet_mesh();
+  ready_ = true;
+}
+
+std::map<std::string, std::string> FakeEngine::files_for(const LabelImage& labels, bool with_image) {
+  VectorImage3 field(labels.grid);
+  for (std::size_t i = 0; i < field.vectors.size(); ++i) field.vectors[i] = Eigen::Vector3f(labels.voxels[i], 0.5f, -1.f);
+  std::map<std::string, std::string> files;
+  files["field.nii.gz"] = displacement_field_to_bytes(field, true);
+  files["warped_labels.nii.gz"] = label_image_to_bytes(labels, true);
+  if (with_image) files["warped_image.nii.gz"] = scalar_image_to_bytes(ramp_image(labels.grid), VoxelType::float32, false);
+  files["models/brain.vtp"] =
+      "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\"><PolyData><Piece NumberOfPoints=\"0\" "
+      "NumberOfPolys=\"0\"></Piece></PolyData></VTKFile>\n";
+  files["metrics.json"] = "{\"voxels\": " + std::to_string(labels.voxels.size()) + "}";
+  files["timings.json"] = R"({"preop":{"atlas":0,"mesh":0.1,"assemble":0,"factorise":0,"total":0.1},)"
+                          R"("intraop":{"read":0,"affine":0,"surface":0,"solve":0,"field":0,"warp":0,"models":0,"total":0},)"
+                          R"("mesh":{"nodes":5,"tets":2}})";
+  return files;
+}
+
+server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
+                                                   double, const fs::path& scratch_dir,
+                                                   const server::StageProgressFn& progress) {
+  if (!fs::is_directory(scratch_dir)) throw std::runtime_error("fake: no scratch dir");
+  ++scans_run;
+  progress("affine", 0.0, 0.0);
+  progress("affine", 1.0, 0.002);
+  if (fail_next_scan) {
+    fail_next_scan = false;
+    throw ComputeError("fake: solver diverged");
+  }
+  progress("solve", 1.0, 0.003);
+  server::EngineScanOutput out;
+  out.files = files_for(labels, image.has_value());
+  return out;
+}
+
+}  // namespace brainshift::test

@@ -1,0 +1,63 @@
+#pragma once
+// Helpers for the server unit tests: temporary directories, small images, and
+// a test double of the engine (tests only; the shipped daemon uses the real one).
+#include <filesystem>
+#include <string>
+
+#include "core/image.h"
+#include "core/tet_mesh.h"
+#include "server/engine_port.h"
+
+namespace brainshift::test {
+
+class TempDir {
+ public:
+  TempDir();
+  ~TempDir();
+  const std::filesystem::path& path() const { return path_; }
+
+ private:
+  std::filesystem::path path_;
+};
+
+// An oblique 1.5 mm grid of n^3 voxels.
+Grid3 small_grid(int n);
+// A ball of label 1 (radius n/3 voxels) with a label-2 core.
+LabelImage ball_labels(int n);
+ImageF ramp_image(const Grid3& grid);
+TetMesh two_tet_mesh();
+
+// The engine double: load_preop records what it got; register_scan returns
+// real NIfTI/VTP/JSON bytes derived from the input so tests can check that
+// what comes back over the protocol is exactly what was stored.
+class FakeEngine : public server::EnginePort {
+ public:
+  server::PreopImages load_default_atlas(const std::filesystem::path&) override;
+  void load_preop(const server::PreopImages& preop, std::optional<TetMesh> stored_mesh, double atlas_seconds,
+                  const server::StageProgressFn& progress) override;
+  bool ready() const override { return ready_; }
+  const TetMesh& mesh() const override { return mesh_; }
+  nlohmann::json preop_timings() const override { return {{"mesh", 0.1}}; }
+  server::EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
+                                         double read_seconds, const std::filesystem::path& scratch_dir,
+                                         const server::StageProgressFn& progress) override;
+  int ranks() const override { return 1; }
+  std::size_t max_image_bytes() const override { return std::size_t{64} << 20; }
+  void stop_workers() override { stopped = true; }
+
+  // Expected output files for these inputs (what register_scan returns).
+  static std::map<std::string, std::string> files_for(const LabelImage& labels, bool with_image);
+
+  bool fail_next_scan = false;   // ComputeError from the next register_scan
+  bool fail_preop = false;       // InputError from load_preop
+  std::optional<TetMesh> last_stored_mesh;
+  server::PreopImages last_preop;
+  int scans_run = 0;
+  bool stopped = false;
+
+ private:
+  bool ready_ = false;
+  TetMesh mesh_;
+};
+
+}  // namespace brainshift::test
