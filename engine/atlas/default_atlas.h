@@ -9,13 +9,16 @@
 //   (bridges one-voxel notches) and opened with a 1 mm ball (drops strands one
 //   voxel thin), then largest component and hole filling again.
 // - Lateral ventricles: ch2better (0.5 mm, brain only, CSF set to 0) is resampled
-//   linearly onto ch2's grid; candidate CSF = inside the brain eroded by 3 mm,
-//   where both the resampled ch2better is dark and the ch2 T1 is dark (below a
-//   threshold derived from the white-matter intensity). Only components whose
-//   centroid lies in a central box (|x| < 30 mm, -45 < y < 35 mm, z > 0 mm,
-//   i.e. above the thalamus and away from the cortex) are kept; the largest
-//   component on each side of the midline (they usually merge through the
-//   septum region, then one component is kept), closed by 1 mm.
+//   linearly onto ch2's grid. CSF candidates are voxels of the brain eroded by
+//   3 mm (cuts off cortical sulci) where the resampled ch2better is < 30 (CSF
+//   with partial volume) and the ch2 T1 is < 60 (ch2 CSF ~30, grey matter ~80,
+//   white matter ~110). 6-connected components of at least 0.5 ml are kept when
+//   their centroid lies in the central box |x| < 30, -45 < y < 35, 0 < z < 40 mm
+//   (the bodies of the lateral ventricles, above the thalamus). The 3rd and 4th
+//   ventricles and the temporal horns are not kept (their centroids lie below or
+//   outside the box; on Colin27 they are separate components). The result is closed by 1 mm and
+//   restricted to the brain. On Colin27 this gives one component (the two
+//   ventricles touch through the thin septum) of ~20 ml.
 // - CST: JHU-WhiteMatter-labels-1mm labels 7,8 (brainstem CST), 15,16 (cerebral
 //   peduncle), 19,20 (posterior limb of the internal capsule), 25,26 (superior
 //   corona radiata), nearest-neighbour resampled onto ch2's grid, restricted to

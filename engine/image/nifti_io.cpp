@@ -227,9 +227,17 @@ RawNifti decode(std::string_view bytes, std::string_view name, std::size_t max_b
   std::string skip(offset - kHeaderBytes, '\0');
   if (stream.read(skip.data(), skip.size()) < skip.size())
     fail(name, "truncated: file ends before the voxel data (vox_offset " + std::to_string(offset) + ")");
+  // Grow the buffer as data actually arrive, so that a file whose header claims
+  // far more than it holds fails as truncated instead of allocating the claim.
   const std::size_t want = nvox * bpv;
-  raw.data.resize(want);
-  const std::size_t got = stream.read(raw.data.data(), want);
+  std::size_t got = 0;
+  while (got < want) {
+    const std::size_t next = std::min(want, std::max<std::size_t>(std::size_t{64} << 20, 2 * got));
+    raw.data.resize(next);
+    const std::size_t n = stream.read(raw.data.data() + got, next - got);
+    got += n;
+    if (got < next) break;
+  }
   if (got < want)
     fail(name, "truncated: header promises " + std::to_string(want) + " bytes of voxel data, found only " +
                    std::to_string(got));

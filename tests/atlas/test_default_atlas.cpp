@@ -99,6 +99,17 @@ TEST_F(DefaultAtlasTest, LateralVentriclesPlausible) {
                     lab.at(i, j + 1, k) == 0 || lab.at(i, j, k - 1) == 0 || lab.at(i, j, k + 1) == 0;
       }
   EXPECT_EQ(touching, 0u);
+  // The 3rd ventricle (midline, between the thalami, below the lateral
+  // ventricles' bodies) is not labelled as lateral ventricle.
+  std::size_t third = 0;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        if (lab.at(i, j, k) != labels::ventricles) continue;
+        const Eigen::Vector3d w = g.world_mm(i, j, k);
+        third += std::abs(w.x()) < 2.5 && w.y() > -30 && w.y() < 0 && w.z() < 8;
+      }
+  EXPECT_LT(third, 50u);
 }
 
 TEST_F(DefaultAtlasTest, CorticospinalTractBilateralFromBrainstemToCoronaRadiata) {

@@ -261,6 +261,13 @@ TEST_F(BadFiles, TruncatedRawAndGzip) {
   expect_rejected("cut_header.nii.gz", gz.substr(0, 40), "truncated");
 }
 
+TEST_F(BadFiles, HugeClaimInSmallFileIsTruncationNotAllocation) {
+  std::string raw = good_raw();
+  for (int d = 1; d <= 3; ++d) test::poke<std::int16_t>(raw, off::dim + 2 * d, 3000);  // 108 GB of float32
+  expect_rejected("huge_claim.nii", raw, "truncated");
+  expect_rejected("huge_claim.nii.gz", test::gzip(raw), "truncated");
+}
+
 TEST_F(BadFiles, GarbageAndBadMagic) {
   expect_rejected("garbage.nii", std::string(1000, 'x'), "not a NIfTI-1 file");
   std::string raw = good_raw();
