@@ -135,8 +135,7 @@ struct ForceField {
 ForceField compute_force(const TriSurface& s, const Points& x, const LinearSampler& target,
                          const ImageF* image, const ActiveSurfaceParameters& p) {
   ForceField f{Points(x.size(), Eigen::Vector3d::Zero()), std::vector<char>(x.size(), 0)};
-  Points normals;
-  if (image && p.edge_weight > 0) normals = area_weighted_normals(s, x);
+  const Points normals = area_weighted_normals(s, x);
   for (std::size_t v = 0; v < x.size(); ++v) {
     double d;
     Eigen::Vector3d g;
@@ -146,8 +145,13 @@ ForceField compute_force(const TriSurface& s, const Points& x, const LinearSampl
     // direction means nothing: no force there rather than a random one.
     if (len < 0.2) continue;
     f.has_data[v] = 1;
-    f.force[v] = -d * g / len;
-    if (!normals.empty()) {
+    // Along the surface normal only, scaled by how well the normal agrees with
+    // the distance gradient: the trilinear gradient direction jumps from cell
+    // to cell, and letting those jumps push tangentially makes vertices drift
+    // and chatter without changing the matched shape.
+    const double alignment = std::max(0.0, normals[v].dot(g / len));
+    f.force[v] = -d * alignment * normals[v];
+    if (image && p.edge_weight > 0) {
       f.force[v] += p.edge_weight * edge_offset_mm(*image, x[v], normals[v], p.edge_search_mm) * normals[v];
     }
   }
@@ -227,7 +231,15 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
     rhs = mass.asDiagonal() * rhs;
     const Eigen::MatrixXd u_new = solver.solve(rhs);
     ++r.iterations;
-    const double update = (u_new - u).rowwise().norm().maxCoeff();
+    // Convergence looks at the update along the current vertex normals: that
+    // is the matched shape. Tangential motion keeps relaxing slowly afterwards
+    // (normal forces give the membrane no tangential pull, so smooth tangential
+    // modes decay only at the rate 1/(1 + alpha k^2)); it slides vertices along
+    // the surface without changing it.
+    const Points normals = area_weighted_normals(surface, x);
+    double update = 0;
+    for (std::size_t v = 0; v < n; ++v)
+      update = std::max(update, std::abs(normals[v].dot((u_new.row(v) - u.row(v)).transpose())));
     u = u_new;
     for (std::size_t v = 0; v < n; ++v) x[v] = surface.vertices_mm[v] + u.row(v).transpose();
     quiet = update < p.convergence_tolerance_mm ? quiet + 1 : 0;

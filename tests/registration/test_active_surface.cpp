@@ -3,6 +3,7 @@
 // segmentation noise (the membrane must not chase it), and the edge force.
 #include <gtest/gtest.h>
 
+#include <ctime>
 #include <random>
 
 #include "core/errors.h"
@@ -127,19 +128,25 @@ TEST(ActiveSurface, DentRecoversTheKnownNormalDisplacement) {
   EXPECT_TRUE(r.converged) << r.message;
   EXPECT_LT(r.mean_residual_mm, 0.5);
   EXPECT_EQ(r.flipped_triangles, 0u);
-  double worst_normal = 0, worst_tangential = 0, deepest = 0;
+  // Vertices move along the surface normal, which tilts on the flanks of the
+  // dent, so they also slide a little tangentially; the normal component is
+  // compared with the truth at the vertex's original direction.
+  double worst_normal = 0, sum_normal = 0, worst_tangential = 0, deepest = 0;
   for (std::size_t v = 0; v < sphere.vertices_mm.size(); ++v) {
     const Eigen::Vector3d n = (sphere.vertices_mm[v] - kCentre).normalized();
     const double truth = dented_radius(n) - kRadius;  // known normal displacement (<= 0)
     const Eigen::Vector3d& u = r.displacement_mm[v];
     worst_normal = std::max(worst_normal, std::abs(u.dot(n) - truth));
+    sum_normal += std::abs(u.dot(n) - truth);
     worst_tangential = std::max(worst_tangential, (u - u.dot(n) * n).norm());
     deepest = std::min(deepest, u.dot(n));
   }
-  std::printf("dent: worst normal error %.3f mm, worst tangential %.3f mm, deepest %.3f mm\n",
-              worst_normal, worst_tangential, deepest);
-  EXPECT_LT(worst_normal, 0.8);
-  EXPECT_LT(worst_tangential, 1.5);
+  const double mean_normal = sum_normal / double(sphere.vertices_mm.size());
+  std::printf("dent: normal error mean %.3f / worst %.3f mm, worst tangential %.3f mm, deepest %.3f mm\n",
+              mean_normal, worst_normal, worst_tangential, deepest);
+  EXPECT_LT(mean_normal, 0.25);
+  EXPECT_LT(worst_normal, 1.0);
+  EXPECT_LT(worst_tangential, 2.5);
   EXPECT_LT(deepest, -7.0);  // the 8 mm dent is followed, not smoothed away
 }
 
@@ -229,20 +236,28 @@ TEST(ActiveSurface, BadInputIsRejected) {
   EXPECT_THROW(match_surface(test::icosphere(kCentre, 5, 1), ImageF{}, ActiveSurfaceParameters{}), InputError);
 }
 
-TEST(ActiveSurface, TimingOfABrainSizedSurface) {
-  // 40,962 vertices on a 256 x 256 x 60 anisotropic grid: twice the vertex
-  // count of the brain outline + ventricles, so an upper bound for that stage.
+TEST(ActiveSurface, TimingOfBrainSizedSurfaces) {
+  // An outline-sized surface and a ventricle-sized one on a 256 x 256 x 60
+  // anisotropic intraop grid, then a 40,962-vertex surface (twice the brain
+  // outline + ventricles) as an upper bound. CPU time is printed too because
+  // wall time on a shared machine says little.
   const Grid3 grid = test::make_grid({256, 256, 60}, {0.94, 0.94, 2.5}, Eigen::Matrix3d::Identity(), kCentre);
   const LabelImage labels = test::rasterise(grid, [](const Eigen::Vector3d& p) -> std::uint16_t {
     return (p - kCentre).cwiseQuotient(Eigen::Vector3d(68, 82, 62)).squaredNorm() <= 1.0;
   });
-  const TriSurface sphere = test::icosphere(kCentre, 66, 6);
-  const auto r = match_surface(sphere, sdf_of(labels), ActiveSurfaceParameters{});
-  std::printf("timing: %zu vertices, %.3f s, %s\n", sphere.vertices_mm.size(), r.seconds, r.message.c_str());
-  EXPECT_TRUE(r.converged) << r.message;
-  EXPECT_EQ(r.flipped_triangles, 0u);
-  EXPECT_LT(r.mean_residual_mm, 0.6);
-  EXPECT_LT(r.seconds, 2.0);  // generous: shared 2-core machines; measured value is printed
+  const ImageF sdf = sdf_of(labels);
+  for (int subdivisions : {4, 5, 6}) {
+    const TriSurface sphere = test::icosphere(kCentre, 66, subdivisions);
+    const std::clock_t cpu0 = std::clock();
+    const auto r = match_surface(sphere, sdf, ActiveSurfaceParameters{});
+    const double cpu = double(std::clock() - cpu0) / CLOCKS_PER_SEC;
+    std::printf("timing: %zu vertices, %.3f s wall, %.3f s cpu, %s\n", sphere.vertices_mm.size(), r.seconds,
+                cpu, r.message.c_str());
+    EXPECT_TRUE(r.converged) << r.message;
+    EXPECT_EQ(r.flipped_triangles, 0u);
+    EXPECT_LT(r.mean_residual_mm, 0.6);
+    EXPECT_LT(cpu, 3.0);  // generous bound; the measured value is printed
+  }
 }
 
 }  // namespace
