@@ -60,7 +60,9 @@ std::optional<Message> receive_event(zmq::socket_ref sub, const Limits& limits,
 // Sets ZMQ_MAXMSGSZ to hard_frame_cap_bytes: libzmq then disconnects a peer
 // sending a larger frame before allocating it. Frames between
 // limits.max_frame_bytes and the cap still reach decode() and get a too_large
-// reply, which is why the cap defaults to twice the limit.
+// reply, which is why the cap defaults to twice the larger of the header and
+// frame limits (the header frame must pass the cap too). The cap is enforced
+// by libzmq's stream decoder, so it applies to tcp:// and ipc://, not inproc://.
 void apply_hard_frame_cap(zmq::socket_ref socket, const Limits& limits,
                           std::optional<std::int64_t> hard_frame_cap_bytes = std::nullopt);
 

@@ -157,7 +157,8 @@ TEST(Transport, BadRequestsGetTypedErrorsAndTheServerKeepsServing) {
 TEST(Transport, FramesOverTheLimitGetTooLargeAndOverTheHardCapAreDropped) {
   zmq::context_t ctx;
   bp::Limits limits;
-  limits.max_frame_bytes = 4096;  // hard cap becomes 8192
+  limits.max_frame_bytes = 4096;
+  limits.max_header_bytes = 2048;  // hard cap = 2 x the larger of the two = 8192
   TestServer server(ctx, "tcp://127.0.0.1:*", limits);
 
   auto dealer = connect(ctx, zmq::socket_type::dealer, server.endpoint());
