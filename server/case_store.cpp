@@ -103,7 +103,12 @@ std::string content_digest(const ScanInput& input) {
          std::to_string(input.image_bytes ? input.image_bytes->size() : 0);
 }
 
-CaseStore::CaseStore(fs::path dir) : dir_(std::move(dir)) {
+CaseStore::CaseStore(fs::path dir, Mode mode) : dir_(std::move(dir)) {
+  if (mode == Mode::read_only) {
+    if (!fs::is_directory(dir_ / "scans")) throw std::runtime_error("store " + dir_.string() + ": not a case store");
+    load_index();
+    return;
+  }
   std::error_code ec;
   fs::create_directories(dir_ / "scans", ec);
   if (ec) throw std::runtime_error("store " + dir_.string() + ": cannot create: " + ec.message());

@@ -61,9 +61,12 @@ struct ScanInput {
 
 class CaseStore {
  public:
-  // Creates the directory if needed, removes temporary leftovers and loads the
-  // index. Throws std::runtime_error when the directory is unusable.
-  explicit CaseStore(std::filesystem::path dir);
+  enum class Mode {
+    owner,     // the daemon: creates the directory, removes temporary leftovers
+    read_only  // an export beside a running daemon: touches nothing
+  };
+  // Loads the index. Throws std::runtime_error when the directory is unusable.
+  explicit CaseStore(std::filesystem::path dir, Mode mode = Mode::owner);
 
   const std::filesystem::path& dir() const { return dir_; }
 

@@ -8,6 +8,8 @@
 #include <atomic>
 #include <csignal>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
 #include <iostream>
 #include <memory>
 
@@ -17,6 +19,7 @@
 #include "config/config_file.h"
 #include "core/errors.h"
 #include "fem/petsc_session.h"
+#include "server/case_store.h"
 #include "server/daemon.h"
 #include "server/engine_adapter.h"
 
@@ -62,6 +65,35 @@ Configuration read_configuration(const std::string& config_path, const std::stri
   return c;
 }
 
+// Reads the store without a running engine; safe beside a running daemon.
+int export_result(const std::string& config_path, const std::string& store_override, const std::string& scan_id,
+                  const std::string& out) {
+  namespace fs = std::filesystem;
+  try {
+    if (out.empty()) throw brainshift::InputError("--export-result needs --out");
+    auto settings = config_path.empty()
+                        ? brainshift::server::server_settings_from_text(brainshift::config::default_config_text(), "<built-in defaults>")
+                        : brainshift::server::server_settings_from_file(config_path);
+    if (!store_override.empty()) settings.store = store_override;
+    brainshift::server::CaseStore store(settings.store, brainshift::server::CaseStore::Mode::read_only);
+    const auto record = store.find(scan_id);
+    if (!record) throw brainshift::InputError("no scan " + scan_id + " in " + settings.store.string());
+    if (record->state != brainshift::server::StoredScanState::done)
+      throw brainshift::InputError(scan_id + " has no result (" + brainshift::server::to_string(record->state) + ")");
+    for (const auto& name : store.result_file_names(scan_id)) {
+      const fs::path path = fs::path(out) / name;
+      fs::create_directories(path.parent_path());
+      const std::string bytes = store.read_result_file(scan_id, name).value();
+      std::ofstream(path, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+      std::cout << path.string() << '\n';
+    }
+    return 0;
+  } catch (const std::exception& e) {
+    std::cerr << "brainshiftd: " << e.what() << '\n';
+    return 1;
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -78,6 +110,10 @@ int main(int argc, char** argv) {
   app.add_option("--events", events, "event endpoint (PUB), overrides [server] events");
   app.add_option("--store", store, "case store directory, overrides [server] store");
   app.add_option("--ready-file", ready_file, "write the bound endpoints here as JSON once listening");
+  std::string export_scan, export_out;
+  auto* export_opt = app.add_option("--export-result", export_scan,
+                                    "write a stored scan's result files (all of them, report.png included) to --out and exit");
+  app.add_option("--out", export_out, "folder for --export-result")->needs(export_opt);
   app.add_option("--log-level", log_level, "trace, debug, info, warn, error")
       ->check(CLI::IsMember({"trace", "debug", "info", "warn", "error"}));
   try {
@@ -90,6 +126,12 @@ int main(int argc, char** argv) {
   spdlog::set_level(spdlog::level::from_str(rank == 0 ? log_level : "warn"));
   spdlog::set_pattern(rank == 0 ? "[%Y-%m-%d %H:%M:%S.%e] [%^%l%$] %v" : "[rank " + std::to_string(rank) + "] [%l] %v");
   install_signal_handlers();
+
+  if (!export_scan.empty()) {
+    const int code = rank == 0 ? export_result(config_path, store, export_scan, export_out) : 0;
+    MPI_Finalize();
+    return code;
+  }
 
   Configuration c;
   try {

@@ -1,0 +1,64 @@
+#include "synthetic_case.h"
+
+#include "image/nifti_io.h"
+#include "image/resample.h"
+
+namespace brainshift::e2e {
+namespace {
+
+Grid3 grid(std::array<int, 3> dims, Eigen::Vector3d spacing, Eigen::Vector3d origin) {
+  Grid3 g;
+  g.dims = dims;
+  g.world_from_voxel.topLeftCorner<3, 3>() = spacing.asDiagonal();
+  g.world_from_voxel.block<3, 1>(0, 3) = origin;
+  return g;
+}
+
+double ellipsoid(const Eigen::Vector3d& p, const Eigen::Vector3d& c, const Eigen::Vector3d& r) {
+  return (p - c).cwiseQuotient(r).squaredNorm();
+}
+
+struct Head {
+  ImageF t1;
+  LabelImage labels;
+};
+
+Head synthetic_head() {
+  const Grid3 g = grid({70, 80, 62}, {2, 2, 2}, {-69, -79, -61});
+  Head h{ImageF(g), LabelImage(g)};
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        std::uint16_t l = 0;
+        if (ellipsoid(p, {0, 0, 0}, {55, 65, 48}) < 1) l = 1;
+        if (ellipsoid(p, {-12, 5, 8}, {8, 22, 10}) < 1 || ellipsoid(p, {12, 5, 8}, {8, 22, 10}) < 1) l = 2;
+        if (ellipsoid(p, {25, -20, -10}, {7, 7, 7}) < 1) l = 4;
+        h.labels.at(i, j, k) = l;
+        h.t1.at(i, j, k) = l == 0 ? 10.f : l == 2 ? 30.f : l == 4 ? 150.f : 100.f;
+      }
+  return h;
+}
+
+}  // namespace
+
+void write_synthetic_preop(const std::filesystem::path& dir) {
+  const Head h = synthetic_head();
+  write_scalar_image(dir / "preop_t1.nii.gz", h.t1);
+  write_label_image(dir / "preop_labels.nii.gz", h.labels);
+}
+
+void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm) {
+  const Head h = synthetic_head();
+  // iMRI-like: thick slices, its own field of view.
+  const Grid3 g = grid({96, 110, 44}, {1.4, 1.4, 2.8}, {-68, -77, -62});
+  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
+  preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
+  LabelImage labels = resample_nearest(h.labels, g, preop_from_intraop);
+  for (auto& v : labels.voxels)
+    if (v == 4) v = 1;  // intraop labels: 1 brain, 2 ventricles
+  write_label_image(dir / (prefix + "_labels.nii.gz"), labels);
+  write_scalar_image(dir / (prefix + "_t1.nii.gz"), resample_linear(h.t1, g, preop_from_intraop));
+}
+
+}  // namespace brainshift::e2e

@@ -1,0 +1,16 @@
+#pragma once
+// A small synthetic head for the daemon tests: an ellipsoidal brain (label 1)
+// with two ventricles (2) and a tumour (4), and intraop scans of it moved by a
+// known translation on an anisotropic iMRI-like grid.
+#include <filesystem>
+
+#include <Eigen/Dense>
+
+namespace brainshift::e2e {
+
+// Writes preop_t1.nii.gz and preop_labels.nii.gz into dir.
+void write_synthetic_preop(const std::filesystem::path& dir);
+// Writes <prefix>_labels.nii.gz and <prefix>_t1.nii.gz: the preop moved by shift_mm.
+void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm);
+
+}  // namespace brainshift::e2e
