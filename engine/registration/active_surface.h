@@ -16,8 +16,11 @@
 // alpha*K u = M f: with f ~ d - u (d the true normal offset) the result is the
 // membrane-filtered target, u = (M + alpha K)^-1 M d, i.e. alpha (mm^2) is the
 // square of a smoothing length. Components of wavelength lambda are attenuated
-// by 1 / (1 + alpha (2 pi / lambda)^2): alpha = 8 mm^2 keeps 98 % of a 40 mm
-// wide sinking and removes ~90 % of 1-voxel (3-4 mm wavelength) segmentation
+// by 1 / (1 + alpha (2 pi / lambda)^2): alpha = 8 mm^2 keeps ~95 % of an 80 mm
+// wavelength (a ~40 mm wide sinking) and removes ~95 % of 4 mm wavelength
+// (about 1-voxel) segmentation noise. Measured: an 8 mm Gaussian dent of 15 mm
+// width is followed to 7.3 mm at its centre; 1.2 mm lattice noise leaves a
+// mean error of 0.12 mm (0.28 mm with a floppy membrane).
 // noise. Because the stiffness is mesh-independent (it is a continuous
 // operator), the same alpha works for the 17k-vertex outline and the 3k-vertex
 // ventricles.
