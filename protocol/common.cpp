@@ -21,7 +21,7 @@ ErrorInfo error_info_from_json(const nlohmann::json& j, const std::string& conte
   const detail::FieldReader f(j, context);
   const auto code = error_code_from_string(f.string("code"));
   if (!code) f.fail("code", "is not a known error code");
-  return {*code, f.opt_string("message").value_or("")};
+  return {*code, f.text("message")};
 }
 
 }  // namespace brainshift::protocol

@@ -118,7 +118,7 @@ ScanFailedEvent parse_scan_failed_event(const Message& m) {
 
 ServerShutdownEvent parse_server_shutdown_event(const Message& m) {
   const auto f = open_event(m, MessageType::kEventServerShutdown);
-  return {f.opt_string("reason").value_or("")};
+  return {f.text("reason")};
 }
 
 }  // namespace brainshift::protocol

@@ -31,6 +31,13 @@ std::optional<std::string> FieldReader::opt_string(const char* key) const {
   return v->get<std::string>();
 }
 
+std::string FieldReader::text(const char* key) const {
+  const json* v = find(key);
+  if (!v) return "";
+  if (!v->is_string()) fail(key, "must be a string");
+  return v->get<std::string>();
+}
+
 std::string FieldReader::string(const char* key) const {
   auto s = opt_string(key);
   if (!s) fail(key, "is required (non-empty string)");

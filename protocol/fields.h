@@ -18,6 +18,8 @@ class FieldReader {
 
   std::string string(const char* key) const;  // required, non-empty
   std::optional<std::string> opt_string(const char* key) const;
+  // Free text that may be empty (messages, reasons); "" when absent.
+  std::string text(const char* key) const;
   std::uint64_t uint(const char* key) const;
   std::optional<std::uint64_t> opt_uint(const char* key) const;
   double number(const char* key) const;  // finite

@@ -245,4 +245,14 @@ Message decode(std::vector<std::string> wire, const Limits& limits) {
   return message;
 }
 
+Message decode_request(std::vector<std::string> wire, const Limits& limits) {
+  Message m = decode(std::move(wire), limits);
+  const auto type = m.type();
+  if (kind_of(type) != MessageKind::kRequest)
+    throw ProtocolError(ErrorCode::kUnknownType,
+                        "\"" + std::string(to_string(type)) + "\" is not a request type",
+                        m.request_id());
+  return m;
+}
+
 }  // namespace brainshift::protocol

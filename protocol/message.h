@@ -69,6 +69,10 @@ std::vector<std::string> encode(const Message& message);
 // its request_id() is set whenever the header had a readable one.
 Message decode(std::vector<std::string> wire, const Limits& limits = {});
 
+// decode() for the ROUTER side: additionally refuses replies and events with
+// kUnknownType, since only request types are requests.
+Message decode_request(std::vector<std::string> wire, const Limits& limits = {});
+
 // Frame-name rule shared by encode, decode and the typed builders.
 bool is_valid_frame_name(std::string_view name);
 

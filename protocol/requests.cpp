@@ -391,12 +391,13 @@ ScanResultReply parse_scan_result_reply(const Message& m) {
       throw ProtocolError(ErrorCode::kInvalidRequest,
                           "scan.result.reply: unexpected frame \"" + frame.name + "\" (" +
                               frame.media_type + ")");
+    media::check_content(frame);  // catches a server writing the wrong file
     r.frames.push_back(frame);
   }
   if (const json* list = f.opt_array("unavailable"))
     for (const auto& u : *list) {
       const FieldReader uf(u, "scan.result.reply.unavailable");
-      r.unavailable.push_back({uf.string("part"), uf.opt_string("reason").value_or("")});
+      r.unavailable.push_back({uf.string("part"), uf.text("reason")});
     }
   return r;
 }
@@ -472,7 +473,7 @@ ShutdownRequest parse_shutdown_request(const Message& m) {
   expect_type(m, MessageType::kShutdown);
   return with_request_id(m, [&] {
     expect_frames(m, {});
-    return ShutdownRequest{FieldReader(m.header, "shutdown").opt_string("reason").value_or("")};
+    return ShutdownRequest{FieldReader(m.header, "shutdown").text("reason")};
   });
 }
 

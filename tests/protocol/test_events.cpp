@@ -27,6 +27,8 @@ TEST(Events, EveryEventRoundTrips) {
   EXPECT_EQ(bp::parse_scan_failed_event(wire_trip(bp::make_event(scan_failed))), scan_failed);
   const bp::ServerShutdownEvent bye{"admin request"};
   EXPECT_EQ(bp::parse_server_shutdown_event(wire_trip(bp::make_event(bye))), bye);
+  const bp::ServerShutdownEvent silent{""};  // empty free text is allowed
+  EXPECT_EQ(bp::parse_server_shutdown_event(wire_trip(bp::make_event(silent))), silent);
 }
 
 TEST(Events, HaveNoRequestIdAndAPublicationTime) {

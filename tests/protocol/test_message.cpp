@@ -236,3 +236,24 @@ TEST(ErrorCodes, EveryNameRoundTrips) {
   EXPECT_TRUE(bp::is_retryable(ErrorCode::kBusy));
   EXPECT_FALSE(bp::is_retryable(ErrorCode::kUnauthorised));
 }
+
+TEST(Codec, DecodeRequestRefusesRepliesAndEvents) {
+  EXPECT_NO_THROW(bp::decode_request(bp::encode(bp::make_message(bp::MessageType::kStatus, "r"))));
+  try {
+    bp::decode_request(bp::encode(bp::make_message(bp::MessageType::kStatusReply, "r7")));
+    FAIL();
+  } catch (const bp::ProtocolError& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kUnknownType);
+    EXPECT_EQ(e.request_id().value_or(""), "r7");
+  }
+  EXPECT_THROW(bp::decode_request(bp::encode(bp::make_message(bp::MessageType::kEventStage, ""))),
+               bp::ProtocolError);
+}
+
+TEST(Codec, DeeplyNestedJsonIsRefusedWithoutCrashing) {
+  const std::size_t depth = 30000;  // fits the 64 KiB header limit
+  const std::string nested = std::string(depth, '[') + std::string(depth, ']');
+  EXPECT_EQ(decode_error({nested}), ErrorCode::kMalformedJson);
+  const std::string in_object = "{\"a\":" + nested + "}";
+  EXPECT_EQ(decode_error({in_object}), ErrorCode::kVersionMismatch);
+}

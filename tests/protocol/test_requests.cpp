@@ -222,6 +222,10 @@ TEST(ScanResult, ReplyRefusesAFrameWithTheWrongMediaType) {
   r.frames = {bp::media::json_frame("displacement", "{}")};
   EXPECT_EQ(error_of([&] { bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r))); }),
             ErrorCode::kInvalidRequest);
+  // Right media type, wrong bytes: a server bug the client must not pass on.
+  r.frames = {{"model.brain", std::string(bp::media::kVtp), "solid ascii STL"}};
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r))); }),
+            ErrorCode::kInvalidRequest);
 }
 
 TEST(ScanList, RoundTrip) {
@@ -261,6 +265,11 @@ TEST(ErrorReply, RoundTripAndThrowIfError) {
     EXPECT_EQ(e.request_id().value_or(""), "q9");
   }
   EXPECT_NO_THROW(bp::throw_if_error(bp::make_status_request("ok")));
+}
+
+TEST(ErrorReply, EmptyMessageIsAllowed) {
+  const auto m = wire_trip(bp::make_error_reply("q", ErrorCode::kInternal, ""));
+  EXPECT_EQ(bp::parse_error_reply(m), (bp::ErrorInfo{ErrorCode::kInternal, ""}));
 }
 
 TEST(ErrorReply, TypedParsersRethrowAnErrorReply) {
