@@ -238,7 +238,8 @@ TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& para
   CGAL::refine_mesh_3(c3t3, domain, criteria, P::no_perturb(), P::no_exude());
   const double t_refine = stage.lap();
   if (params.optimise) {
-    CGAL::perturb_mesh_3(c3t3, domain, P::time_limit = 0, P::sliver_bound = params.perturb_sliver_bound_deg);
+    if (params.perturb)
+      CGAL::perturb_mesh_3(c3t3, domain, P::time_limit = 0, P::sliver_bound = params.perturb_sliver_bound_deg);
     CGAL::exude_mesh_3(c3t3, P::time_limit = 0, P::sliver_bound = params.exude_sliver_bound_deg);
   }
   const double t_optimise = stage.lap();
@@ -248,9 +249,10 @@ TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& para
   AssemblyOptions options;
   options.cavity_labels = params.cavity_labels;
   options.default_tissue_label = params.default_tissue_label;
-  std::size_t dropped = 0;
-  TetMesh mesh = assemble_tet_mesh(std::move(raw), labels, options, &dropped);
-  if (stats) *stats = {t_refine, t_optimise, total.seconds(), components, dropped};
+  options.keep_largest_component = params.keep_largest_component;
+  AssemblyReport report;
+  TetMesh mesh = assemble_tet_mesh(std::move(raw), labels, options, &report);
+  if (stats) *stats = {t_refine, t_optimise, total.seconds(), components, report.dropped_degenerate, report.dropped_island_tets};
   return mesh;
 }
 

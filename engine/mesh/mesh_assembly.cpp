@@ -53,6 +53,39 @@ std::array<int, 3> outward_face(const std::vector<Eigen::Vector3d>& x, const std
   return f;
 }
 
+// Clears keep[] for every tet outside the face-connected piece of largest
+// volume; returns how many were cleared.
+std::size_t keep_only_largest_piece(const RawTetMesh& raw, std::vector<char>& keep) {
+  const std::size_t nt = raw.tets.size();
+  std::vector<std::pair<std::array<int, 3>, int>> faces;
+  for (std::size_t t = 0; t < nt; ++t)
+    if (keep[t])
+      for (int f = 0; f < 4; ++f) {
+        std::array<int, 3> key{};
+        for (int a = 0, n = 0; a < 4; ++a)
+          if (a != f) key[n++] = raw.tets[t][a];
+        std::sort(key.begin(), key.end());
+        faces.emplace_back(key, static_cast<int>(t));
+      }
+  std::sort(faces.begin(), faces.end());
+  std::vector<int> parent(nt);
+  std::iota(parent.begin(), parent.end(), 0);
+  auto find = [&](int v) {
+    while (parent[v] != v) v = parent[v] = parent[parent[v]];
+    return v;
+  };
+  for (std::size_t i = 1; i < faces.size(); ++i)
+    if (faces[i].first == faces[i - 1].first) parent[find(faces[i].second)] = find(faces[i - 1].second);
+  std::vector<double> volume(nt, 0.0);
+  for (std::size_t t = 0; t < nt; ++t)
+    if (keep[t]) volume[find(static_cast<int>(t))] += std::abs(signed_volume(raw.nodes_mm, raw.tets[t]));
+  const int largest = static_cast<int>(std::max_element(volume.begin(), volume.end()) - volume.begin());
+  std::size_t dropped = 0;
+  for (std::size_t t = 0; t < nt; ++t)
+    if (keep[t] && find(static_cast<int>(t)) != largest) keep[t] = 0, ++dropped;
+  return dropped;
+}
+
 }  // namespace
 
 std::vector<int> morton_order(const std::vector<Eigen::Vector3d>& points) {
@@ -74,7 +107,7 @@ std::vector<int> morton_order(const std::vector<Eigen::Vector3d>& points) {
 }
 
 TetMesh assemble_tet_mesh(RawTetMesh raw, const LabelImage& labels, const AssemblyOptions& options,
-                          std::size_t* dropped_degenerate) {
+                          AssemblyReport* report) {
   const auto& x = raw.nodes_mm;
   std::vector<char> keep(raw.tets.size(), 1);
   std::size_t dropped = 0;
@@ -85,7 +118,8 @@ TetMesh assemble_tet_mesh(RawTetMesh raw, const LabelImage& labels, const Assemb
     const double l = longest_edge(x, raw.tets[t]);
     if (!(std::abs(v) >= options.degenerate_relative_volume * l * l * l)) keep[t] = 0, ++dropped;
   }
-  if (dropped_degenerate) *dropped_degenerate = dropped;
+  const std::size_t islands = options.keep_largest_component ? keep_only_largest_piece(raw, keep) : 0;
+  if (report) *report = {dropped, islands};
 
   // Faces first, from the raw tets, before any renumbering.
   std::vector<BoundaryFace> faces;

@@ -30,11 +30,18 @@ struct AssemblyOptions {
   // A tet is degenerate when |volume| < this * (longest edge)^3 (a regular
   // tet has 0.118): such tets carry no stiffness and break the FEM.
   double degenerate_relative_volume = 1e-8;
+  // Keep only the face-connected piece of largest volume.
+  bool keep_largest_component = false;
+};
+
+struct AssemblyReport {
+  std::size_t dropped_degenerate = 0;
+  std::size_t dropped_island_tets = 0;
 };
 
 // `labels` supplies each tet's material label (voxel nearest its centroid).
 TetMesh assemble_tet_mesh(RawTetMesh raw, const LabelImage& labels,
-                          const AssemblyOptions& options, std::size_t* dropped_degenerate = nullptr);
+                          const AssemblyOptions& options, AssemblyReport* report = nullptr);
 
 // Permutation new_from_old... returned as order[new] = old, sorting points along
 // a 3-D Morton (Z-order) curve over their bounding box; ties keep input order.

@@ -105,11 +105,34 @@ TEST(MeshAssembly, DegenerateTetIsDropped) {
   RawTetMesh raw = raw_cube(1.0);
   raw.nodes_mm.emplace_back(0.5, 0.5, 0.0);  // flat tet: all four nodes in z = 0
   raw.tets.push_back({0, 1, 2, static_cast<int>(raw.nodes_mm.size()) - 1});
-  std::size_t dropped = 0;
-  const TetMesh m = assemble_tet_mesh(raw, cube_labels(1.0), {}, &dropped);
-  EXPECT_EQ(dropped, 1u);
+  AssemblyReport report;
+  const TetMesh m = assemble_tet_mesh(raw, cube_labels(1.0), {}, &report);
+  EXPECT_EQ(report.dropped_degenerate, 1u);
   EXPECT_EQ(m.tet_count(), 6u);
   EXPECT_EQ(m.node_count(), 8u);
+}
+
+TEST(MeshAssembly, KeepsOnlyTheLargestPieceWhenAsked) {
+  // A 2 mm cube and, 10 mm away, a 1 mm cube: the small one is an island.
+  RawTetMesh raw = raw_cube(2.0);
+  mark_boundary(raw);
+  const RawTetMesh small = raw_cube(1.0);
+  const int offset = static_cast<int>(raw.nodes_mm.size());
+  for (const auto& x : small.nodes_mm) raw.nodes_mm.push_back(x + Eigen::Vector3d(10, 0, 0));
+  for (auto t : small.tets) {
+    for (int& n : t) n += offset;
+    raw.tets.push_back(t);
+  }
+  AssemblyOptions o;
+  EXPECT_EQ(assemble_tet_mesh(raw, cube_labels(2.0), o).tet_count(), 12u);
+  o.keep_largest_component = true;
+  AssemblyReport report;
+  const TetMesh m = assemble_tet_mesh(raw, cube_labels(2.0), o, &report);
+  EXPECT_EQ(report.dropped_island_tets, 6u);
+  EXPECT_EQ(m.tet_count(), 6u);
+  EXPECT_EQ(m.node_count(), 8u);
+  EXPECT_NEAR(measure_quality(m).total_volume_mm3, 8.0, 1e-12);
+  EXPECT_EQ(m.boundary_faces.size(), 12u);
 }
 
 TEST(MortonOrder, IsAPermutationThatVisitsOctantsContiguously) {
