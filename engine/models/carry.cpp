@@ -3,102 +3,95 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <memory>
+#include <utility>
 
 #include "core/errors.h"
 
 namespace brainshift {
 namespace {
 
-// Uniform grid of buckets; each tet is listed in every bucket its bounding box
-// overlaps.
-class TetBuckets {
+using Box = std::pair<Eigen::Vector3d, Eigen::Vector3d>;
+
+// Uniform grid of buckets over items with bounding boxes; each item is listed
+// in every bucket its box overlaps.
+class BucketGrid {
  public:
-  explicit TetBuckets(const TetMesh& mesh) : mesh_(mesh) {
+  // cell_mm: wanted bucket size; capped so that there are at most ~8M buckets.
+  BucketGrid(const std::vector<Box>& boxes, double cell_mm) {
     lo_ = Eigen::Vector3d::Constant(std::numeric_limits<double>::max());
     Eigen::Vector3d hi = -lo_;
-    double mean_extent = 0;
-    for (const auto& t : mesh.tets) {
-      Eigen::Vector3d tlo, thi;
-      tet_box(t, tlo, thi);
-      lo_ = lo_.cwiseMin(tlo);
-      hi = hi.cwiseMax(thi);
-      mean_extent += (thi - tlo).mean();
+    for (const auto& b : boxes) {
+      lo_ = lo_.cwiseMin(b.first);
+      hi = hi.cwiseMax(b.second);
     }
-    mean_extent /= static_cast<double>(mesh.tets.size());
-    // About one tet diameter per bucket, but never more than ~8M buckets.
     const Eigen::Vector3d extent = (hi - lo_).cwiseMax(1e-6);
-    cell_mm_ = std::max(mean_extent, std::cbrt(extent.prod() / 8e6));
+    cell_mm_ = std::max({cell_mm, std::cbrt(extent.prod() / 8e6), 1e-6});
     for (int a = 0; a < 3; ++a) dims_[a] = std::max(1, static_cast<int>(std::ceil(extent[a] / cell_mm_)));
-    fill();
+    start_.assign(static_cast<std::size_t>(dims_[0]) * dims_[1] * dims_[2] + 1, 0);
+    for (const auto& b : boxes) for_buckets(b, [&](std::size_t c) { ++start_[c + 1]; });
+    for (std::size_t c = 0; c + 1 < start_.size(); ++c) start_[c + 1] += start_[c];
+    entries_.resize(start_.back());
+    std::vector<int> cursor(start_.begin(), start_.end() - 1);
+    for (std::size_t i = 0; i < boxes.size(); ++i)
+      for_buckets(boxes[i], [&](std::size_t c) { entries_[cursor[c]++] = static_cast<int>(i); });
   }
 
   double cell_mm() const { return cell_mm_; }
   const std::array<int, 3>& dims() const { return dims_; }
-
   // Unclamped bucket coordinates of a point.
   std::array<int, 3> cell_of(const Eigen::Vector3d& p) const {
     std::array<int, 3> c;
     for (int a = 0; a < 3; ++a) c[a] = static_cast<int>(std::floor((p[a] - lo_[a]) / cell_mm_));
     return c;
   }
-  bool valid(int i, int j, int k) const {
-    return i >= 0 && j >= 0 && k >= 0 && i < dims_[0] && j < dims_[1] && k < dims_[2];
+  bool valid(const std::array<int, 3>& c) const {
+    return c[0] >= 0 && c[1] >= 0 && c[2] >= 0 && c[0] < dims_[0] && c[1] < dims_[1] && c[2] < dims_[2];
   }
   template <class F>
-  void for_tets_in(int i, int j, int k, F&& f) const {
+  void for_items_in(int i, int j, int k, F&& f) const {
     const std::size_t b = bucket(i, j, k);
     for (int e = start_[b]; e < start_[b + 1]; ++e) f(entries_[e]);
   }
+  // Visits the items of the buckets at Chebyshev distance r from cell c.
+  template <class F>
+  void for_items_in_shell(const std::array<int, 3>& c, int r, F&& f) const {
+    for (int k = std::max(0, c[2] - r); k <= std::min(dims_[2] - 1, c[2] + r); ++k)
+      for (int j = std::max(0, c[1] - r); j <= std::min(dims_[1] - 1, c[1] + r); ++j) {
+        const bool face = std::abs(k - c[2]) == r || std::abs(j - c[1]) == r;
+        for (int i = std::max(0, c[0] - r); i <= std::min(dims_[0] - 1, c[0] + r); ++i)
+          if (face || std::abs(i - c[0]) == r) for_items_in(i, j, k, f);
+      }
+  }
+  // Largest shell radius that can still contain buckets.
+  int max_ring(const std::array<int, 3>& c) const {
+    int r = 0;
+    for (int a = 0; a < 3; ++a) r = std::max({r, std::abs(c[a]), std::abs(c[a] - dims_[a] + 1)});
+    return r;
+  }
 
  private:
-  void tet_box(const std::array<int, 4>& t, Eigen::Vector3d& lo, Eigen::Vector3d& hi) const {
-    lo = hi = mesh_.nodes_mm[t[0]];
-    for (int q = 1; q < 4; ++q) {
-      lo = lo.cwiseMin(mesh_.nodes_mm[t[q]]);
-      hi = hi.cwiseMax(mesh_.nodes_mm[t[q]]);
-    }
-  }
   std::size_t bucket(int i, int j, int k) const {
     return static_cast<std::size_t>(i) +
            static_cast<std::size_t>(dims_[0]) * (static_cast<std::size_t>(j) + static_cast<std::size_t>(dims_[1]) * k);
   }
   template <class F>
-  void for_buckets_of_tet(std::size_t t, F&& f) const {
-    Eigen::Vector3d lo, hi;
-    tet_box(mesh_.tets[t], lo, hi);
-    auto a = cell_of(lo), b = cell_of(hi);
+  void for_buckets(const Box& b, F&& f) const {
+    auto a = cell_of(b.first), z = cell_of(b.second);
     for (int d = 0; d < 3; ++d) {
       a[d] = std::clamp(a[d], 0, dims_[d] - 1);
-      b[d] = std::clamp(b[d], 0, dims_[d] - 1);
+      z[d] = std::clamp(z[d], 0, dims_[d] - 1);
     }
-    for (int k = a[2]; k <= b[2]; ++k)
-      for (int j = a[1]; j <= b[1]; ++j)
-        for (int i = a[0]; i <= b[0]; ++i) f(bucket(i, j, k));
-  }
-  void fill() {
-    start_.assign(static_cast<std::size_t>(dims_[0]) * dims_[1] * dims_[2] + 1, 0);
-    for (std::size_t t = 0; t < mesh_.tets.size(); ++t) for_buckets_of_tet(t, [&](std::size_t b) { ++start_[b + 1]; });
-    for (std::size_t b = 0; b + 1 < start_.size(); ++b) start_[b + 1] += start_[b];
-    entries_.resize(start_.back());
-    std::vector<int> cursor(start_.begin(), start_.end() - 1);
-    for (std::size_t t = 0; t < mesh_.tets.size(); ++t)
-      for_buckets_of_tet(t, [&](std::size_t b) { entries_[cursor[b]++] = static_cast<int>(t); });
+    for (int k = a[2]; k <= z[2]; ++k)
+      for (int j = a[1]; j <= z[1]; ++j)
+        for (int i = a[0]; i <= z[0]; ++i) f(bucket(i, j, k));
   }
 
-  const TetMesh& mesh_;
   Eigen::Vector3d lo_;
   double cell_mm_ = 1;
   std::array<int, 3> dims_{1, 1, 1};
   std::vector<int> start_, entries_;
 };
-
-Eigen::Vector4d barycentrics(const TetMesh& m, int t, const Eigen::Vector3d& p) {
-  const auto& n = m.tets[t];
-  Eigen::Matrix3d e;
-  e << m.nodes_mm[n[1]] - m.nodes_mm[n[0]], m.nodes_mm[n[2]] - m.nodes_mm[n[0]], m.nodes_mm[n[3]] - m.nodes_mm[n[0]];
-  const Eigen::Vector3d l = e.partialPivLu().solve(p - m.nodes_mm[n[0]]);
-  return Eigen::Vector4d(1.0 - l.sum(), l[0], l[1], l[2]);
-}
 
 // Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5).
 Eigen::Vector3d closest_on_triangle(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b,
@@ -122,82 +115,124 @@ Eigen::Vector3d closest_on_triangle(const Eigen::Vector3d& p, const Eigen::Vecto
   return a + ab * (vb * denom) + ac * (vc * denom);
 }
 
-Eigen::Vector3d closest_on_tet(const TetMesh& m, int t, const Eigen::Vector3d& p) {
-  if (barycentrics(m, t, p).minCoeff() >= 0) return p;
-  static constexpr int faces[4][3] = {{1, 2, 3}, {0, 2, 3}, {0, 1, 3}, {0, 1, 2}};
-  const auto& n = m.tets[t];
-  Eigen::Vector3d best = m.nodes_mm[n[0]];
-  double best_d2 = std::numeric_limits<double>::max();
-  for (const auto& f : faces) {
-    const Eigen::Vector3d q = closest_on_triangle(p, m.nodes_mm[n[f[0]]], m.nodes_mm[n[f[1]]], m.nodes_mm[n[f[2]]]);
-    if ((q - p).squaredNorm() < best_d2) {
-      best_d2 = (q - p).squaredNorm();
-      best = q;
+// The mesh prepared for point location: per-tet inverse edge matrices, tet
+// buckets, and the boundary triangles (faces used by one tet: the outer
+// surface and cavity walls, derived from the tets so that any TetMesh works)
+// with their own buckets for closest-point queries from outside.
+class MeshLocator {
+ public:
+  explicit MeshLocator(const TetMesh& m) : m_(m) {
+    const std::size_t nt = m.tets.size();
+    inverse_.resize(nt);
+    std::vector<Box> boxes(nt);
+    double mean_extent = 0;
+    for (std::size_t t = 0; t < nt; ++t) {
+      const auto& n = m.tets[t];
+      Eigen::Matrix3d e;
+      e << m.nodes_mm[n[1]] - m.nodes_mm[n[0]], m.nodes_mm[n[2]] - m.nodes_mm[n[0]], m.nodes_mm[n[3]] - m.nodes_mm[n[0]];
+      inverse_[t] = e.inverse();
+      boxes[t] = box_of({n[0], n[1], n[2], n[3]});
+      mean_extent += (boxes[t].second - boxes[t].first).mean();
     }
+    tets_ = std::make_unique<BucketGrid>(boxes, mean_extent / static_cast<double>(nt));
+    find_boundary();
   }
-  return best;
-}
 
-struct Hit {
-  int tet = -1;
-  Eigen::Vector4d weights = Eigen::Vector4d::Zero();
-  double distance_mm = 0;
-};
+  Eigen::Vector4d barycentrics(int t, const Eigen::Vector3d& p) const {
+    const Eigen::Vector3d l = inverse_[t] * (p - m_.nodes_mm[m_.tets[t][0]]);
+    return Eigen::Vector4d(1.0 - l.sum(), l[0], l[1], l[2]);
+  }
 
-// Containing tet (the most interior one when p lies on shared faces).
-Hit find_containing(const TetMesh& m, const TetBuckets& buckets, const Eigen::Vector3d& p) {
-  Hit hit;
-  const auto c = buckets.cell_of(p);
-  if (!buckets.valid(c[0], c[1], c[2])) return hit;
-  double best_min = -1e-9;
-  buckets.for_tets_in(c[0], c[1], c[2], [&](int t) {
-    const Eigen::Vector4d w = barycentrics(m, t, p);
-    if (w.minCoeff() >= best_min) {
-      best_min = w.minCoeff();
-      hit.tet = t;
-      hit.weights = w;
-    }
-  });
-  return hit;
-}
-
-// Closest mesh point by searching shells of buckets around p until no closer
-// tet can exist.
-Hit find_closest(const TetMesh& m, const TetBuckets& buckets, const Eigen::Vector3d& p, std::vector<int>& stamp,
-                 int query_id) {
-  Hit hit;
-  hit.distance_mm = std::numeric_limits<double>::max();
-  const auto c = buckets.cell_of(p);
-  const auto& d = buckets.dims();
-  int max_ring = 0;
-  for (int a = 0; a < 3; ++a) max_ring = std::max({max_ring, std::abs(c[a]), std::abs(c[a] - d[a] + 1)});
-  Eigen::Vector3d best_point = p;
-  for (int r = 0; r <= max_ring; ++r) {
-    for (int k = std::max(0, c[2] - r); k <= std::min(d[2] - 1, c[2] + r); ++k)
-      for (int j = std::max(0, c[1] - r); j <= std::min(d[1] - 1, c[1] + r); ++j) {
-        const bool face = std::abs(k - c[2]) == r || std::abs(j - c[1]) == r;
-        for (int i = std::max(0, c[0] - r); i <= std::min(d[0] - 1, c[0] + r); ++i) {
-          if (!face && std::abs(i - c[0]) != r) continue;
-          buckets.for_tets_in(i, j, k, [&](int t) {
-            if (stamp[t] == query_id) return;
-            stamp[t] = query_id;
-            const Eigen::Vector3d q = closest_on_tet(m, t, p);
-            const double dist = (q - p).norm();
-            if (dist < hit.distance_mm) {
-              hit.distance_mm = dist;
-              hit.tet = t;
-              best_point = q;
-            }
-          });
-        }
+  // Containing tet (the most interior one when p lies on shared faces), or -1.
+  int containing(const Eigen::Vector3d& p, Eigen::Vector4d& weights) const {
+    const auto c = tets_->cell_of(p);
+    if (!tets_->valid(c)) return -1;
+    int best = -1;
+    double best_min = -1e-9;
+    tets_->for_items_in(c[0], c[1], c[2], [&](int t) {
+      const Eigen::Vector4d w = barycentrics(t, p);
+      if (w.minCoeff() >= best_min) {
+        best_min = w.minCoeff();
+        best = t;
+        weights = w;
       }
-    // Buckets of the next shell are at least r cells away from p's bucket.
-    if (hit.tet >= 0 && hit.distance_mm <= r * buckets.cell_mm()) break;
+    });
+    return best;
   }
-  Eigen::Vector4d w = barycentrics(m, hit.tet, best_point).cwiseMax(0.0);
-  hit.weights = w / w.sum();
-  return hit;
-}
+
+  // Closest point on the mesh boundary: its tet, barycentrics and distance.
+  int closest(const Eigen::Vector3d& p, Eigen::Vector4d& weights, double& distance_mm) const {
+    const auto c = faces_->cell_of(p);
+    distance_mm = std::numeric_limits<double>::max();
+    int best_face = -1;
+    Eigen::Vector3d best_point = p;
+    for (int r = 0, last = faces_->max_ring(c); r <= last; ++r) {
+      faces_->for_items_in_shell(c, r, [&](int f) {
+        const auto& tri = faces_tri_[f];
+        const Eigen::Vector3d q = closest_on_triangle(p, m_.nodes_mm[tri[0]], m_.nodes_mm[tri[1]], m_.nodes_mm[tri[2]]);
+        const double d = (q - p).norm();
+        if (d < distance_mm) {
+          distance_mm = d;
+          best_face = f;
+          best_point = q;
+        }
+      });
+      // Buckets of the next shell are at least r cells away.
+      if (best_face >= 0 && distance_mm <= r * faces_->cell_mm()) break;
+    }
+    const int t = faces_owner_[best_face];
+    weights = barycentrics(t, best_point);
+    return t;
+  }
+
+ private:
+  Box box_of(std::initializer_list<int> nodes) const {
+    Box b{m_.nodes_mm[*nodes.begin()], m_.nodes_mm[*nodes.begin()]};
+    for (int n : nodes) {
+      b.first = b.first.cwiseMin(m_.nodes_mm[n]);
+      b.second = b.second.cwiseMax(m_.nodes_mm[n]);
+    }
+    return b;
+  }
+
+  void find_boundary() {
+    struct Face {
+      std::array<int, 3> key;
+      int tet, opposite;
+    };
+    std::vector<Face> faces;
+    faces.reserve(4 * m_.tets.size());
+    for (std::size_t t = 0; t < m_.tets.size(); ++t)
+      for (int o = 0; o < 4; ++o) {
+        std::array<int, 3> key;
+        for (int q = 0, n = 0; q < 4; ++q)
+          if (q != o) key[n++] = m_.tets[t][q];
+        std::sort(key.begin(), key.end());
+        faces.push_back({key, static_cast<int>(t), o});
+      }
+    std::sort(faces.begin(), faces.end(), [](const Face& a, const Face& b) { return a.key < b.key; });
+    std::vector<Box> boxes;
+    double mean_extent = 0;
+    for (std::size_t f = 0; f < faces.size();) {
+      std::size_t g = f + 1;
+      while (g < faces.size() && faces[g].key == faces[f].key) ++g;
+      if (g - f == 1) {
+        faces_tri_.push_back(faces[f].key);
+        faces_owner_.push_back(faces[f].tet);
+        boxes.push_back(box_of({faces[f].key[0], faces[f].key[1], faces[f].key[2]}));
+        mean_extent += (boxes.back().second - boxes.back().first).mean();
+      }
+      f = g;
+    }
+    faces_ = std::make_unique<BucketGrid>(boxes, 2.0 * mean_extent / std::max<std::size_t>(1, boxes.size()));
+  }
+
+  const TetMesh& m_;
+  std::vector<Eigen::Matrix3d> inverse_;
+  std::unique_ptr<BucketGrid> tets_, faces_;
+  std::vector<std::array<int, 3>> faces_tri_;
+  std::vector<int> faces_owner_;
+};
 
 }  // namespace
 
@@ -205,25 +240,26 @@ ModelBinding bind_to_mesh(const TriSurface& preop_model, const TetMesh& preop_me
   if (preop_mesh.tets.empty()) throw InputError("bind_to_mesh: the mesh has no tetrahedra");
   for (const auto& v : preop_model.vertices_mm)
     if (!v.allFinite()) throw InputError("bind_to_mesh: the model has a non-finite vertex");
-  const TetBuckets buckets(preop_mesh);
+  const MeshLocator locator(preop_mesh);
   ModelBinding b;
   b.mesh_node_count = preop_mesh.node_count();
   b.nodes.resize(preop_model.vertices_mm.size());
   b.weights.resize(preop_model.vertices_mm.size());
-  std::vector<int> stamp(preop_mesh.tets.size(), -1);
   for (std::size_t v = 0; v < preop_model.vertices_mm.size(); ++v) {
     const Eigen::Vector3d& p = preop_model.vertices_mm[v];
-    Hit hit = find_containing(preop_mesh, buckets, p);
-    if (hit.tet < 0) {
-      hit = find_closest(preop_mesh, buckets, p, stamp, static_cast<int>(v));
+    Eigen::Vector4d w;
+    int tet = locator.containing(p, w);
+    if (tet < 0) {
+      double distance = 0;
+      tet = locator.closest(p, w, distance);
       ++b.vertices_outside;
-      b.max_distance_outside_mm = std::max(b.max_distance_outside_mm, hit.distance_mm);
-    } else {
-      hit.weights = hit.weights.cwiseMax(0.0);
-      hit.weights /= hit.weights.sum();
+      b.max_distance_outside_mm = std::max(b.max_distance_outside_mm, distance);
     }
-    b.nodes[v] = preop_mesh.tets[hit.tet];
-    for (int q = 0; q < 4; ++q) b.weights[v][q] = hit.weights[q];
+    // Clamp rounding noise (and the closest point's zero on its face).
+    w = w.cwiseMax(0.0);
+    w /= w.sum();
+    b.nodes[v] = preop_mesh.tets[tet];
+    for (int q = 0; q < 4; ++q) b.weights[v][q] = w[q];
   }
   return b;
 }

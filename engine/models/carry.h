@@ -4,14 +4,16 @@
 //
 // Preop phase (once per model and mesh): bind_to_mesh finds, for every model
 // vertex, the preop tet containing it and its barycentric coordinates, using a
-// uniform bucket grid over the tets' bounding boxes.
+// uniform bucket grid over the tets' bounding boxes and precomputed inverse
+// edge matrices.
 // Vertices outside the mesh (a brain-surface vertex a fraction of a millimetre
 // outside the meshed cortex, a ventricle vertex on the cavity side of the
 // meshed wall, anything in a region that was not meshed) are bound to the
-// CLOSEST POINT of the mesh, found among the tets of nearby buckets: they take
-// the barycentrics of that point, i.e. the non-rigid residual is extended
-// constantly along the shortest path to the mesh. Their affine part is still
-// exact (A applied to the vertex itself).
+// CLOSEST POINT of the mesh boundary (faces used by a single tet, derived from
+// the tets: outer surface and cavity walls), found through a bucket grid of
+// those faces: they take the barycentrics of that point in its tet, i.e. the
+// non-rigid residual is extended constantly along the shortest path to the
+// mesh. Their affine part is still exact (A applied to the vertex itself).
 //
 // Per-scan phase: carry is a gather, x' = A p + sum_k lambda_k w_k, a few
 // nanoseconds per vertex.
