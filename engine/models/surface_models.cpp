@@ -28,10 +28,11 @@ void validate(const LabelImage& labels, const ModelParameters& p) {
   if (labels.grid.voxel_count() == 0 || labels.voxels.size() != labels.grid.voxel_count())
     throw InputError("surface_model: label image is empty or its voxel count does not match its grid");
   if (!(p.presmooth_sigma_mm >= 0) || p.taubin_iterations < 0 || !(p.taubin_lambda > 0) ||
-      !(p.taubin_mu < -p.taubin_lambda))
+      !(p.taubin_mu < -p.taubin_lambda) || !(p.min_edge_fraction >= 0 && p.min_edge_fraction < 1))
     throw InputError(
         "surface_model: parameters need presmooth_sigma_mm >= 0, taubin_iterations >= 0, "
-        "taubin_lambda > 0 and taubin_mu < -taubin_lambda (otherwise smoothing shrinks)");
+        "taubin_lambda > 0, taubin_mu < -taubin_lambda (otherwise smoothing shrinks) and "
+        "min_edge_fraction in [0, 1)");
 }
 
 // Sigma in voxels per axis; 0 where blurring would be a no-op.
@@ -261,6 +262,117 @@ class TetContourer {
   std::vector<std::array<int, 3>> triangles_;
 };
 
+// Removes the very short edges marching tetrahedra leaves where the surface
+// passes close to grid points, by edge collapse to the midpoint. A collapse is
+// done only when it keeps a closed 2-manifold (link condition: the edge's end
+// points share exactly the two opposite vertices, each of which keeps >= 3
+// neighbours) and flips no triangle (normals turn by less than ~80 degrees).
+class ShortEdgeCollapser {
+ public:
+  explicit ShortEdgeCollapser(TriSurface& s) : s_(s), vt_(s.vertices_mm.size()), dead_(s.triangles.size(), 0) {
+    for (std::size_t t = 0; t < s.triangles.size(); ++t)
+      for (int v : s.triangles[t]) vt_[v].push_back(static_cast<int>(t));
+  }
+
+  void run(double min_edge_mm, int passes) {
+    const double min2 = min_edge_mm * min_edge_mm;
+    for (int pass = 0; pass < passes; ++pass) {
+      std::size_t collapsed = 0;
+      for (std::size_t t = 0; t < s_.triangles.size(); ++t)
+        for (int e = 0; e < 3 && !dead_[t]; ++e) {
+          const int a = s_.triangles[t][e], b = s_.triangles[t][(e + 1) % 3];
+          if ((s_.vertices_mm[a] - s_.vertices_mm[b]).squaredNorm() < min2 && collapse(a, b)) ++collapsed;
+        }
+      if (collapsed == 0) break;
+    }
+    compact();
+  }
+
+ private:
+  std::vector<int> neighbours(int v) const {
+    std::vector<int> n;
+    for (int t : vt_[v])
+      for (int w : s_.triangles[t])
+        if (w != v) n.push_back(w);
+    std::sort(n.begin(), n.end());
+    n.erase(std::unique(n.begin(), n.end()), n.end());
+    return n;
+  }
+
+  static Eigen::Vector3d normal(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c) {
+    return (b - a).cross(c - a);
+  }
+
+  bool collapse(int a, int b) {
+    std::vector<int> shared;
+    for (int t : vt_[a])
+      if (std::find(s_.triangles[t].begin(), s_.triangles[t].end(), b) != s_.triangles[t].end()) shared.push_back(t);
+    if (shared.size() != 2) return false;
+    std::vector<int> opposite;
+    for (int t : shared)
+      for (int w : s_.triangles[t])
+        if (w != a && w != b) opposite.push_back(w);
+    std::sort(opposite.begin(), opposite.end());
+    const auto na = neighbours(a), nb = neighbours(b);
+    std::vector<int> common;
+    std::set_intersection(na.begin(), na.end(), nb.begin(), nb.end(), std::back_inserter(common));
+    if (common != opposite || opposite[0] == opposite[1]) return false;
+    for (int o : opposite)
+      if (neighbours(o).size() <= 3) return false;
+    const Eigen::Vector3d mid = 0.5 * (s_.vertices_mm[a] + s_.vertices_mm[b]);
+    for (int v : {a, b})
+      for (int t : vt_[v]) {
+        if (t == shared[0] || t == shared[1]) continue;
+        std::array<Eigen::Vector3d, 3> p;
+        for (int q = 0; q < 3; ++q) {
+          const int w = s_.triangles[t][q];
+          p[q] = (w == a || w == b) ? mid : s_.vertices_mm[w];
+        }
+        const Eigen::Vector3d before = normal(s_.vertices_mm[s_.triangles[t][0]], s_.vertices_mm[s_.triangles[t][1]],
+                                              s_.vertices_mm[s_.triangles[t][2]]);
+        const Eigen::Vector3d after = normal(p[0], p[1], p[2]);
+        if (before.dot(after) <= 0.2 * before.norm() * after.norm()) return false;
+      }
+    for (int t : shared) {
+      dead_[t] = 1;
+      for (int w : s_.triangles[t]) std::erase(vt_[w], t);
+    }
+    for (int t : vt_[b]) {
+      for (int& w : s_.triangles[t])
+        if (w == b) w = a;
+      vt_[a].push_back(t);
+    }
+    vt_[b].clear();
+    s_.vertices_mm[a] = mid;
+    return true;
+  }
+
+  void compact() {
+    std::vector<int> new_index(s_.vertices_mm.size(), -1);
+    std::vector<Eigen::Vector3d> vertices;
+    std::vector<std::array<int, 3>> triangles;
+    for (std::size_t t = 0; t < s_.triangles.size(); ++t) {
+      if (dead_[t]) continue;
+      std::array<int, 3> tri;
+      for (int q = 0; q < 3; ++q) {
+        int& n = new_index[s_.triangles[t][q]];
+        if (n < 0) {
+          n = static_cast<int>(vertices.size());
+          vertices.push_back(s_.vertices_mm[s_.triangles[t][q]]);
+        }
+        tri[q] = n;
+      }
+      triangles.push_back(tri);
+    }
+    s_.vertices_mm = std::move(vertices);
+    s_.triangles = std::move(triangles);
+  }
+
+  TriSurface& s_;
+  std::vector<std::vector<int>> vt_;
+  std::vector<std::uint8_t> dead_;
+};
+
 // Neighbour lists (CSR) of the surface's vertex graph.
 void vertex_neighbours(const TriSurface& s, std::vector<int>& start, std::vector<int>& nbr) {
   std::vector<std::pair<int, int>> edges;
@@ -314,6 +426,8 @@ TriSurface surface_model(const LabelImage& labels, const std::vector<std::uint16
   TetContourer contourer(field);
   contourer.run();
   TriSurface surface = contourer.take(labels.grid);
+  if (params.min_edge_fraction > 0)
+    ShortEdgeCollapser(surface).run(params.min_edge_fraction * labels.grid.spacing_mm().minCoeff(), 3);
   taubin_smooth(surface, params);
   return surface;
 }

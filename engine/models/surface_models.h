@@ -8,8 +8,10 @@
 // split of every voxel cube. Marching tetrahedra has no ambiguous cases, so the
 // surface is always a closed, orientable 2-manifold (every edge is shared by
 // exactly two triangles); marching cubes tables cannot promise that on binary
-// data. The price is more, and thinner, triangles; a Taubin lambda/mu smoothing
-// (which does not shrink, unlike plain Laplacian smoothing) then relaxes them.
+// data. The price is more, and thinner, triangles: edges much shorter than a
+// voxel are collapsed (keeping the manifold), then a Taubin lambda/mu
+// smoothing (which does not shrink, unlike plain Laplacian smoothing) relaxes
+// the triangles.
 //
 // Vertices are in world RAS+ mm (labels.grid.world_from_voxel, oblique or
 // flipped); triangles are ordered so that their normals point out of the
@@ -29,6 +31,10 @@ struct ModelParameters {
   // Gaussian blur of the binary mask before contouring, in mm per axis (an axis
   // whose spacing makes sigma < 0.25 voxel is not blurred).
   double presmooth_sigma_mm = 0.7;
+  // Edges shorter than this fraction of the smallest voxel spacing are
+  // collapsed (topology-preserving) before smoothing: marching tetrahedra
+  // leaves many tiny triangles where the surface grazes grid points. 0 = off.
+  double min_edge_fraction = 0.4;
   // Taubin smoothing: each iteration is one lambda (shrink) and one mu
   // (inflate) umbrella step with uniform weights.
   int taubin_iterations = 15;
