@@ -54,6 +54,21 @@ TEST(SurfaceModel, SphereAreaVolumeAndTopology) {
   expect_sphere(surface_model(labels, std::uint16_t{4}), r, centre);
 }
 
+TEST(SurfaceModel, ShortEdgeCollapseKeepsShapeAndTopology) {
+  const Eigen::Vector3d centre(0.3, 0.1, -0.2);
+  const auto labels = ball_labels(scaled(1.0, centre - Eigen::Vector3d::Constant(20)), 40, centre, 14, 1);
+  ModelParameters raw;
+  raw.min_edge_fraction = 0;
+  const TriSurface dense = surface_model(labels, std::uint16_t{1}, raw);
+  const TriSurface lean = surface_model(labels, std::uint16_t{1});
+  EXPECT_TRUE(is_closed_oriented_manifold(lean));
+  EXPECT_LT(lean.triangles.size(), 0.75 * dense.triangles.size());
+  EXPECT_NEAR(enclosed_volume_mm3(lean), enclosed_volume_mm3(dense), 0.005 * enclosed_volume_mm3(dense));
+  // Same genus (sphere): V - E + F = 2.
+  const long v = static_cast<long>(lean.vertices_mm.size()), f = static_cast<long>(lean.triangles.size());
+  EXPECT_EQ(v - 3 * f / 2 + f, 2);
+}
+
 TEST(SurfaceModel, FlippedObliqueAffineKeepsOutwardNormals) {
   const Eigen::Vector3d centre(-5, 7, 1);
   const double r = 10.0;
