@@ -113,7 +113,12 @@ ServerCore::ServerCore(ServerSettings settings, CaseStore& store, EnginePort& en
   limits_.max_frame_bytes = settings_.max_frame_bytes;
   limits_.max_total_bytes = std::max(limits_.max_total_bytes, 2 * settings_.max_frame_bytes);
   versions_["protocol"] = std::to_string(kProtocolVersion);
-  timing_log_ = std::make_unique<TimingLogFile>(settings_.timing_log_path().string());
+  try {
+    timing_log_ = std::make_unique<TimingLogFile>(settings_.timing_log_path().string());
+  } catch (const std::exception& e) {
+    // Timings still go out as events; losing the file must not stop surgery.
+    spdlog::error("timing log {} unusable: {}", settings_.timing_log_path().string(), e.what());
+  }
 }
 
 ServerCore::~ServerCore() = default;
@@ -126,6 +131,9 @@ Message ServerCore::handle_wire(std::vector<std::string> wire) {
   } catch (const ProtocolError& e) {
     spdlog::warn("refused a request: {} ({})", e.what(), to_string(e.code()));
     return make_error_reply(e);
+  } catch (const std::exception& e) {
+    spdlog::error("request could not be decoded: {}", e.what());
+    return make_error_reply("", ErrorCode::kInternal, e.what());
   }
 }
 
@@ -336,7 +344,7 @@ void ServerCore::log_stage(StageTiming timing) {
   if (!valid_stage_name(timing.stage)) return;
   timing.t = utc_now();
   try {
-    timing_log_->write(timing);
+    if (timing_log_) timing_log_->write(timing);
   } catch (const std::exception& e) {
     spdlog::warn("timing log: {}", e.what());
   }

@@ -72,7 +72,9 @@ struct Harness {
 void expect_error(const Message& reply, ErrorCode code, const std::string& request_id = "") {
   ASSERT_EQ(reply.type(), MessageType::kError) << reply.header.dump();
   EXPECT_EQ(parse_error_reply(reply).code, code) << reply.header.dump();
-  if (!request_id.empty()) EXPECT_EQ(reply.request_id(), request_id);
+  if (!request_id.empty()) {
+    EXPECT_EQ(reply.request_id(), request_id);
+  }
 }
 
 LabelImage intraop_labels(int n = 12) {
