@@ -108,23 +108,24 @@ bool row_interval(const TetScan& s, int j, int k, double tol, int& i0, int& i1) 
 
 void scan_tet(const TetScan& s, const std::array<Eigen::Vector3d, 4>& preop, const Grid3& grid,
               double tol, Raster& raster) {
-  const Eigen::Matrix4d& w = grid.world_from_voxel;
+  const Eigen::Matrix3d w_lin = grid.world_from_voxel.topLeftCorner<3, 3>();
+  const Eigen::Vector3d w_off = grid.world_from_voxel.topRightCorner<3, 1>();
   for (int k = s.lo[2]; k <= s.hi[2]; ++k) {
     for (int j = s.lo[1]; j <= s.hi[1]; ++j) {
       int i0 = 0, i1 = -1;
       if (!row_interval(s, j, k, tol, i0, i1)) continue;
-      for (int i = i0; i <= i1; ++i) {
+      std::size_t v = grid.index(i0, j, k);
+      for (int i = i0; i <= i1; ++i, ++v) {
         const Eigen::Vector3d ijk(i, j, k);
         std::array<double, 4> lambda;
         for (int m = 0; m < 4; ++m) lambda[m] = s.c[m] + s.g[m].dot(ijk);
         const double depth = std::min({lambda[0], lambda[1], lambda[2], lambda[3]});
-        const std::size_t v = grid.index(i, j, k);
         if (depth <= raster.depth[v]) continue;
         raster.depth[v] = static_cast<float>(depth);
+        // u = sum lambda_k p_k - x, with x = W ijk + t and sum lambda_k = 1.
         const Eigen::Vector3d p =
             lambda[0] * preop[0] + lambda[1] * preop[1] + lambda[2] * preop[2] + lambda[3] * preop[3];
-        const Eigen::Vector3d x = w.topLeftCorner<3, 3>() * ijk + w.topRightCorner<3, 1>();
-        raster.field->vectors[v] = (p - x).cast<float>();
+        raster.field->vectors[v] = (p - w_lin * ijk - w_off).cast<float>();
       }
     }
   }
@@ -160,6 +161,106 @@ double smoothstep(double t) {
   return t * t * (3.0 - 2.0 * t);
 }
 
+template <class F>
+void for_each_voxel(const Grid3& g, F&& f) {
+  std::size_t v = 0;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i, ++v) f(v, i, j, k);
+}
+
+// Covered voxels plus the uncovered voxels not 6-connected to the grid border
+// (cavities). Everything outside the covered voxels' bounding box (grown by one
+// voxel) is outside, so the flood fill from the border only runs inside that
+// box; the stack carries voxel coordinates so no index divisions are needed.
+Mask brain_region(const Grid3& g, const std::vector<std::uint8_t>& covered) {
+  std::array<int, 3> lo{g.dims[0], g.dims[1], g.dims[2]}, hi{-1, -1, -1};
+  for_each_voxel(g, [&](std::size_t v, int i, int j, int k) {
+    if (!covered[v]) return;
+    lo = {std::min(lo[0], i), std::min(lo[1], j), std::min(lo[2], k)};
+    hi = {std::max(hi[0], i), std::max(hi[1], j), std::max(hi[2], k)};
+  });
+  Mask region(g, 0);
+  if (hi[0] < 0) return region;
+  for (int a = 0; a < 3; ++a) {
+    lo[a] = std::max(lo[a] - 1, 0);
+    hi[a] = std::min(hi[a] + 1, g.dims[a] - 1);
+  }
+  for (int k = lo[2]; k <= hi[2]; ++k)
+    for (int j = lo[1]; j <= hi[1]; ++j)
+      for (int i = lo[0]; i <= hi[0]; ++i) region.at(i, j, k) = 1;
+  struct Voxel {
+    int i, j, k;
+  };
+  std::vector<Voxel> stack;
+  const auto seed = [&](int i, int j, int k) {
+    const std::size_t v = g.index(i, j, k);
+    if (!covered[v] && region.voxels[v]) {
+      region.voxels[v] = 0;
+      stack.push_back({i, j, k});
+    }
+  };
+  for (int k = lo[2]; k <= hi[2]; ++k)
+    for (int j = lo[1]; j <= hi[1]; ++j)
+      for (int i = lo[0]; i <= hi[0]; ++i)
+        if (i == lo[0] || j == lo[1] || k == lo[2] || i == hi[0] || j == hi[1] || k == hi[2]) seed(i, j, k);
+  while (!stack.empty()) {
+    const Voxel p = stack.back();
+    stack.pop_back();
+    if (p.i > lo[0]) seed(p.i - 1, p.j, p.k);
+    if (p.i < hi[0]) seed(p.i + 1, p.j, p.k);
+    if (p.j > lo[1]) seed(p.i, p.j - 1, p.k);
+    if (p.j < hi[1]) seed(p.i, p.j + 1, p.k);
+    if (p.k > lo[2]) seed(p.i, p.j, p.k - 1);
+    if (p.k < hi[2]) seed(p.i, p.j, p.k + 1);
+  }
+  return region;
+}
+
+// u = A^-1 x - x at voxel (i,j,k), evaluated as one affine map of the index.
+struct AffinePullback {
+  Eigen::Matrix3d lin;
+  Eigen::Vector3d off;
+  AffinePullback(const Eigen::Matrix4d& intraop_from_preop, const Grid3& grid) {
+    const Eigen::Matrix4d inv = intraop_from_preop.inverse();
+    const Eigen::Matrix3d m = inv.topLeftCorner<3, 3>() - Eigen::Matrix3d::Identity();
+    lin = m * grid.world_from_voxel.topLeftCorner<3, 3>();
+    off = m * grid.world_from_voxel.topRightCorner<3, 1>() + inv.topRightCorner<3, 1>();
+  }
+  Eigen::Vector3d operator()(int i, int j, int k) const { return lin * Eigen::Vector3d(i, j, k) + off; }
+};
+
+// Extends the non-rigid remainder beyond the covered voxels and composes the
+// final field there (covered voxels keep their exact rasterised values).
+void continue_outside(const MeshDeformation& deformation, const FieldParameters& params,
+                      const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats) {
+  const Grid3& grid = field.grid;
+  const AffinePullback affine(deformation.intraop_from_preop, grid);
+  std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
+  for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) {
+    if (covered[v]) rest[v] = (field.vectors[v].cast<double>() - affine(i, j, k)).cast<float>();
+  });
+  const Mask region = brain_region(grid, covered);
+  const ImageF distance = distance_to_mask_mm(region);
+  std::vector<std::uint32_t> free_voxels, relax_voxels;
+  std::vector<float> weight(grid.voxel_count(), 0.f);
+  for (std::size_t v = 0; v < grid.voxel_count(); ++v) {
+    if (covered[v]) continue;
+    weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
+    if (region.voxels[v]) ++stats.cavity_voxels;
+    else if (weight[v] > 0.f) ++stats.blended_voxels;
+    if (weight[v] > 0.f) free_voxels.push_back(static_cast<std::uint32_t>(v));
+    if (region.voxels[v] || distance.voxels[v] <= params.relax_band_mm) {
+      relax_voxels.push_back(static_cast<std::uint32_t>(v));
+    }
+  }
+  fill_push_pull(grid, covered, free_voxels, rest);
+  relax_laplace(grid, relax_voxels, params.smoothing_sweeps, rest);
+  for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) {
+    if (!covered[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
+  });
+}
+
 }  // namespace
 
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
@@ -168,60 +269,17 @@ VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& de
   validate(preop_mesh, deformation, intraop_grid, params);
   Stopwatch total;
   FieldStats stats;
-  const Grid3& grid = intraop_grid;
-  VectorImage3 field(grid);
-  Raster raster{&field, std::vector<float>(grid.voxel_count(), kUncovered)};
-  rasterise(preop_mesh, deformation, grid, params.barycentric_tolerance, raster, stats);
-  stats.rasterise_seconds = total.seconds();
-
-  // Non-rigid remainder r = (x + u) - A^-1 x on covered voxels.
-  const Eigen::Matrix4d preop_from_intraop = deformation.intraop_from_preop.inverse();
-  const Eigen::Matrix3d lin = (preop_from_intraop.topLeftCorner<3, 3>() - Eigen::Matrix3d::Identity()) *
-                              grid.world_from_voxel.topLeftCorner<3, 3>();
-  const Eigen::Vector3d off = (preop_from_intraop.topLeftCorner<3, 3>() - Eigen::Matrix3d::Identity()) *
-                                  grid.world_from_voxel.topRightCorner<3, 1>() +
-                              preop_from_intraop.topRightCorner<3, 1>();
-  // affine pull-back at voxel (i,j,k): A^-1 x - x = lin * ijk + off.
-  const auto affine_u = [&](int i, int j, int k) { return lin * Eigen::Vector3d(i, j, k) + off; };
-
-  Mask region(grid, 0);
-  std::vector<std::uint8_t> known(grid.voxel_count(), 0);
-  std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
-  for (int k = 0; k < grid.dims[2]; ++k)
-    for (int j = 0; j < grid.dims[1]; ++j)
-      for (int i = 0; i < grid.dims[0]; ++i) {
-        const std::size_t v = grid.index(i, j, k);
-        if (raster.depth[v] == kUncovered) continue;
-        known[v] = 1;
-        region.voxels[v] = 1;
-        rest[v] = (field.vectors[v].cast<double>() - affine_u(i, j, k)).cast<float>();
-      }
-
-  Stopwatch fill_timer;
-  // Cavities (ventricles) are holes of the covered region: full weight there.
-  region = fill_holes(region);
-  const ImageF distance = distance_to_mask_mm(region);
-  std::vector<std::uint32_t> free_voxels;
-  std::vector<float> weight(grid.voxel_count(), 0.f);
-  for (std::size_t v = 0; v < grid.voxel_count(); ++v) {
-    weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
-    if (known[v]) {
-      ++stats.covered_voxels;
-      continue;
-    }
-    if (region.voxels[v]) ++stats.cavity_voxels;
-    else if (weight[v] > 0.f) ++stats.blended_voxels;
-    if (weight[v] > 0.f) free_voxels.push_back(static_cast<std::uint32_t>(v));
+  VectorImage3 field(intraop_grid);
+  Raster raster{&field, std::vector<float>(intraop_grid.voxel_count(), kUncovered)};
+  rasterise(preop_mesh, deformation, intraop_grid, params.barycentric_tolerance, raster, stats);
+  std::vector<std::uint8_t> covered(intraop_grid.voxel_count(), 0);
+  for (std::size_t v = 0; v < covered.size(); ++v) {
+    covered[v] = raster.depth[v] != kUncovered;
+    stats.covered_voxels += covered[v];
   }
-  fill_push_pull(grid, known, rest);
-  relax_laplace(grid, free_voxels, params.smoothing_sweeps, rest);
-  for (int k = 0; k < grid.dims[2]; ++k)
-    for (int j = 0; j < grid.dims[1]; ++j)
-      for (int i = 0; i < grid.dims[0]; ++i) {
-        const std::size_t v = grid.index(i, j, k);
-        if (known[v]) continue;
-        field.vectors[v] = (affine_u(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
-      }
+  stats.rasterise_seconds = total.seconds();
+  Stopwatch fill_timer;
+  continue_outside(deformation, params, covered, field, stats);
   stats.fill_seconds = fill_timer.seconds();
   stats.total_seconds = total.seconds();
   if (stats_out) *stats_out = stats;

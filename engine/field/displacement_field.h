@@ -15,13 +15,17 @@
 //  2. Continuation. Write u = (A^-1 x - x) + r(x): the affine pull-back plus a
 //     non-rigid remainder r, known on covered voxels. r is extended to the
 //     uncovered voxels by push-pull pyramid inpainting followed by a few
-//     Gauss-Seidel sweeps of the Laplace equation (covered voxels fixed), so the
-//     field is continuous across the mesh boundary and smooth inside the
-//     ventricle cavities. The extension is faded out with distance d from the
+//     Gauss-Seidel sweeps of the Laplace equation (covered voxels fixed) in the
+//     cavities and within relax_band_mm of the brain region, so the field is
+//     continuous across the mesh boundary and close to a harmonic fill inside
+//     the ventricle cavities. (Farther out the pyramid's trilinear fill is
+//     smooth enough and is faded out anyway; relaxing it there costs time.) The extension is faded out with distance d from the
 //     "brain region" (covered voxels plus enclosed uncovered voxels, i.e.
 //     cavities): weight = 1 - smoothstep(d / blend_distance_mm). Beyond
 //     blend_distance_mm only the affine remains: u(x) = A^-1 x - x.
-//     Enclosed cavities keep the full non-rigid extension (weight 1).
+//     Enclosed cavities (uncovered voxels not 6-connected to the grid border)
+//     keep the full non-rigid extension (weight 1). A cavity that reaches the
+//     grid border (field of view cut through a ventricle) is treated as outside.
 #include <cstddef>
 
 #include "core/deformation.h"
@@ -36,8 +40,10 @@ struct FieldParameters {
   // Barycentric slack for the inside test (dimensionless). Large enough to
   // absorb round-off on shared faces, small enough not to extrapolate visibly.
   double barycentric_tolerance = 1e-7;
-  // Laplace sweeps after the pyramid fill (0 = pyramid only).
-  int smoothing_sweeps = 30;
+  // Laplace sweeps after the pyramid fill (0 = pyramid only), and how far (mm)
+  // outside the brain region they run (cavities are always relaxed).
+  int smoothing_sweeps = 10;
+  double relax_band_mm = 3.0;
 };
 
 struct FieldStats {

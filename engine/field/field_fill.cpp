@@ -83,39 +83,61 @@ AxisWeights axis_weights(int fine_n, int coarse_n, int factor) {
   return w;
 }
 
+struct Upsampler {
+  const Level& coarse;
+  AxisWeights ax, ay, az;
+
+  Upsampler(const Level& c, const Level& fine)
+      : coarse(c),
+        ax(axis_weights(fine.dims[0], c.dims[0], c.factor[0])),
+        ay(axis_weights(fine.dims[1], c.dims[1], c.factor[1])),
+        az(axis_weights(fine.dims[2], c.dims[2], c.factor[2])) {}
+
+  Eigen::Vector3f at(int i, int j, int k) const {
+    const auto v = [&](int a, int b, int c) -> const Eigen::Vector3f& {
+      return coarse.values[coarse.index(a, b, c)];
+    };
+    const float tx = ax.t[i], ty = ay.t[j], tz = az.t[k];
+    const int x0 = ax.lo[i], x1 = ax.hi[i], y0 = ay.lo[j], y1 = ay.hi[j], z0 = az.lo[k], z1 = az.hi[k];
+    const Eigen::Vector3f c00 = (1 - tx) * v(x0, y0, z0) + tx * v(x1, y0, z0);
+    const Eigen::Vector3f c10 = (1 - tx) * v(x0, y1, z0) + tx * v(x1, y1, z0);
+    const Eigen::Vector3f c01 = (1 - tx) * v(x0, y0, z1) + tx * v(x1, y0, z1);
+    const Eigen::Vector3f c11 = (1 - tx) * v(x0, y1, z1) + tx * v(x1, y1, z1);
+    return (1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11);
+  }
+};
+
 // fine = w * fine + (1 - w) * trilinear(coarse); afterwards fine is complete.
-void pull(const Level& coarse, Level& fine, bool write_weight) {
-  const AxisWeights ax = axis_weights(fine.dims[0], coarse.dims[0], coarse.factor[0]);
-  const AxisWeights ay = axis_weights(fine.dims[1], coarse.dims[1], coarse.factor[1]);
-  const AxisWeights az = axis_weights(fine.dims[2], coarse.dims[2], coarse.factor[2]);
+void pull(const Level& coarse, Level& fine) {
+  const Upsampler up(coarse, fine);
   for (int k = 0; k < fine.dims[2]; ++k) {
     for (int j = 0; j < fine.dims[1]; ++j) {
       std::size_t f = fine.index(0, j, k);
       for (int i = 0; i < fine.dims[0]; ++i, ++f) {
         const float w = fine.weight[f];
         if (w >= 1.f) continue;
-        const auto at = [&](int a, int b, int c) -> const Eigen::Vector3f& {
-          return coarse.values[coarse.index(a, b, c)];
-        };
-        const float tx = ax.t[i], ty = ay.t[j], tz = az.t[k];
-        const int x0 = ax.lo[i], x1 = ax.hi[i], y0 = ay.lo[j], y1 = ay.hi[j], z0 = az.lo[k], z1 = az.hi[k];
-        const Eigen::Vector3f c00 = (1 - tx) * at(x0, y0, z0) + tx * at(x1, y0, z0);
-        const Eigen::Vector3f c10 = (1 - tx) * at(x0, y1, z0) + tx * at(x1, y1, z0);
-        const Eigen::Vector3f c01 = (1 - tx) * at(x0, y0, z1) + tx * at(x1, y0, z1);
-        const Eigen::Vector3f c11 = (1 - tx) * at(x0, y1, z1) + tx * at(x1, y1, z1);
-        const Eigen::Vector3f up =
-            (1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11);
-        fine.values[f] = w * fine.values[f] + (1.f - w) * up;
-        if (write_weight) fine.weight[f] = 1.f;
+        fine.values[f] = w * fine.values[f] + (1.f - w) * up.at(i, j, k);
+        fine.weight[f] = 1.f;
       }
     }
+  }
+}
+
+// Finest level: weights are 0/1 and only the listed voxels are needed.
+void pull_targets(const Level& coarse, Level& fine, const std::vector<std::uint32_t>& targets) {
+  const Upsampler up(coarse, fine);
+  const std::size_t nx = fine.dims[0], nxy = nx * fine.dims[1];
+  for (const std::uint32_t f : targets) {
+    if (fine.weight[f] >= 1.f) continue;
+    fine.values[f] = up.at(static_cast<int>(f % nx), static_cast<int>((f % nxy) / nx),
+                           static_cast<int>(f / nxy));
   }
 }
 
 }  // namespace
 
 void fill_push_pull(const Grid3& grid, const std::vector<std::uint8_t>& known,
-                    std::vector<Eigen::Vector3f>& values) {
+                    const std::vector<std::uint32_t>& targets, std::vector<Eigen::Vector3f>& values) {
   Level base;
   base.dims = grid.dims;
   const Eigen::Vector3d sp = grid.spacing_mm();
@@ -128,7 +150,7 @@ void fill_push_pull(const Grid3& grid, const std::vector<std::uint8_t>& known,
     any_known = any_known || known[v];
   }
   if (!any_known) {
-    std::fill(base.values.begin(), base.values.end(), Eigen::Vector3f::Zero());
+    for (const std::uint32_t v : targets) base.values[v] = Eigen::Vector3f::Zero();
     values = std::move(base.values);
     return;
   }
@@ -136,9 +158,8 @@ void fill_push_pull(const Grid3& grid, const std::vector<std::uint8_t>& known,
   pyramid.push_back(std::move(base));
   while (!is_top(pyramid.back())) pyramid.push_back(reduce(pyramid.back()));
   // The 1x1x1 top holds the mean of all known values and has weight 1.
-  for (std::size_t l = pyramid.size() - 1; l > 0; --l) {
-    pull(pyramid[l], pyramid[l - 1], /*write_weight=*/l - 1 > 0);
-  }
+  for (std::size_t l = pyramid.size() - 1; l > 1; --l) pull(pyramid[l], pyramid[l - 1]);
+  if (pyramid.size() > 1) pull_targets(pyramid[1], pyramid[0], targets);
   values = std::move(pyramid.front().values);
 }
 
@@ -148,22 +169,34 @@ void relax_laplace(const Grid3& grid, const std::vector<std::uint32_t>& free_vox
   const std::array<float, 3> w{static_cast<float>(1.0 / (sp.x() * sp.x())),
                                static_cast<float>(1.0 / (sp.y() * sp.y())),
                                static_cast<float>(1.0 / (sp.z() * sp.z()))};
-  const std::array<std::size_t, 3> stride{1, static_cast<std::size_t>(grid.dims[0]),
-                                          static_cast<std::size_t>(grid.dims[0]) * grid.dims[1]};
+  const std::size_t nx = grid.dims[0], nxy = nx * grid.dims[1];
+  const std::array<std::size_t, 3> stride{1, nx, nxy};
+  // Bit 2a: neighbour at -1 along axis a exists; bit 2a+1: at +1. Decoded once,
+  // so the sweeps do no divisions.
+  std::vector<std::uint8_t> inside(free_voxels.size());
+  for (std::size_t n = 0; n < free_voxels.size(); ++n) {
+    const std::size_t v = free_voxels[n];
+    const std::array<int, 3> ijk{static_cast<int>(v % nx), static_cast<int>((v % nxy) / nx),
+                                 static_cast<int>(v / nxy)};
+    std::uint8_t bits = 0;
+    for (int a = 0; a < 3; ++a) {
+      if (ijk[a] > 0) bits |= std::uint8_t(1u << (2 * a));
+      if (ijk[a] + 1 < grid.dims[a]) bits |= std::uint8_t(1u << (2 * a + 1));
+    }
+    inside[n] = bits;
+  }
   for (int s = 0; s < sweeps; ++s) {
-    for (const std::uint32_t v : free_voxels) {
-      std::size_t rest = v;
-      const std::array<int, 3> ijk{static_cast<int>(rest % grid.dims[0]),
-                                   static_cast<int>((rest / grid.dims[0]) % grid.dims[1]),
-                                   static_cast<int>(rest / stride[2])};
+    for (std::size_t n = 0; n < free_voxels.size(); ++n) {
+      const std::size_t v = free_voxels[n];
+      const std::uint8_t bits = inside[n];
       Eigen::Vector3f sum = Eigen::Vector3f::Zero();
       float wsum = 0.f;
       for (int a = 0; a < 3; ++a) {
-        if (ijk[a] > 0) {
+        if (bits & (1u << (2 * a))) {
           sum += w[a] * values[v - stride[a]];
           wsum += w[a];
         }
-        if (ijk[a] + 1 < grid.dims[a]) {
+        if (bits & (1u << (2 * a + 1))) {
           sum += w[a] * values[v + stride[a]];
           wsum += w[a];
         }

@@ -15,8 +15,10 @@ namespace brainshift {
 // spacing is <= 1.5x the finest one, so levels stay roughly isotropic in mm),
 // then pulled up with trilinear upsampling into the voxels with known == 0.
 // Known voxels are left untouched. With no known voxel at all, values become 0.
+// Only the voxels listed in `targets` are written at the finest level (the
+// others keep their values): callers list the voxels they will use.
 void fill_push_pull(const Grid3& grid, const std::vector<std::uint8_t>& known,
-                    std::vector<Eigen::Vector3f>& values);
+                    const std::vector<std::uint32_t>& targets, std::vector<Eigen::Vector3f>& values);
 
 // Gauss-Seidel sweeps of the (spacing-weighted, 6-neighbour) Laplace equation on
 // the voxels listed in `free_voxels`; every other voxel acts as a fixed value.

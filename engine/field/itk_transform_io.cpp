@@ -154,11 +154,17 @@ void check_field(const VectorImage3& field, const ItkTransformWriteOptions& opti
   validate_world_from_voxel(field.grid.world_from_voxel, name);
 }
 
-// Matches ITK: the 1.8 file format, readable by older HDF5 builds.
+// Files match ITK: the 1.8 file format, readable by older HDF5 builds.
+// In-memory images keep the library's default (earliest) format: with 1.8
+// bounds, HDF5 1.10.8's H5Fget_file_image returned an image of a still-open
+// file whose superblock checksum does not verify on reopening (measured).
 H5Handle file_access(bool in_memory) {
   H5Handle fapl(H5Pcreate(H5P_FILE_ACCESS), H5Pclose);
-  H5Pset_libver_bounds(fapl.get(), H5F_LIBVER_V18, H5F_LIBVER_V18);
-  if (in_memory) H5Pset_fapl_core(fapl.get(), 1 << 22, /*backing_store=*/0);
+  if (in_memory) {
+    H5Pset_fapl_core(fapl.get(), 1 << 22, /*backing_store=*/0);
+  } else {
+    H5Pset_libver_bounds(fapl.get(), H5F_LIBVER_V18, H5F_LIBVER_V18);
+  }
   return fapl;
 }
 

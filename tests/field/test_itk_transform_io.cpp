@@ -20,11 +20,21 @@ namespace {
 
 namespace fs = std::filesystem;
 
-fs::path temp_path(const std::string& name) {
-  const fs::path dir = fs::temp_directory_path() / ("brainshift_field_test_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
-  return dir / name;
+fs::path temp_dir() {
+  return fs::temp_directory_path() / ("brainshift_field_test_" + std::to_string(::getpid()));
 }
+
+fs::path temp_path(const std::string& name) {
+  fs::create_directories(temp_dir());
+  return temp_dir() / name;
+}
+
+// Removes the test's scratch files after all tests ran.
+class ScratchCleanup : public ::testing::Environment {
+ public:
+  void TearDown() override { fs::remove_all(temp_dir()); }
+};
+const auto* const kCleanup = ::testing::AddGlobalTestEnvironment(new ScratchCleanup);
 
 VectorImage3 random_field(const Grid3& g, unsigned seed) {
   VectorImage3 f(g);
