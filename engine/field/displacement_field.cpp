@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <nlohmann/json.hpp>
 #include <string>
 
 #include "core/errors.h"
@@ -284,6 +285,13 @@ VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& de
   stats.total_seconds = total.seconds();
   if (stats_out) *stats_out = stats;
   return field;
+}
+
+void to_json(nlohmann::json& j, const FieldStats& s) {
+  j = {{"covered_voxels", s.covered_voxels},   {"cavity_voxels", s.cavity_voxels},
+       {"blended_voxels", s.blended_voxels},   {"skipped_tets", s.skipped_tets},
+       {"inverted_tets", s.inverted_tets},     {"rasterise_seconds", s.rasterise_seconds},
+       {"fill_seconds", s.fill_seconds},       {"total_seconds", s.total_seconds}};
 }
 
 }  // namespace brainshift

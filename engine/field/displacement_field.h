@@ -27,6 +27,7 @@
 //     keep the full non-rigid extension (weight 1). A cavity that reaches the
 //     grid border (field of view cut through a ventricle) is treated as outside.
 #include <cstddef>
+#include <nlohmann/json_fwd.hpp>
 
 #include "core/deformation.h"
 #include "core/image.h"
@@ -62,5 +63,8 @@ struct FieldStats {
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
                             const Grid3& intraop_grid, const FieldParameters& params,
                             FieldStats* stats = nullptr);
+
+// nlohmann ADL hook (json j = stats;), for run reports.
+void to_json(nlohmann::json& j, const FieldStats& s);
 
 }  // namespace brainshift

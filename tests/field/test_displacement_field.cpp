@@ -3,7 +3,10 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <algorithm>
 #include <cstdio>
+#include <nlohmann/json.hpp>
+#include <optional>
 
 #include "box_mesh.h"
 #include "core/errors.h"
@@ -179,6 +182,62 @@ TEST(PullbackField, CavityTakesTheSurroundingMotion) {
         ASSERT_LT((field_at(u, s.grid.index(i, j, k)) + t).norm(), 1e-3);
       }
   EXPECT_GT(checked, 50u);
+}
+
+// Preop point p inside the Kuhn box mesh -> phi(p), by locating its tet.
+std::optional<Eigen::Vector3d> forward_map(const TetMesh& mesh, const MeshDeformation& def,
+                                           const Eigen::Vector3d& p) {
+  for (const auto& tet : mesh.tets) {
+    Eigen::Matrix3d t;
+    t << mesh.nodes_mm[tet[1]] - mesh.nodes_mm[tet[0]], mesh.nodes_mm[tet[2]] - mesh.nodes_mm[tet[0]],
+        mesh.nodes_mm[tet[3]] - mesh.nodes_mm[tet[0]];
+    const Eigen::Vector3d l = t.inverse() * (p - mesh.nodes_mm[tet[0]]);
+    const std::array<double, 4> lambda{1 - l.sum(), l.x(), l.y(), l.z()};
+    if (*std::min_element(lambda.begin(), lambda.end()) < -1e-9) continue;
+    Eigen::Vector3d q = Eigen::Vector3d::Zero();
+    for (int m = 0; m < 4; ++m) q += lambda[m] * def.node_intraop_mm(mesh.nodes_mm[tet[m]], tet[m]);
+    return q;
+  }
+  return std::nullopt;
+}
+
+// For a genuinely non-linear (piecewise-linear) deformation the rasterised
+// pull-back inverts phi: phi(x + u(x)) = x on covered voxels.
+TEST(PullbackField, InvertsPiecewiseLinearForwardMap) {
+  Scene s;
+  MeshDeformation def;
+  def.intraop_from_preop = some_affine();
+  for (const auto& p : s.mesh.nodes_mm) {
+    def.nonrigid_mm.push_back(Eigen::Vector3d(1.5 * std::sin(p.y() / 9.0), -2.0 * std::cos(p.z() / 11.0),
+                                              -3.0 * std::exp(-p.squaredNorm() / 400.0)));
+  }
+  FieldStats stats;
+  const VectorImage3 u = pullback_field(s.mesh, def, s.grid, FieldParameters{}, &stats);
+  EXPECT_EQ(stats.inverted_tets, 0u);
+  std::size_t checked = 0;
+  double worst = 0;
+  for (std::size_t v = 0; v < u.vectors.size(); v += 37) {
+    const int i = static_cast<int>(v % s.grid.dims[0]);
+    const int j = static_cast<int>((v / s.grid.dims[0]) % s.grid.dims[1]);
+    const int k = static_cast<int>(v / (static_cast<std::size_t>(s.grid.dims[0]) * s.grid.dims[1]));
+    const Eigen::Vector3d x = s.grid.world_mm(i, j, k);
+    const Eigen::Vector3d p = x + field_at(u, v);
+    const auto q = forward_map(s.mesh, def, p);
+    if (!q) continue;  // pulled back outside the mesh: continuation, not inversion
+    ++checked;
+    worst = std::max(worst, (*q - x).norm());
+  }
+  EXPECT_GT(checked, 200u);
+  EXPECT_LT(worst, 1e-3);
+}
+
+TEST(PullbackField, StatsAsJson) {
+  FieldStats stats;
+  stats.covered_voxels = 12;
+  stats.total_seconds = 0.25;
+  const nlohmann::json j = stats;
+  EXPECT_EQ(j.at("covered_voxels").get<int>(), 12);
+  EXPECT_DOUBLE_EQ(j.at("total_seconds").get<double>(), 0.25);
 }
 
 TEST(PullbackField, RejectsInconsistentInput) {
