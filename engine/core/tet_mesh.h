@@ -42,4 +42,14 @@ struct TriSurface {
   std::vector<int> mesh_node;                 // empty when not tied to a mesh
 };
 
+// Sum over triangles of (centroid . normal * area) / 3: the enclosed volume
+// (divergence theorem) when the surface is closed and outward-facing; negative
+// when it faces inward (a cavity wall seen from the tissue).
+inline double enclosed_volume_mm3(const TriSurface& surface) {
+  double volume = 0;
+  for (const auto& t : surface.triangles)
+    volume += surface.vertices_mm[t[0]].dot(surface.vertices_mm[t[1]].cross(surface.vertices_mm[t[2]])) / 6.0;
+  return volume;
+}
+
 }  // namespace brainshift

@@ -53,16 +53,4 @@ std::vector<int> boundary_nodes(const TetMesh& mesh) {
   return nodes;
 }
 
-double enclosed_volume_mm3(const TriSurface& surface) {
-  double volume = 0;
-  for (const auto& t : surface.triangles) {
-    const auto& a = surface.vertices_mm[t[0]];
-    const auto& b = surface.vertices_mm[t[1]];
-    const auto& c = surface.vertices_mm[t[2]];
-    // (centroid . n * area) / 3 with n * area = (b-a)x(c-a)/2.
-    volume += ((a + b + c) / 3.0).dot((b - a).cross(c - a) / 2.0) / 3.0;
-  }
-  return volume;
-}
-
 }  // namespace brainshift

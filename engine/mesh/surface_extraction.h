@@ -22,8 +22,6 @@ std::size_t count_connected_components(const TriSurface& surface);
 // Sorted unique nodes on any boundary face.
 std::vector<int> boundary_nodes(const TetMesh& mesh);
 
-// Sum over triangles of (centroid . normal * area) / 3: equals the enclosed
-// volume (divergence theorem) when the surface is closed and outward-facing.
-double enclosed_volume_mm3(const TriSurface& surface);
+// enclosed_volume_mm3(TriSurface) lives in core/tet_mesh.h.
 
 }  // namespace brainshift

@@ -464,13 +464,6 @@ double surface_area_mm2(const TriSurface& s) {
   return area;
 }
 
-double enclosed_volume_mm3(const TriSurface& s) {
-  double volume = 0;
-  for (const auto& t : s.triangles)
-    volume += s.vertices_mm[t[0]].dot(s.vertices_mm[t[1]].cross(s.vertices_mm[t[2]])) / 6.0;
-  return volume;
-}
-
 bool is_closed_oriented_manifold(const TriSurface& s) {
   // Each directed edge must occur once and its reverse once.
   std::vector<std::pair<int, int>> directed;

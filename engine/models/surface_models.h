@@ -69,8 +69,6 @@ std::map<std::string, TriSurface> structure_models(
 
 // Geometry checks used by tests and by callers that validate models.
 double surface_area_mm2(const TriSurface& surface);
-// Divergence theorem; positive for a closed surface with outward normals.
-double enclosed_volume_mm3(const TriSurface& surface);
 // True when every undirected edge is used by exactly two triangles, and in
 // opposite directions (closed and consistently oriented).
 bool is_closed_oriented_manifold(const TriSurface& surface);

@@ -5,6 +5,7 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 
@@ -105,15 +106,19 @@ TEST_F(PipelineTest, RecoversARigidTranslationEverywhereInTheBrain) {
   const ScanResult r = session_->register_scan(scan, nullptr);
   EXPECT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
   // Pull-back of a translation by s is -s at every voxel.
-  double worst = 0;
-  std::size_t n = 0;
-  for (std::size_t v = 0; v < scan.labels.voxels.size(); ++v) {
-    if (scan.labels.voxels[v] == 0) continue;
-    worst = std::max(worst, (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm());
-    ++n;
-  }
-  EXPECT_GT(n, 10000u);
-  EXPECT_LT(worst, 1.0) << "max error of the recovered translation inside the brain";
+  // The intraop labels are nearest-neighbour samples on 1.4 x 1.4 x 2.8 mm
+  // voxels, so their boundary is only known to about half a voxel: the bulk
+  // must be exact, the worst boundary voxel within about a slice half-width.
+  std::vector<double> errors;
+  for (std::size_t v = 0; v < scan.labels.voxels.size(); ++v)
+    if (scan.labels.voxels[v] != 0) errors.push_back((r.pullback_field_mm.vectors[v].cast<double>() + shift).norm());
+  ASSERT_GT(errors.size(), 10000u);
+  std::sort(errors.begin(), errors.end());
+  double mean = 0;
+  for (double e : errors) mean += e / errors.size();
+  EXPECT_LT(mean, 0.3) << "mean error of the recovered translation inside the brain";
+  EXPECT_LT(errors[errors.size() * 99 / 100], 0.8) << "99th percentile";
+  EXPECT_LT(errors.back(), 1.5) << "worst voxel";
   EXPECT_GT(r.metrics["labels"]["brain"]["dice"].get<double>(), 0.95);
   for (const char* key : {"read", "affine", "surface", "solve", "field", "warp", "models", "total"})
     EXPECT_TRUE(r.timings["intraop"].contains(key)) << key;
