@@ -4,7 +4,6 @@
 #include <cmath>
 #include <cstdio>
 #include <ctime>
-#include <regex>
 #include <stdexcept>
 #include <vector>
 
@@ -58,9 +57,20 @@ std::string format_utc(std::chrono::system_clock::time_point when) {
 
 std::string utc_now() { return format_utc(std::chrono::system_clock::now()); }
 
+// YYYY-MM-DDTHH:MM:SS[.f{1,9}]Z, checked by shape (digits and separators).
 bool is_iso8601_utc(std::string_view text) {
-  static const std::regex pattern(R"(\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d{1,9})?Z)");
-  return std::regex_match(text.begin(), text.end(), pattern);
+  constexpr std::string_view shape = "dddd-dd-ddTdd:dd:dd";
+  if (text.size() < shape.size() + 1 || text.back() != 'Z') return false;
+  for (std::size_t i = 0; i < shape.size(); ++i) {
+    const bool ok = shape[i] == 'd' ? (text[i] >= '0' && text[i] <= '9') : text[i] == shape[i];
+    if (!ok) return false;
+  }
+  const std::string_view fraction = text.substr(shape.size(), text.size() - shape.size() - 1);
+  if (fraction.empty()) return true;
+  if (fraction.size() < 2 || fraction.size() > 10 || fraction[0] != '.') return false;
+  for (char c : fraction.substr(1))
+    if (c < '0' || c > '9') return false;
+  return true;
 }
 
 json to_json_value(const StageTiming& t) {

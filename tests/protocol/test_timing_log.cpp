@@ -56,6 +56,12 @@ TEST(TimingLog, UtcFormatting) {
   EXPECT_EQ(bp::format_utc(system_clock::time_point{}), "1970-01-01T00:00:00.000Z");
   EXPECT_TRUE(bp::is_iso8601_utc(bp::utc_now()));
   EXPECT_FALSE(bp::is_iso8601_utc("2024-05-01T12:34:56+02:00"));
+  EXPECT_TRUE(bp::is_iso8601_utc("2024-05-01T12:34:56Z"));
+  EXPECT_TRUE(bp::is_iso8601_utc("2024-05-01T12:34:56.123456789Z"));
+  EXPECT_FALSE(bp::is_iso8601_utc("2024-05-01T12:34:56.Z"));
+  EXPECT_FALSE(bp::is_iso8601_utc("2024-05-01T12:34:56.1234567890Z"));
+  EXPECT_FALSE(bp::is_iso8601_utc("2024-5-01T12:34:56Z"));
+  EXPECT_FALSE(bp::is_iso8601_utc(""));
 }
 
 TEST(TimingLog, KnownStages) {
