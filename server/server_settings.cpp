@@ -146,7 +146,9 @@ void validate_endpoints(const ServerSettings& s) {
                        "\" is not a loopback address: plain TCP is refused there (set "
                        "allow_plain_tcp_non_loopback = true only on an isolated network)");
   }
-  if (s.endpoint == s.events) throw InputError("server.endpoint and server.events must differ");
+  // "tcp://127.0.0.1:*" twice is fine: the system picks two free ports.
+  const bool wildcard = s.endpoint.find('*') != std::string::npos;
+  if (s.endpoint == s.events && !wildcard) throw InputError("server.endpoint and server.events must differ");
 }
 
 }  // namespace brainshift::server
