@@ -2,6 +2,7 @@
 
 #include <unistd.h>
 
+#include <cerrno>
 #include <cmath>
 #include <csignal>
 #include <cstdio>
@@ -336,6 +337,9 @@ int cmd_watch(const NetworkOptions& o, bool json, long count, double duration_s)
     std::optional<Message> e;
     try {
       e = events.next(200ms);
+    } catch (const zmq::error_t& err) {
+      if (err.num() == EINTR) continue;  // Ctrl-C: the loop condition ends the watch
+      throw;
     } catch (const ProtocolError& err) {
       std::cerr << "brainshift: unreadable event: " << err.what() << '\n';
       continue;

@@ -139,7 +139,9 @@ class DaemonE2E : public ::testing::Test {
   }
   static void TearDownTestSuite() {
     std::error_code ec;
-    if (!::testing::Test::HasFailure()) fs::remove_all(g_case->dir, ec);
+    // Kept for a post-mortem when anything failed.
+    if (::testing::UnitTest::GetInstance()->failed_test_count() == 0) fs::remove_all(g_case->dir, ec);
+    else std::printf("e2e files kept in %s\n", g_case->dir.c_str());
     delete g_case;
   }
   static fs::path path(const std::string& name) { return g_case->dir / name; }
