@@ -1,5 +1,6 @@
 #include "server/engine_adapter.h"
 
+#include <chrono>
 #include <fstream>
 #include <sstream>
 
@@ -31,6 +32,8 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
   intraop["read"] = intraop.value("read", 0.0) + read_seconds;
   intraop["total"] = intraop.value("total", 0.0) + read_seconds;
   const fs::path out = scratch_dir / "out";
+  const auto t_outputs = std::chrono::steady_clock::now();
+  progress("outputs", 0.0, 0.0);
   {
     // write_scan_outputs writes field.h5 through HDF5, which is not thread-safe
     // in this build: the store's lock keeps the socket thread out meanwhile.
@@ -39,6 +42,7 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
   }
   EngineScanOutput output;
   output.files = read_tree(out);
+  progress("outputs", 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
   output.kind = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
   output.fallback_reason = result.fallback_reason;
   output.intraop_seconds = intraop.value("total", 0.0);

@@ -511,13 +511,13 @@ void ServerCore::run_scan(const std::string& scan_id) {
     preop_id = ready_preop_id_;
     state_ = ServerState::kProcessing;
     current_scan_ = scan_id;
-    current_stage_ = "read";
+    current_stage_ = "decode";
     if (auto it = decoded_.find(scan_id); it != decoded_.end()) {
       decoded = it->second;
       decoded_.erase(it);
     }
   }
-  std::string stage = "read";
+  std::string stage = "decode";
   auto progress = [&](const std::string& s, double fraction, double seconds) {
     stage = s;
     {
@@ -532,12 +532,15 @@ void ServerCore::run_scan(const std::string& scan_id) {
     if (record->preop_id != preop_id)
       throw InputError("pushed against preop " + record->preop_id + " but " + preop_id + " is loaded");
     if (!decoded) decoded = std::make_shared<DecodedScan>(decode_scan(store_.load_scan_input(scan_id)));
-    progress("read", 1.0, decoded->read_seconds);
+    // "decode" (the pushed bytes to images) is the daemon's; the engine logs its own "read".
+    progress("decode", 1.0, decoded->read_seconds);
     fs::remove_all(scratch);
     fs::create_directories(scratch);
     EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, scratch, progress);
+    const auto t_store = Clock::now();
     stage = "store";
     store_.save_result(scan_id, out.files, out.kind, out.fallback_reason);
+    progress("store", 1.0, seconds_since(t_store));
     fs::remove_all(scratch);
     const double seconds = seconds_since(t0);
     spdlog::info("scan {} done ({}) in {:.3f} s", scan_id, out.kind, seconds);

@@ -249,7 +249,7 @@ TEST_F(DaemonE2E, SingleProcessFullCycleConcurrencyAndRestart) {
       if (t.scan_id == scan_a) stages_of_a.insert(t.stage);
     }
     EXPECT_EQ(scans_with_stages.size(), 3u);
-    for (const char* s : {"read", "affine", "solve"}) EXPECT_TRUE(stages_of_a.count(s)) << s;
+    for (const char* s : {"decode", "read", "affine", "solve", "outputs", "store"}) EXPECT_TRUE(stages_of_a.count(s)) << s;
     EXPECT_TRUE(fs::exists(store / "timing.jsonl"));
   }
   // Restart on the same store: the preop comes from the store, not the client.
