@@ -33,6 +33,10 @@ std::vector<MatchedSurface> matched_surfaces(const TetMesh& mesh, const LabelTab
     throw ComputeError("the brain mesh has no outer boundary surface");
   for (const auto cavity : table.cavity_labels()) {
     TriSurface wall = extract_boundary_surface(mesh, cavity);
+    // Boundary faces point out of the tissue, i.e. into the cavity; the
+    // surface matcher expects normals pointing out of the structure it is
+    // matched to (the cavity), so the wall is turned around.
+    for (auto& t : wall.triangles) std::swap(t[1], t[2]);
     if (!wall.triangles.empty()) out.push_back({table.find(cavity)->name, cavity, std::move(wall)});
   }
   return out;

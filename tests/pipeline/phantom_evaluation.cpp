@@ -44,11 +44,11 @@ CaseResult evaluate_case(EngineSession& session, const PhantomSpec& spec) {
   CaseResult out;
   out.name = spec.name;
   out.uncorrected_mean_mm = mean(e.uncorrected);
-  out.uncorrected_p95_mm = percentile(e.uncorrected, 0.95);
+  out.uncorrected_p95_mm = percentile(e.uncorrected, 95.0);
   out.affine_mean_mm = mean(e.affine);
-  out.affine_p95_mm = percentile(e.affine, 0.95);
+  out.affine_p95_mm = percentile(e.affine, 95.0);
   out.nonrigid_mean_mm = mean(e.nonrigid);
-  out.nonrigid_p95_mm = percentile(e.nonrigid, 0.95);
+  out.nonrigid_p95_mm = percentile(e.nonrigid, 95.0);
   out.nonrigid_max_mm = *std::max_element(e.nonrigid.begin(), e.nonrigid.end());
   out.max_true_displacement_mm = *std::max_element(e.uncorrected.begin(), e.uncorrected.end());
   out.intraop_total_seconds = r.timings["intraop"]["total"].get<double>();

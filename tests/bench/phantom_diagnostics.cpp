@@ -1,0 +1,76 @@
+// Where does the registration error of a phantom case come from? Compares the
+// estimated pull-back field with the phantom's true one, split by region of
+// the intraop brain (near the outer surface, near the ventricles, deep), and
+// prints one JSON object. A development tool: run it after changing a stage.
+//   brainshift_phantom_diagnostics [--case NAME] [--config FILE]
+#include <mpi.h>
+
+#include <CLI/CLI.hpp>
+#include <cstdio>
+
+#include "atlas/default_atlas.h"
+#include "config_file.h"
+#include "fem/petsc_session.h"
+#include "image/distance_map.h"
+#include "image/morphology.h"
+#include "phantom/brain_shift_phantom.h"
+#include "pipeline/engine_session.h"
+
+using namespace brainshift;
+
+namespace {
+
+struct Bin {
+  double sum = 0, max = 0;
+  std::size_t n = 0;
+  void add(double e) { sum += e; max = std::max(max, e); ++n; }
+  nlohmann::json json() const { return {{"mean_mm", n ? sum / n : 0.0}, {"max_mm", max}, {"voxels", n}}; }
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string only, config_path, atlas_cache = "brainshift-atlas";
+  CLI::App app("phantom error diagnostics");
+  app.add_option("--case", only);
+  app.add_option("--config", config_path);
+  app.add_option("--atlas-cache", atlas_cache);
+  CLI11_PARSE(app, argc, argv);
+  PetscSession petsc;
+  const PipelineParameters params = config_path.empty()
+      ? config::pipeline_parameters_from_text(config::default_config_text(), "built-in")
+      : config::pipeline_parameters_from_file(config_path);
+  EngineSession session(MPI_COMM_WORLD, params);
+  DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache);
+  session.load_preop(PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, nullptr);
+  nlohmann::json out = nlohmann::json::array();
+  for (const auto& spec : standard_phantom_suite()) {
+    if (!only.empty() && spec.name != only) continue;
+    const PhantomCase c = make_phantom(session.preop().t1, session.preop().labels, spec);
+    const ScanResult r = session.register_scan(IntraopInput{c.intraop_labels, c.intraop_t1}, nullptr);
+    const Mask brain = mask_of_labels(c.intraop_labels, {1, 2});
+    const Mask ventricles = mask_of_labels(c.intraop_labels, {2});
+    const ImageF depth = signed_distance_mm(brain);
+    const ImageF to_ventricle = signed_distance_mm(ventricles);
+    Bin surface, near_ventricle, deep, all;
+    Eigen::Vector3d mean_error = Eigen::Vector3d::Zero();
+    for (std::size_t v = 0; v < brain.voxels.size(); ++v) {
+      if (!brain.voxels[v]) continue;
+      const Eigen::Vector3d d = (r.pullback_field_mm.vectors[v] - c.true_pullback_mm.vectors[v]).cast<double>();
+      const double e = d.norm();
+      mean_error += d;
+      all.add(e);
+      if (depth.voxels[v] > -5) surface.add(e);
+      else if (to_ventricle.voxels[v] < 5) near_ventricle.add(e);
+      else deep.add(e);
+    }
+    mean_error /= std::max<std::size_t>(all.n, 1);
+    out.push_back({{"case", spec.name}, {"kind", r.kind == ResultKind::nonrigid ? "nonrigid" : "fallback"},
+                   {"within_5mm_of_surface", surface.json()}, {"within_5mm_of_ventricles", near_ventricle.json()},
+                   {"deep", deep.json()}, {"all", all.json()},
+                   {"mean_error_vector_mm", {mean_error.x(), mean_error.y(), mean_error.z()}},
+                   {"metrics", r.metrics}});
+  }
+  std::printf("%s\n", out.dump(1).c_str());
+  return 0;
+}
