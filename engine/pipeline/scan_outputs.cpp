@@ -25,17 +25,21 @@ fs::path sibling_temp_dir(const fs::path& out_dir) {
   return parent / ("." + out_dir.filename().string() + ".partial-" + std::to_string(rd()));
 }
 
-void write_all(const ScanResult& r, const ImageF* intraop_t1, const fs::path& dir) {
+void write_all(const ScanResult& r, const ImageF* intraop_t1, const fs::path& dir,
+               const ScanOutputOptions& options) {
   fs::create_directories(dir / "models");
-  write_displacement_field(dir / "field.nii.gz", r.pullback_field_mm);
-  write_itk_displacement_transform(dir / "field.h5", r.pullback_field_mm);
-  write_scalar_image(dir / "warped_image.nii.gz", r.warped_t1);
-  write_label_image(dir / "warped_labels.nii.gz", r.warped_labels);
+  const std::string nii = options.gzip_images ? ".nii.gz" : ".nii";
+  write_displacement_field(dir / ("field" + nii), r.pullback_field_mm);
+  ItkTransformWriteOptions itk;
+  itk.single_precision = options.itk_single_precision;
+  write_itk_displacement_transform(dir / "field.h5", r.pullback_field_mm, itk);
+  write_scalar_image(dir / ("warped_image" + nii), r.warped_t1);
+  write_label_image(dir / ("warped_labels" + nii), r.warped_labels);
   for (const auto& [name, surface] : r.models) write_vtp(dir / "models" / (name + ".vtp"), surface);
   write_json(dir / "metrics.json", r.metrics);
   write_json(dir / "timings.json", r.timings);
   // The picture needs an intraop image to draw on; without one there is none.
-  if (intraop_t1) {
+  if (intraop_t1 && options.write_report) {
     ReportInputs in;
     in.intraop = intraop_t1;
     in.warped_preop_affine = &r.warped_t1_affine_only;
@@ -47,11 +51,12 @@ void write_all(const ScanResult& r, const ImageF* intraop_t1, const fs::path& di
 
 }  // namespace
 
-void write_scan_outputs(const ScanResult& result, const ImageF* intraop_t1, const fs::path& out_dir) {
+void write_scan_outputs(const ScanResult& result, const ImageF* intraop_t1, const fs::path& out_dir,
+                        const ScanOutputOptions& options) {
   const fs::path temp = sibling_temp_dir(out_dir);
   try {
     if (out_dir.has_parent_path()) fs::create_directories(out_dir.parent_path());
-    write_all(result, intraop_t1, temp);
+    write_all(result, intraop_t1, temp, options);
     // A previous result in out_dir is replaced only once the new one is complete.
     if (fs::exists(out_dir)) fs::remove_all(out_dir);
     fs::rename(temp, out_dir);
