@@ -49,9 +49,9 @@ struct IntraopDistanceMaps {
   ImageF ventricle_sdf_mm;  // signed distance to the ventricles; voxels empty when none
   MaskMoments outer_moments;
 };
-// The outline here is all non-zero labels WITHOUT hole filling (speed: this runs
-// on every scan; stray holes only affect points deep inside). Throws InputError
-// when brain_label is absent.
+// The outline here is all non-zero labels with enclosed holes filled (an
+// internal resection cavity is not outer surface). Throws InputError when
+// brain_label is absent.
 IntraopDistanceMaps prepare_intraop_maps(const LabelImage& intraop_labels,
                                          std::uint16_t brain_label, std::uint16_t ventricle_label);
 
