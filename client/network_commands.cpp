@@ -13,6 +13,7 @@
 #include <thread>
 
 #include "connection.h"
+#include "pulled_files.h"
 #include "protocol/events.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
@@ -267,48 +268,52 @@ std::optional<ResultPart> part_from_cli(const std::string& name) {
   if (name == "models") return ResultPart::kModels;
   if (name == "metrics") return ResultPart::kMetrics;
   if (name == "timings") return ResultPart::kTimings;
+  if (name == "report") return ResultPart::kReport;
   return std::nullopt;
 }
 
-// The file a frame is written to, named as `register --out` names it.
-std::string file_for_frame(const std::string& frame) {
-  for (Structure s : all_structures())
-    if (frame == model_frame_name(s)) return server::model_file_name(s);
-  for (ResultPart p : {ResultPart::kDisplacement, ResultPart::kDisplacementItk, ResultPart::kWarpedImage,
-                       ResultPart::kWarpedLabels, ResultPart::kMetrics, ResultPart::kTimings})
-    if (frame == frame_name(p)) return server::result_file_name(p);
-  return "";
+// Writes the frames as register's files; returns the parts still pending.
+std::vector<ResultPart> write_pulled(const ScanResultReply& r, const fs::path& out) {
+  for (const Frame& f : r.frames) {
+    const PulledFile file = pulled_file_for(f);
+    if (file.name.empty()) {
+      std::cerr << "note: ignoring unknown frame " << f.name << '\n';
+      continue;
+    }
+    write_file(out / file.name, file.bytes);
+    std::cout << (out / file.name).string() << '\n';
+  }
+  std::vector<ResultPart> pending;
+  for (const auto& u : r.unavailable) {
+    const auto part = result_part_from_string(u.part);
+    if (u.pending && part) pending.push_back(*part);
+    else std::cerr << "note: " << u.part << " not available: " << u.reason << '\n';
+  }
+  return pending;
 }
 
 int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
   ScanResultRequest req;
   req.scan_id = a.scan;
-  bool want_report = false;
   for (const auto& name : a.parts) {
-    if (name == "report") {
-      want_report = true;
-      continue;
-    }
     const auto p = part_from_cli(name);
     if (!p) throw CommandError(kExitUsage, "unknown part \"" + name + "\"");
     if (std::find(req.parts.begin(), req.parts.end(), *p) == req.parts.end()) req.parts.push_back(*p);
   }
-  if (want_report)
-    std::cerr << "note: report.png is kept in the daemon's store but protocol v" << 1
-              << " has no result part for it; export it with `brainshiftd --export-result`\n";
   if (req.parts.empty()) return kExitOk;
-  Connection c(o.server, as_ms(std::max(o.timeout_s, 30.0)));  // a field is tens of MB
-  const ScanResultReply r = parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req)));
-  for (const Frame& f : r.frames) {
-    const std::string file = file_for_frame(f.name);
-    if (file.empty()) {
-      std::cerr << "note: ignoring unknown frame " << f.name << '\n';
-      continue;
-    }
-    write_file(fs::path(a.out) / file, f.bytes);
-    std::cout << (fs::path(a.out) / file).string() << '\n';
+  const double timeout_s = std::max(o.timeout_s, 30.0);  // a field is tens of MB
+  Connection c(o.server, as_ms(timeout_s));
+  req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
+  // report.png follows event.scan.done by a moment: ask again for what is
+  // pending (only that) until it comes or the timeout ends.
+  const auto deadline = std::chrono::steady_clock::now() + as_ms(timeout_s);
+  while (!req.parts.empty()) {
+    if (std::chrono::steady_clock::now() > deadline || g_interrupted)
+      throw CommandError(kExitUnreachable, a.scan + ": " + std::string(to_string(req.parts.front())) +
+                                               " still being produced after " + std::to_string(int(timeout_s)) + " s");
+    std::this_thread::sleep_for(200ms);
+    req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
   }
-  for (const auto& u : r.unavailable) std::cerr << "note: " << u.part << " not available: " << u.reason << '\n';
   return kExitOk;
 }
 
@@ -393,7 +398,7 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   push->callback([&o, exit_code, pa] { run(exit_code, [&] { return cmd_push(o, *pa); }); });
 
   auto pl = std::make_shared<PullArgs>();
-  pl->parts = {"field", "field_h5", "warped_image", "warped_labels", "models", "metrics", "timings"};
+  pl->parts = {"field", "field_h5", "warped_image", "warped_labels", "models", "metrics", "timings", "report"};
   auto* pull = app.add_subcommand("pull", "fetch a scan's result into a folder (same names as register --out)");
   pull->add_option("--scan", pl->scan, "scan id")->required();
   pull->add_option("--out", pl->out, "output folder")->required();

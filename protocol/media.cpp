@@ -68,6 +68,8 @@ void check_content(const Frame& f) {
     if (!looks_like_vtp(b)) refuse(f, "no <VTKFile type=\"PolyData\"> element");
   } else if (f.media_type == kJson) {
     if (!nlohmann::json::accept(b)) refuse(f, "not valid JSON");
+  } else if (f.media_type == kPng) {
+    if (b.substr(0, 8) != std::string_view("\x89PNG\r\n\x1a\n", 8)) refuse(f, "no PNG signature");
   } else {
     refuse(f, "unknown media type");
   }

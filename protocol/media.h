@@ -14,6 +14,7 @@ inline constexpr std::string_view kNiftiGz = "application/x-nifti-1+gzip";   // 
 inline constexpr std::string_view kItkH5 = "application/x-itk-transform+hdf5";  // .h5
 inline constexpr std::string_view kVtp = "application/x-vtk-polydata+xml";   // .vtp
 inline constexpr std::string_view kJson = "application/json";
+inline constexpr std::string_view kPng = "image/png";                         // report.png
 
 bool is_nifti(std::string_view media_type);
 
@@ -23,7 +24,8 @@ Frame json_frame(std::string name, std::string text);
 
 // Throws ProtocolError(kInvalidRequest) when the bytes cannot be what
 // frame.media_type says: gzip magic for +gzip, NIfTI-1 header size and magic
-// for plain NIfTI, the HDF5 signature, a VTKFile PolyData element, valid JSON.
+// for plain NIfTI, the HDF5 signature, a VTKFile PolyData element, valid JSON,
+// the PNG signature.
 // Unknown media types are refused: every frame of this protocol has a known one.
 void check_content(const Frame& frame);
 

@@ -31,13 +31,14 @@ constexpr NameTable<Structure, 4> kStructures{
      {Structure::kVentricles, "ventricles"},
      {Structure::kCorticospinalTract, "corticospinal_tract"},
      {Structure::kTumor, "tumor"}}};
-constexpr NameTable<ResultPart, 7> kParts{{{ResultPart::kDisplacement, "displacement"},
+constexpr NameTable<ResultPart, 8> kParts{{{ResultPart::kDisplacement, "displacement"},
                                            {ResultPart::kDisplacementItk, "displacement_itk"},
                                            {ResultPart::kWarpedImage, "warped_image"},
                                            {ResultPart::kWarpedLabels, "warped_labels"},
                                            {ResultPart::kModels, "models"},
                                            {ResultPart::kMetrics, "metrics"},
-                                           {ResultPart::kTimings, "timings"}}};
+                                           {ResultPart::kTimings, "timings"},
+                                           {ResultPart::kReport, "report"}}};
 
 template <class E, std::size_t N>
 std::string_view name_of(const NameTable<E, N>& table, E value) {
@@ -363,7 +364,11 @@ Message make_scan_result_reply(const std::string& request_id, const ScanResultRe
   Message m = with_frames(make_message(MessageType::kScanResultReply, request_id), r.frames);
   m.header["scan_id"] = r.scan_id;
   json unavailable = json::array();
-  for (const auto& u : r.unavailable) unavailable.push_back({{"part", u.part}, {"reason", u.reason}});
+  for (const auto& u : r.unavailable) {
+    json entry{{"part", u.part}, {"reason", u.reason}};
+    if (u.pending) entry["pending"] = true;  // optional field: absent means false
+    unavailable.push_back(std::move(entry));
+  }
   m.header["unavailable"] = unavailable;
   return m;
 }
@@ -375,6 +380,7 @@ bool result_media_ok(const std::string& name, std::string_view type) {
     return media::is_nifti(type);
   if (name == "displacement_itk") return type == media::kItkH5;
   if (name == "metrics" || name == "timings") return type == media::kJson;
+  if (name == "report") return type == media::kPng;
   if (name.rfind("model.", 0) == 0 && structure_from_string(name.substr(6)))
     return type == media::kVtp;
   return false;
@@ -397,7 +403,7 @@ ScanResultReply parse_scan_result_reply(const Message& m) {
   if (const json* list = f.opt_array("unavailable"))
     for (const auto& u : *list) {
       const FieldReader uf(u, "scan.result.reply.unavailable");
-      r.unavailable.push_back({uf.string("part"), uf.text("reason")});
+      r.unavailable.push_back({uf.string("part"), uf.text("reason"), uf.boolean("pending", false)});
     }
   return r;
 }

@@ -29,6 +29,7 @@ enum class ResultPart {
   kModels,           // one .vtp per structure ("model.<structure>" frames)
   kMetrics,          // JSON
   kTimings,          // JSON, see timing_log.h ScanTimings
+  kReport,           // report.png (image/png), rendered after the scan is done
 };
 
 std::string_view to_string(ServerState s);
@@ -138,6 +139,9 @@ ScanResultRequest parse_scan_result_request(const Message& m);
 struct UnavailablePart {
   std::string part{};    // a frame name, e.g. "warped_image" or "model.tumor"
   std::string reason{};  // e.g. "no intraop image was pushed"
+  // True when the part is still being produced (report.png is rendered after
+  // event.scan.done): ask again shortly. False: it will never exist.
+  bool pending = false;
   bool operator==(const UnavailablePart&) const = default;
 };
 struct ScanResultReply {

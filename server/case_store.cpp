@@ -76,6 +76,30 @@ std::string hex64(std::uint64_t v) {
   return buf;
 }
 
+bool is_temporary_name(const std::string& n) {
+  return n.rfind(".tmp-", 0) == 0 || (n.size() > 4 && n.compare(n.size() - 4, 4, ".tmp") == 0);
+}
+
+void write_plain_file_atomically(const fs::path& path, const std::string& bytes) {
+  const fs::path tmp = path.string() + ".tmp";
+  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) throw std::runtime_error("store: cannot create " + tmp.string());
+  std::size_t done = 0;
+  while (done < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
+    if (n <= 0) {
+      ::close(fd);
+      throw std::runtime_error("store: cannot write " + tmp.string());
+    }
+    done += static_cast<std::size_t>(n);
+  }
+  const bool synced = ::fsync(fd) == 0;
+  ::close(fd);
+  if (!synced) throw std::runtime_error("store: cannot fsync " + tmp.string());
+  fs::rename(tmp, path);
+  h5::fsync_path(path.parent_path());
+}
+
 }  // namespace
 
 const char* to_string(StoredScanState s) {
@@ -120,10 +144,7 @@ CaseStore::CaseStore(fs::path dir, Mode mode) : dir_(std::move(dir)) {
 }
 
 void CaseStore::remove_leftovers() {
-  auto is_tmp = [](const fs::path& p) {
-    const std::string n = p.filename().string();
-    return n.rfind(".tmp-", 0) == 0 || (n.size() > 4 && n.compare(n.size() - 4, 4, ".tmp") == 0);
-  };
+  auto is_tmp = [](const fs::path& p) { return is_temporary_name(p.filename().string()); };
   std::vector<fs::path> doomed;
   for (const auto& e : fs::directory_iterator(dir_))
     if (is_tmp(e.path())) doomed.push_back(e.path());
@@ -176,8 +197,14 @@ std::optional<CaseStore::Entry> CaseStore::read_scan_dir(const fs::path& sdir) c
       for (const auto& f : meta.at("files")) {
         const std::string ds = f.at("dataset").get<std::string>();
         entry.files[f.at("name").get<std::string>()] =
-            FileRef{h5::dataset_offset(file.get(), ds), f.at("size").get<std::uint64_t>()};
+            FileRef{h5::dataset_offset(file.get(), ds), f.at("size").get<std::uint64_t>(), ""};
       }
+    }
+    // Files added later (add_result_file) lie beside result.h5.
+    for (const auto& f : fs::directory_iterator(sdir)) {
+      const std::string n = f.path().filename().string();
+      if (!f.is_regular_file() || n == "scan.h5" || n == "result.h5" || is_temporary_name(n)) continue;
+      entry.files[n] = FileRef{0, static_cast<std::uint64_t>(f.file_size()), n};
     }
   } catch (const std::exception& e) {
     // A renamed result.h5 is complete by construction; unreadable means disk
@@ -411,6 +438,21 @@ void CaseStore::save_failure(const std::string& scan_id, const std::string& erro
   r.error_stage = stage;
 }
 
+void CaseStore::add_result_file(const std::string& scan_id, const std::string& name, const std::string& bytes) {
+  if (name.empty() || name.find('/') != std::string::npos || name == "scan.h5" || name == "result.h5" ||
+      name[0] == '.' || is_temporary_name(name))
+    throw std::invalid_argument("store: \"" + name + "\" cannot be added as a result file");
+  {
+    std::lock_guard lock(index_mutex_);
+    auto it = scans_.find(scan_id);
+    if (it == scans_.end() || it->second.record.state != StoredScanState::done)
+      throw std::invalid_argument("store: " + scan_id + " has no result to add " + name + " to");
+  }
+  write_plain_file_atomically(scan_dir(scan_id) / name, bytes);
+  std::lock_guard lock(index_mutex_);
+  scans_.at(scan_id).files[name] = FileRef{0, bytes.size(), name};
+}
+
 std::vector<std::string> CaseStore::result_file_names(const std::string& scan_id) const {
   std::lock_guard lock(index_mutex_);
   std::vector<std::string> names;
@@ -434,7 +476,7 @@ std::optional<std::string> CaseStore::read_result_file(const std::string& scan_i
   std::string bytes(ref.size, '\0');
   if (ref.size == 0) return bytes;
   if (ref.offset < 0) throw std::runtime_error("store: " + scan_id + "/" + name + " has no data offset");
-  const fs::path path = scan_dir(scan_id) / "result.h5";
+  const fs::path path = scan_dir(scan_id) / (ref.file.empty() ? std::string("result.h5") : ref.file);
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) throw std::runtime_error("store: cannot open " + path.string());
   std::size_t done = 0;

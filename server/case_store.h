@@ -9,6 +9,8 @@
 //   <dir>/mesh.h5                  nodes, tets, tet labels, boundary faces
 //   <dir>/scans/<scan_id>/scan.h5  the received NIfTI bytes (labels, image), meta
 //   <dir>/scans/<scan_id>/result.h5  output files as byte datasets, or a failure
+//   <dir>/scans/<scan_id>/<name>     result files added after the result
+//                                    (report.png, rendered off the latency path)
 // A scan directory is created as scans/.tmp-<id> and renamed once scan.h5 is
 // durable: a scan exists exactly when it was acknowledged.
 //
@@ -95,6 +97,10 @@ class CaseStore {
                    const std::string& kind, const std::string& fallback_reason);
   void save_failure(const std::string& scan_id, const std::string& error_code,
                     const std::string& message, const std::string& stage);
+  // Adds one file to a done scan's result (e.g. report.png rendered after the
+  // scan was announced) as a plain, fsynced file beside result.h5. name is a
+  // plain file name ("report.png"), not one of the store's own files.
+  void add_result_file(const std::string& scan_id, const std::string& name, const std::string& bytes);
   std::vector<std::string> result_file_names(const std::string& scan_id) const;
   // nullopt when the scan has no result or no file of that name.
   std::optional<std::string> read_result_file(const std::string& scan_id,
@@ -104,6 +110,7 @@ class CaseStore {
   struct FileRef {
     std::int64_t offset = -1;  // -1: empty file
     std::uint64_t size = 0;
+    std::string file;          // under the scan directory; "" = result.h5
   };
   struct Entry {
     ScanRecord record;

@@ -1,15 +1,46 @@
 #include "server/engine_adapter.h"
 
 #include <chrono>
-#include <fstream>
-#include <sstream>
 
 #include "atlas/default_atlas.h"
 #include "core/errors.h"
+#include "field/itk_transform_io.h"
+#include "image/nifti_io.h"
+#include "mesh/vtk_io.h"
+#include "phantom/report_png.h"
 #include "server/hdf5_file.h"
 
 namespace brainshift::server {
 namespace fs = std::filesystem;
+
+namespace {
+
+// The daemon's encoding of register's outputs: the same content, but chosen
+// for latency. Images are plain NIfTI (gzip of the 47 MB field alone took
+// ~1.5 s; the client gzips when it writes field.nii.gz), the ITK field is
+// float32 (the NIfTI field is float32 too, so nothing is lost), and
+// report.png is left out (rendered after the scan is announced, see
+// render_report()). Encoded in memory: no scratch folder written and read back.
+std::map<std::string, std::string> encode_outputs(const ScanResult& r) {
+  std::map<std::string, std::string> files;
+  files["field.nii"] = displacement_field_to_bytes(r.pullback_field_mm, /*gzip=*/false);
+  {
+    // HDF5 is not thread-safe in this build: the store's lock keeps the
+    // socket thread's HDF5 calls out meanwhile.
+    ItkTransformWriteOptions itk;
+    itk.single_precision = true;
+    std::lock_guard lock(h5::hdf5_mutex());
+    files["field.h5"] = itk_displacement_transform_bytes(r.pullback_field_mm, itk);
+  }
+  files["warped_image.nii"] = scalar_image_to_bytes(r.warped_t1, VoxelType::float32, /*gzip=*/false);
+  files["warped_labels.nii"] = label_image_to_bytes(r.warped_labels, /*gzip=*/false);
+  for (const auto& [name, surface] : r.models) files["models/" + name + ".vtp"] = vtp_bytes(surface);
+  files["metrics.json"] = r.metrics.dump(2) + "\n";
+  files["timings.json"] = r.timings.dump(2) + "\n";
+  return files;
+}
+
+}  // namespace
 
 EngineAdapter::EngineAdapter(MPI_Comm comm, PipelineParameters params) : session_(comm, std::move(params)) {}
 
@@ -25,41 +56,40 @@ void EngineAdapter::load_preop(const PreopImages& preop, std::optional<TetMesh> 
 }
 
 EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
-                                              double read_seconds, const fs::path& scratch_dir,
+                                              double read_seconds, const fs::path& /*scratch_dir*/,
                                               const StageProgressFn& progress) {
+  report_.reset();
   ScanResult result = session_.register_scan(IntraopInput{labels, image}, progress);
   auto& intraop = result.timings["intraop"];
   intraop["read"] = intraop.value("read", 0.0) + read_seconds;
   intraop["total"] = intraop.value("total", 0.0) + read_seconds;
-  const fs::path out = scratch_dir / "out";
   const auto t_outputs = std::chrono::steady_clock::now();
   progress("outputs", 0.0, 0.0);
-  {
-    // write_scan_outputs writes field.h5 through HDF5, which is not thread-safe
-    // in this build: the store's lock keeps the socket thread out meanwhile.
-    std::lock_guard lock(h5::hdf5_mutex());
-    write_scan_outputs(result, image ? &*image : nullptr, out);
-  }
   EngineScanOutput output;
-  output.files = read_tree(out);
+  output.files = encode_outputs(result);
   progress("outputs", 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
   output.kind = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
   output.fallback_reason = result.fallback_reason;
   output.intraop_seconds = intraop.value("total", 0.0);
+  // The picture needs an intraop image to draw on (as in register); its
+  // inputs are kept (moved, not copied) until render_report().
+  if (image) {
+    report_ = std::make_unique<ReportImages>(
+        ReportImages{*image, std::move(result.warped_t1_affine_only), std::move(result.warped_t1),
+                     std::move(result.warped_labels)});
+  }
   return output;
 }
 
-std::map<std::string, std::string> read_tree(const fs::path& dir) {
-  std::map<std::string, std::string> files;
-  for (const auto& e : fs::recursive_directory_iterator(dir)) {
-    if (!e.is_regular_file()) continue;
-    std::ifstream in(e.path(), std::ios::binary);
-    std::ostringstream bytes;
-    bytes << in.rdbuf();
-    if (!in) throw ComputeError("cannot read back " + e.path().string());
-    files[fs::relative(e.path(), dir).generic_string()] = bytes.str();
-  }
-  return files;
+std::optional<std::string> EngineAdapter::render_report() {
+  if (!report_) return std::nullopt;
+  const std::unique_ptr<ReportImages> images = std::move(report_);
+  ReportInputs in;
+  in.intraop = &images->intraop;
+  in.warped_preop_affine = &images->warped_affine_only;
+  in.warped_preop_nonrigid = &images->warped;
+  in.warped_labels = &images->warped_labels;
+  return report_png_bytes(in);
 }
 
 }  // namespace brainshift::server

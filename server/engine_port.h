@@ -28,9 +28,11 @@ struct PreopImages {
 };
 
 struct EngineScanOutput {
-  // Exactly the files `brainshift register --out` writes, by relative name:
-  // field.nii.gz, field.h5, warped_image.nii.gz, warped_labels.nii.gz,
-  // models/<structure>.vtp, metrics.json, timings.json, report.png.
+  // The files `brainshift register --out` writes, by relative name, except
+  // report.png (see render_report) and with images MAY be plain NIfTI:
+  // field.nii or field.nii.gz, field.h5, warped_image.nii[.gz],
+  // warped_labels.nii[.gz], models/<structure>.vtp, metrics.json, timings.json.
+  // The client gzips plain NIfTI when it writes register's .nii.gz names.
   std::map<std::string, std::string> files;
   std::string kind = "nonrigid";  // or "affine_only_fallback"
   std::string fallback_reason;
@@ -58,6 +60,11 @@ class EnginePort {
   virtual EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
                                          double read_seconds, const std::filesystem::path& scratch_dir,
                                          const StageProgressFn& progress) = 0;
+  // report.png of the scan register_scan last returned, rendered off the
+  // latency path (after the result is stored and announced); nullopt when
+  // there is none (no intraop image) or it was already rendered. Frees the
+  // images it kept for it.
+  virtual std::optional<std::string> render_report() = 0;
   virtual int ranks() const = 0;
   // Bound on decompressed image bytes received from clients.
   virtual std::size_t max_image_bytes() const = 0;

@@ -69,6 +69,9 @@ void write_dataset(hid_t loc, const std::string& name, hid_t mem_type,
   Handle dcpl(check(H5Pcreate(H5P_DATASET_CREATE), "plist"), Handle::Kind::plist);
   H5Pset_layout(dcpl.get(), H5D_CONTIGUOUS);
   H5Pset_alloc_time(dcpl.get(), H5D_ALLOC_TIME_EARLY);
+  // Every byte is written right below: filling with zeros first would write
+  // the (tens of MB) dataset twice.
+  H5Pset_fill_time(dcpl.get(), H5D_FILL_TIME_NEVER);
   Handle lcpl(check(H5Pcreate(H5P_LINK_CREATE), "plist"), Handle::Kind::plist);
   H5Pset_create_intermediate_group(lcpl.get(), 1);
   Handle ds(check(H5Dcreate2(loc, name.c_str(), mem_type, space.get(), lcpl.get(), dcpl.get(),

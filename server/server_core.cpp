@@ -60,27 +60,37 @@ bool valid_stage_name(const std::string& s) {
 
 // Frames of the requested parts of a done scan, with every missing part in
 // `unavailable` (e.g. no warped_image when the engine wrote none).
-ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRequest& request) {
+// report_pending: report.png is still being rendered (it follows scan.done).
+ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRequest& request,
+                                      const ScanRecord& record, bool report_pending) {
   ScanResultReply reply;
   reply.scan_id = request.scan_id;
-  auto add = [&](const std::string& frame, const std::string& file, const char* why_missing) {
-    auto bytes = store.read_result_file(request.scan_id, file);
-    if (!bytes) {
-      reply.unavailable.push_back({frame, why_missing});
-      return;
+  auto add = [&](const std::string& frame, const std::vector<std::string>& files, const char* why_missing) {
+    for (const auto& file : files) {
+      auto bytes = store.read_result_file(request.scan_id, file);
+      if (!bytes) continue;
+      const std::string media = result_media_type(file, *bytes);
+      reply.frames.push_back(Frame{frame, media, std::move(*bytes)});
+      return true;
     }
-    const std::string media = result_media_type(file, *bytes);
-    reply.frames.push_back(Frame{frame, media, std::move(*bytes)});
+    reply.unavailable.push_back({frame, why_missing});
+    return false;
   };
   for (ResultPart part : request.parts) {
-    if (part != ResultPart::kModels) {
-      add(frame_name(part), result_file_name(part),
+    if (part == ResultPart::kReport) {
+      const char* why = !record.has_image ? "no intraop image was pushed (the report draws on it)"
+                        : report_pending  ? "report.png is being rendered; ask again shortly"
+                                          : "report.png was not rendered (see the server log)";
+      if (!add(frame_name(part), stored_file_names(part), why) && report_pending)
+        reply.unavailable.back().pending = true;
+    } else if (part != ResultPart::kModels) {
+      add(frame_name(part), stored_file_names(part),
           part == ResultPart::kWarpedImage ? "the engine wrote no warped image" : "not in this result");
-      continue;
+    } else {
+      const auto& wanted = request.structures.empty() ? all_structures() : request.structures;
+      for (Structure s : wanted)
+        add(model_frame_name(s), {model_file_name(s)}, "no model of this structure (label absent from the preop)");
     }
-    const auto& wanted = request.structures.empty() ? all_structures() : request.structures;
-    for (Structure s : wanted)
-      add(model_frame_name(s), model_file_name(s), "no model of this structure (label absent from the preop)");
   }
   return reply;
 }
@@ -287,7 +297,12 @@ Message ServerCore::on_scan_result(const Message& m) {
                             req.scan_id + " failed in stage " + record->error_stage + ": " + record->error_message);
   if (record->state != StoredScanState::done)
     return make_error_reply(rid, ErrorCode::kNotReady, req.scan_id + " is not processed yet");
-  ScanResultReply reply = collect_result_frames(store_, req);
+  bool report_pending = false;
+  {
+    std::lock_guard lock(mutex_);
+    report_pending = report_pending_.count(req.scan_id) > 0;
+  }
+  ScanResultReply reply = collect_result_frames(store_, req, *record, report_pending);
   return make_scan_result_reply(rid, reply);
 }
 
@@ -500,6 +515,24 @@ void ServerCore::fail_scan(const ScanRecord& record, ErrorCode code, const std::
   emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, stage, ErrorInfo{code, message}}));
 }
 
+// report.png is only a picture for the record: rendered after the scan was
+// announced, so it never delays the field. A failure is logged, never fails
+// the scan. The socket thread answers `report` pulls meanwhile with a pending
+// "unavailable" entry.
+void ServerCore::add_report(const std::string& scan_id, const std::string& preop_id) {
+  const auto t0 = Clock::now();
+  try {
+    if (auto png = engine_.render_report()) {
+      store_.add_result_file(scan_id, "report.png", *png);
+      log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, "report", seconds_since(t0), ""});
+    }
+  } catch (const std::exception& e) {
+    spdlog::error("scan {}: report.png not rendered: {}", scan_id, e.what());
+  }
+  std::lock_guard lock(mutex_);
+  report_pending_.erase(scan_id);
+}
+
 void ServerCore::run_scan(const std::string& scan_id) {
   const auto t0 = Clock::now();
   const auto record = store_.find(scan_id);
@@ -544,7 +577,12 @@ void ServerCore::run_scan(const std::string& scan_id) {
     fs::remove_all(scratch);
     const double seconds = seconds_since(t0);
     spdlog::info("scan {} done ({}) in {:.3f} s", scan_id, out.kind, seconds);
+    if (record->has_image) {
+      std::lock_guard lock(mutex_);
+      report_pending_.insert(scan_id);
+    }
     emit(make_event(ScanDoneEvent{scan_id, record->client_scan_id, seconds}));
+    add_report(scan_id, preop_id);
   } catch (const InputError& e) {
     fail_scan(*record, ErrorCode::kInvalidRequest, e.what(), stage);
   } catch (const ComputeError& e) {

@@ -13,6 +13,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -67,6 +68,7 @@ class ServerCore {
 
   void run_preop_job(PreopJob job);
   void run_scan(const std::string& scan_id);
+  void add_report(const std::string& scan_id, const std::string& preop_id);
   void fail_scan(const ScanRecord& record, protocol::ErrorCode code, const std::string& message,
                  const std::string& stage);
   void emit(protocol::Message event);
@@ -96,6 +98,7 @@ class ServerCore {
   std::optional<protocol::ErrorInfo> last_error_;
   std::unique_ptr<PreopJob> pending_preop_;
   std::map<std::string, std::shared_ptr<DecodedScan>> decoded_;  // pushed, not yet run
+  std::set<std::string> report_pending_;  // done, report.png still being rendered
   int ranks_ = 1;
 };
 

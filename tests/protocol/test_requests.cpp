@@ -203,8 +203,11 @@ TEST(ScanResult, ReplyRoundTripWithEveryKindOfFrame) {
               {bp::frame_name(bp::ResultPart::kDisplacementItk), std::string(bp::media::kItkH5), bp::testing::fake_h5()},
               bp::media::nifti_frame("warped_labels", bp::testing::fake_nifti(3, 3, 3)),
               {bp::model_frame_name(bp::Structure::kVentricles), std::string(bp::media::kVtp), bp::testing::fake_vtp()},
-              bp::media::json_frame("metrics", R"({"surface_rms_mm": 0.8})")};
-  r.unavailable = {{"warped_image", "no intraop image was pushed"}, {"model.tumor", "no tumor label"}};
+              bp::media::json_frame("metrics", R"({"surface_rms_mm": 0.8})"),
+              {bp::frame_name(bp::ResultPart::kReport), std::string(bp::media::kPng),
+               std::string("\x89PNG\r\n\x1a\n....", 12)}};
+  r.unavailable = {{"warped_image", "no intraop image was pushed"}, {"model.tumor", "no tumor label"},
+                   {"report", "being rendered", true}};
   const auto back = bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r)));
   EXPECT_EQ(back.scan_id, r.scan_id);
   ASSERT_EQ(back.frames.size(), r.frames.size());
@@ -214,6 +217,24 @@ TEST(ScanResult, ReplyRoundTripWithEveryKindOfFrame) {
   }
   EXPECT_EQ(back.unavailable, r.unavailable);
   EXPECT_NE(back.find("model.ventricles"), nullptr);
+}
+
+TEST(ScanResult, ReportIsAPartAndPendingIsOptionalOnTheWire) {
+  EXPECT_EQ(bp::result_part_from_string("report"), bp::ResultPart::kReport);
+  EXPECT_EQ(bp::frame_name(bp::ResultPart::kReport), "report");
+  bp::ScanResultReply r;
+  r.scan_id = "s-1";
+  r.unavailable = {{"report", "later", true}, {"warped_image", "never"}};
+  const auto m = bp::make_scan_result_reply("r", r);
+  EXPECT_TRUE(m.header["unavailable"][0].at("pending").get<bool>());
+  EXPECT_FALSE(m.header["unavailable"][1].contains("pending"));  // absent = false (older peers)
+  // A report frame must be a PNG.
+  r.frames = {{"report", std::string(bp::media::kPng), "GIF89a"}};
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r))); }),
+            ErrorCode::kInvalidRequest);
+  r.frames = {bp::media::json_frame("report", "{}")};
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r))); }),
+            ErrorCode::kInvalidRequest);
 }
 
 TEST(ScanResult, ReplyRefusesAFrameWithTheWrongMediaType) {

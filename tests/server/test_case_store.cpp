@@ -170,3 +170,30 @@ TEST(CaseStore, UnknownScanResultIsRefused) {
   EXPECT_THROW(store.save_result("scan-404", {}, "nonrigid", ""), std::invalid_argument);
   EXPECT_FALSE(store.read_result_file("scan-404", "field.nii.gz"));
 }
+
+TEST(CaseStore, FileAddedAfterTheResultIsServedAndSurvivesReopen) {
+  TempDir dir;
+  std::string id, queued_id;
+  const std::string png("\x89PNG\r\n\x1a\nrest of a picture", 25);
+  {
+    CaseStore store(dir.path());
+    id = store.add_scan(sample_input('a', true), std::nullopt, "d", "p").scan_id;
+    queued_id = store.add_scan(sample_input('b', true), std::nullopt, "d2", "p").scan_id;
+    // Only a done scan takes extra files, and only plain names of its own.
+    EXPECT_THROW(store.add_result_file(queued_id, "report.png", png), std::invalid_argument);
+    store.save_result(id, {{"metrics.json", "{}"}}, "nonrigid", "");
+    EXPECT_THROW(store.add_result_file(id, "result.h5", png), std::invalid_argument);
+    EXPECT_THROW(store.add_result_file(id, "../escape.png", png), std::invalid_argument);
+    EXPECT_THROW(store.add_result_file(id, "x.tmp", png), std::invalid_argument);
+    store.add_result_file(id, "report.png", png);
+    EXPECT_EQ(store.read_result_file(id, "report.png").value(), png);
+    EXPECT_EQ(store.read_result_file(id, "metrics.json").value(), "{}");
+  }
+  // A write interrupted by a crash leaves only a .tmp, which is removed.
+  std::ofstream(dir.path() / "scans" / id / "other.png.tmp") << "half";
+  CaseStore store(dir.path());
+  EXPECT_FALSE(fs::exists(dir.path() / "scans" / id / "other.png.tmp"));
+  EXPECT_EQ(store.read_result_file(id, "report.png").value(), png);
+  EXPECT_EQ(store.read_result_file(id, "metrics.json").value(), "{}");
+  EXPECT_EQ(store.result_file_names(id).size(), 2u);
+}

@@ -183,7 +183,8 @@ TEST(ServerCore, PushRunPullReturnsExactlyTheEngineOutput) {
   ASSERT_EQ(result.type(), MessageType::kScanResultReply) << result.header.dump();
   const ScanResultReply r = parse_scan_result_reply(result);
   const auto expected = test::FakeEngine::files_for(labels, true);
-  EXPECT_EQ(r.find("displacement")->bytes, expected.at("field.nii.gz"));
+  EXPECT_EQ(r.find("displacement")->bytes, expected.at("field.nii"));
+  EXPECT_EQ(r.find("displacement")->media_type, media::kNifti);  // stored plain, sent as such
   EXPECT_EQ(r.find("warped_image")->bytes, expected.at("warped_image.nii.gz"));
   EXPECT_EQ(r.find("warped_labels")->bytes, expected.at("warped_labels.nii.gz"));
   EXPECT_EQ(r.find("model.brain")->bytes, expected.at("models/brain.vtp"));
@@ -200,6 +201,56 @@ TEST(ServerCore, PushRunPullReturnsExactlyTheEngineOutput) {
   // Timing log: one line per finished stage.
   EXPECT_TRUE(fs::exists(h.settings.timing_log_path()));
   EXPECT_GE(h.count_events(MessageType::kEventStage), 4);  // mesh, read, affine, solve
+}
+
+TEST(ServerCore, ReportIsRenderedAfterScanDoneAndServedAsAPart) {
+  Harness h;
+  h.load_preop();
+  const std::string id = parse_scan_push_reply(h.push(intraop_labels(), std::nullopt, true)).scan_id;
+  const ScanResultRequest want_report{id, {ResultPart::kReport, ResultPart::kTimings}, {}};
+  // While the report renders, the scan is already done: the other parts are
+  // served and the report is "pending", not refused.
+  std::optional<ScanResultReply> during;
+  int done_events_during = 0;
+  h.engine.while_rendering_report = [&] {
+    done_events_during = h.count_events(MessageType::kEventScanDone);
+    during = parse_scan_result_reply(h.call(make_scan_result_request("r-during", want_report)));
+  };
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_EQ(done_events_during, 1) << "scan.done must be announced before the report is rendered";
+  ASSERT_TRUE(during);
+  EXPECT_NE(during->find("timings"), nullptr);
+  EXPECT_EQ(during->find("report"), nullptr);
+  ASSERT_EQ(during->unavailable.size(), 1u);
+  EXPECT_EQ(during->unavailable[0].part, "report");
+  EXPECT_TRUE(during->unavailable[0].pending);
+
+  const ScanResultReply after = parse_scan_result_reply(h.call(make_scan_result_request("r-after", want_report)));
+  ASSERT_NE(after.find("report"), nullptr);
+  EXPECT_EQ(after.find("report")->media_type, media::kPng);
+  EXPECT_EQ(after.find("report")->bytes, test::FakeEngine::kReportPng);
+  EXPECT_TRUE(after.unavailable.empty());
+
+  // It is durable: a restarted server on the same store serves it too.
+  h.engine = test::FakeEngine{};
+  h.open();
+  const ScanResultReply restarted = parse_scan_result_reply(h.call(make_scan_result_request("r-restart", want_report)));
+  ASSERT_NE(restarted.find("report"), nullptr);
+  EXPECT_EQ(restarted.find("report")->bytes, test::FakeEngine::kReportPng);
+}
+
+TEST(ServerCore, ReportWithoutIntraopImageIsUnavailableForGood) {
+  Harness h;
+  h.load_preop();
+  const std::string id = parse_scan_push_reply(h.push(intraop_labels())).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  const ScanResultReply r =
+      parse_scan_result_reply(h.call(make_scan_result_request("r", {id, {ResultPart::kReport}, {}})));
+  EXPECT_TRUE(r.frames.empty());
+  ASSERT_EQ(r.unavailable.size(), 1u);
+  EXPECT_EQ(r.unavailable[0].part, "report");
+  EXPECT_FALSE(r.unavailable[0].pending);
+  EXPECT_NE(r.unavailable[0].reason.find("no intraop image"), std::string::npos) << r.unavailable[0].reason;
 }
 
 TEST(ServerCore, IdempotentPushAndConflict) {

@@ -74,7 +74,9 @@ std::map<std::string, std::string> FakeEngine::files_for(const LabelImage& label
   VectorImage3 field(labels.grid);
   for (std::size_t i = 0; i < field.vectors.size(); ++i) field.vectors[i] = Eigen::Vector3f(labels.voxels[i], 0.5f, -1.f);
   std::map<std::string, std::string> files;
-  files["field.nii.gz"] = displacement_field_to_bytes(field, true);
+  // As the daemon's adapter: the field as plain NIfTI; the labels gzipped, as a
+  // store written before the daemon stored plain NIfTI holds them.
+  files["field.nii"] = displacement_field_to_bytes(field, false);
   files["warped_labels.nii.gz"] = label_image_to_bytes(labels, true);
   if (with_image) files["warped_image.nii.gz"] = scalar_image_to_bytes(ramp_image(labels.grid), VoxelType::float32, false);
   files["models/brain.vtp"] =
@@ -101,7 +103,20 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
   progress("solve", 1.0, 0.003);
   server::EngineScanOutput out;
   out.files = files_for(labels, image.has_value());
+  report_due_ = image.has_value();
   return out;
+}
+
+const std::string FakeEngine::kReportPng(
+    "\x89PNG\r\n\x1a\n\0\0\0\rIHDR\0\0\0\x01\0\0\0\x01\x08\x02\0\0\0\x90wS\xde\0\0\0\x0cIDATx\x9c" "c\xf8\xcf\xc0"
+    "\0\0\x03\x01\x01\0\xc9\xfe\x92\xef\0\0\0\0IEND\xae" "B`\x82",
+    69);
+
+std::optional<std::string> FakeEngine::render_report() {
+  if (!report_due_) return std::nullopt;
+  report_due_ = false;
+  if (while_rendering_report) while_rendering_report();
+  return kReportPng;
 }
 
 }  // namespace brainshift::test

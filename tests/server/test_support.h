@@ -2,6 +2,8 @@
 // Helpers for the server unit tests: temporary directories, small images, and
 // a test double of the engine (tests only; the shipped daemon uses the real one).
 #include <filesystem>
+#include <functional>
+#include <optional>
 #include <string>
 
 #include "core/image.h"
@@ -44,9 +46,16 @@ class FakeEngine : public server::EnginePort {
   int ranks() const override { return 1; }
   std::size_t max_image_bytes() const override { return std::size_t{64} << 20; }
   void stop_workers() override { stopped = true; }
+  // kReportPng when the last scan had an intraop image (once), as the real
+  // adapter renders report.png only over an intraop image.
+  std::optional<std::string> render_report() override;
 
   // Expected output files for these inputs (what register_scan returns).
   static std::map<std::string, std::string> files_for(const LabelImage& labels, bool with_image);
+
+  // A valid 1x1 RGB PNG standing in for report.png.
+  static const std::string kReportPng;
+  std::function<void()> while_rendering_report;  // called inside render_report
 
   bool fail_next_scan = false;   // ComputeError from the next register_scan
   bool fail_preop = false;       // InputError from load_preop
@@ -57,6 +66,7 @@ class FakeEngine : public server::EnginePort {
 
  private:
   bool ready_ = false;
+  bool report_due_ = false;
   TetMesh mesh_;
 };
 

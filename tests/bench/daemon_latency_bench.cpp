@@ -1,0 +1,215 @@
+// Latency of a running brainshiftd as the scanner sees it (issue 4 benchmark):
+//   * preop.load of the default atlas: request sent -> event.preop.ready;
+//   * per scan: scan.push sent -> event.scan.done received ("result ready"),
+//     p50/p95 over --scans scans, pushed one at a time once the server is
+//     idle again (OR scans come minutes apart; report.png, rendered after
+//     scan.done, is therefore never in the way of the next scan);
+//   * the daemon's own stage timings (p50 per stage, from event.stage);
+//   * resident memory (VmRSS) of the given daemon processes after the scans.
+// Prints one JSON object. Driven by daemon_latency_bench.sh, which starts the
+// daemon (np 1 or 2) and makes the phantom scan.
+#include <algorithm>
+#include <cmath>
+#include <chrono>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <sstream>
+#include <thread>
+
+#include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+#include <zmq.hpp>
+
+#include "protocol/events.h"
+#include "protocol/media.h"
+#include "protocol/requests.h"
+#include "protocol/transport.h"
+
+namespace {
+using namespace brainshift::protocol;
+using Clock = std::chrono::steady_clock;
+using namespace std::chrono_literals;
+namespace transport = brainshift::protocol::transport;
+
+double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+std::string read_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw std::runtime_error(path + ": cannot open");
+  std::ostringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+// Nearest-rank percentile.
+double percentile(std::vector<double> v, double p) {
+  if (v.empty()) return 0.0;
+  std::sort(v.begin(), v.end());
+  const auto rank = static_cast<std::size_t>(std::ceil(p / 100.0 * static_cast<double>(v.size())));
+  return v[std::clamp<std::size_t>(rank, 1, v.size()) - 1];
+}
+
+nlohmann::json summary(const std::vector<double>& v) {
+  return {{"p50", percentile(v, 50)}, {"p95", percentile(v, 95)},
+          {"min", v.empty() ? 0.0 : *std::min_element(v.begin(), v.end())},
+          {"max", v.empty() ? 0.0 : *std::max_element(v.begin(), v.end())}, {"n", v.size()}};
+}
+
+long vm_rss_kib(int pid) {
+  std::ifstream in("/proc/" + std::to_string(pid) + "/status");
+  for (std::string line; std::getline(in, line);)
+    if (line.rfind("VmRSS:", 0) == 0) return std::stol(line.substr(6));
+  return -1;
+}
+
+class Bench {
+ public:
+  Bench(const std::string& server, const std::string& events)
+      : dealer_(ctx_, zmq::socket_type::dealer), sub_(ctx_, zmq::socket_type::sub) {
+    dealer_.set(zmq::sockopt::linger, 0);
+    dealer_.connect(server);
+    sub_.set(zmq::sockopt::subscribe, "event.");
+    sub_.connect(events);
+    std::this_thread::sleep_for(300ms);  // let the subscription reach the PUB
+  }
+
+  Message call(const Message& request) {
+    transport::send_request(dealer_, request);
+    for (;;) {
+      auto reply = transport::receive_reply(dealer_, Limits::client_inbound(), 120s);
+      if (!reply) throw std::runtime_error("no reply from the daemon within 120 s");
+      if (reply->request_id() == request.request_id()) return *reply;
+    }
+  }
+  std::string rid() { return "bench-" + std::to_string(++counter_); }
+
+  // Waits for an event accepted by `done` (returns true to stop); stage
+  // events are collected on the way.
+  template <class Done>
+  void wait_event(Done&& done, std::chrono::seconds limit) {
+    const auto deadline = Clock::now() + limit;
+    while (Clock::now() < deadline) {
+      auto e = transport::receive_event(sub_, Limits::client_inbound(), 100ms);
+      if (!e) continue;
+      record(*e);
+      if (done(*e)) return;
+    }
+    throw std::runtime_error("timed out waiting for an event");
+  }
+
+  void wait_idle() {
+    for (int i = 0; i < 600; ++i) {
+      const StatusReply s = parse_status_reply(call(make_status_request(rid())));
+      if (s.state == ServerState::kReady && s.queue.depth == 0) return;
+      std::this_thread::sleep_for(50ms);
+      drain_events();
+    }
+    throw std::runtime_error("the daemon did not become idle");
+  }
+  void drain_events() {
+    while (auto e = transport::receive_event(sub_, Limits::client_inbound(), 0ms)) record(*e);
+  }
+  void record(const Message& e) {
+    if (e.type() != MessageType::kEventStage) return;
+    const StageTiming t = parse_stage_event(e).timing;
+    if (t.scope == StageScope::kIntraop) stages_[t.stage].push_back(t.seconds);
+    else preop_stages_[t.stage] = t.seconds;
+  }
+
+  std::map<std::string, std::vector<double>> stages_;
+  std::map<std::string, double> preop_stages_;
+
+ private:
+  zmq::context_t ctx_;
+  zmq::socket_t dealer_, sub_;
+  unsigned counter_ = 0;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"brainshiftd push-to-result latency benchmark (prints JSON)"};
+  std::string server, events, labels_path, image_path;
+  int scans = 20;
+  bool load_preop = false;
+  std::vector<int> pids;
+  app.add_option("--server", server, "request endpoint")->required();
+  app.add_option("--events", events, "event endpoint")->required();
+  app.add_option("--labels", labels_path, "intraop labels NIfTI (as the scanner sends it)")->required();
+  app.add_option("--image", image_path, "intraop T1 NIfTI");
+  app.add_option("--scans", scans, "scans to push");
+  app.add_flag("--load-preop", load_preop, "send preop.load (default atlas) first and time the warm-up");
+  app.add_option("--pids", pids, "daemon processes (every MPI rank) whose VmRSS is reported")->delimiter(',');
+  CLI11_PARSE(app, argc, argv);
+
+  try {
+    Bench b(server, events);
+    nlohmann::json out;
+    out["scans"] = scans;
+    if (load_preop) {
+      PreopLoadRequest r;
+      r.use_default_atlas = true;
+      const auto t0 = Clock::now();
+      const std::string id = parse_preop_load_reply(b.call(make_preop_load_request(b.rid(), r))).preop_id;
+      double server_seconds = 0;
+      MeshSize mesh;
+      b.wait_event(
+          [&](const Message& e) {
+            if (e.type() == MessageType::kEventPreopFailed) throw std::runtime_error("preop.load failed");
+            if (e.type() != MessageType::kEventPreopReady) return false;
+            const auto ready = parse_preop_ready_event(e);
+            server_seconds = ready.seconds;
+            mesh = ready.mesh;
+            return ready.preop_id == id;
+          },
+          1800s);
+      out["preop_load"] = {{"wall_s", since(t0)}, {"server_s", server_seconds}, {"stages_s", b.preop_stages_}};
+      out["mesh"] = {{"nodes", mesh.nodes}, {"tets", mesh.tets}};
+    }
+    b.wait_idle();
+    const StatusReply status = parse_status_reply(b.call(make_status_request(b.rid())));
+    out["mpi_ranks"] = status.mpi_ranks;
+    if (status.mesh) out["mesh"] = {{"nodes", status.mesh->nodes}, {"tets", status.mesh->tets}};
+
+    ScanPushRequest push;
+    push.labels = media::nifti_frame("labels", read_file(labels_path));
+    if (!image_path.empty()) push.image = media::nifti_frame("image", read_file(image_path));
+    std::vector<double> latency, ack, server_total;
+    b.stages_.clear();
+    for (int i = 0; i < scans; ++i) {
+      b.wait_idle();
+      const auto t0 = Clock::now();
+      const ScanPushReply reply = parse_scan_push_reply(b.call(make_scan_push_request(b.rid(), push)));
+      ack.push_back(since(t0));
+      b.wait_event(
+          [&](const Message& e) {
+            if (e.type() == MessageType::kEventScanFailed && parse_scan_failed_event(e).scan_id == reply.scan_id)
+              throw std::runtime_error(reply.scan_id + " failed");
+            if (e.type() != MessageType::kEventScanDone) return false;
+            const auto done = parse_scan_done_event(e);
+            if (done.scan_id != reply.scan_id) return false;
+            latency.push_back(since(t0));
+            server_total.push_back(done.seconds);
+            return true;
+          },
+          600s);
+      std::cerr << reply.scan_id << ": " << latency.back() << " s\n";
+    }
+    b.wait_idle();  // report.png of the last scan, so its stage is counted too
+    out["push_to_result_ready_s"] = summary(latency);
+    out["push_ack_s"] = summary(ack);
+    out["server_scan_total_s"] = summary(server_total);
+    nlohmann::json stages;
+    for (const auto& [name, v] : b.stages_) stages[name] = percentile(v, 50);
+    out["stage_p50_s"] = stages;
+    nlohmann::json rss = nlohmann::json::array();
+    for (int pid : pids) rss.push_back({{"pid", pid}, {"vm_rss_kib", vm_rss_kib(pid)}});
+    out["rss_after_scans"] = rss;
+    std::cout << out.dump(2) << '\n';
+    return 0;
+  } catch (const std::exception& e) {
+    std::cerr << "daemon_latency_bench: " << e.what() << '\n';
+    return 1;
+  }
+}

@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# The daemon latency benchmark of issue 4 (results: docs/DAEMON_BENCHMARK.md).
+# For each NP: starts brainshiftd on a fresh store with no preop, times
+# preop.load of the default atlas (published mesh size), pushes SCANS copies of
+# a `brainshift phantom` scan (256x256x60 intraop grid) one at a time, and
+# reports push->result-ready p50/p95 and VmRSS of every rank after the scans.
+# Prints one JSON object per NP, as a JSON array.
+# Usage: tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]   (default 20, NP 1 2)
+set -euo pipefail
+BUILD=$(cd "${1:?usage: $0 BUILD_DIR [SCANS] [NP...]}" && pwd)
+SCANS=${2:-20}
+shift $(( $# >= 2 ? 2 : 1 ))
+NPS=("$@")
+[[ ${#NPS[@]} -gt 0 ]] || NPS=(1 2)
+SRC=$(cd "$(dirname "$0")/../.." && pwd)
+DAEMON="$BUILD/server/brainshiftd"
+CLIENT="$BUILD/client/brainshift"
+BENCH="$BUILD/tests/bench/brainshift_daemon_latency_bench"
+for bin in "$DAEMON" "$CLIENT" "$BENCH"; do
+  [[ -x $bin ]] || { echo "bench: $bin is missing: build it first" >&2; exit 2; }
+done
+export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OPENBLAS_NUM_THREADS=1
+ATLAS_CACHE="${XDG_CACHE_HOME:-$HOME/.cache}/brainshift/atlas"
+WORK=$(mktemp -d /tmp/brainshift-latency.XXXXXX)
+DAEMON_PID=""
+
+stop_daemon() {
+  [[ -n $DAEMON_PID ]] || return 0
+  [[ -n ${SERVER:-} ]] && "$CLIENT" --server "$SERVER" --timeout 5 shutdown --reason "bench done" >/dev/null 2>&1 || true
+  for _ in $(seq 1 150); do kill -0 "$DAEMON_PID" 2>/dev/null || break; sleep 0.2; done
+  kill -TERM "$DAEMON_PID" 2>/dev/null || true
+  wait "$DAEMON_PID" 2>/dev/null || true
+  DAEMON_PID=""
+}
+trap 'stop_daemon; rm -rf "$WORK"' EXIT
+
+echo "bench: making the phantom scan" >&2
+"$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --out "$WORK/phantom" >/dev/null
+
+json_field() { sed -n "s/.*\"$1\":\"\([^\"]*\)\".*/\1/p" "$2"; }
+echo "[" 
+first=1
+for np in "${NPS[@]}"; do
+  run="$WORK/np$np"
+  mkdir -p "$run"
+  cp "$SRC/config/brainshiftd.toml" "$SRC/config/labels.toml" "$run/"
+  # No preop at start-up: the benchmark times preop.load itself.
+  sed -i -e "s|^atlas_cache = .*|atlas_cache = \"$ATLAS_CACHE\"|" -e "s|^store = .*|store = \"$run/store\"|" \
+         -e "s|^preop = .*|preop = \"none\"|" "$run/brainshiftd.toml"
+  launch=("$DAEMON")
+  [[ $np -gt 1 ]] && launch=(mpirun -np "$np" --oversubscribe "$DAEMON")
+  "${launch[@]}" --config "$run/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \
+    --ready-file "$run/ready.json" >"$run/daemon.out" 2>"$run/daemon.log" &
+  DAEMON_PID=$!
+  for _ in $(seq 1 300); do [[ -f $run/ready.json ]] && break; sleep 0.1; done
+  [[ -f $run/ready.json ]] || { echo "bench: daemon (np $np) did not start; see $run/daemon.log" >&2; exit 1; }
+  SERVER=$(json_field endpoint "$run/ready.json")
+  EVENTS=$(json_field events "$run/ready.json")
+  # Every rank: the brainshiftd processes under mpirun, or the daemon itself.
+  if [[ $np -gt 1 ]]; then
+    pids=$(pgrep -d, -P "$DAEMON_PID" -x brainshiftd || true)
+  else
+    pids=$DAEMON_PID
+  fi
+  echo "bench: np $np, daemon pids $pids" >&2
+  [[ $first -eq 1 ]] || echo ","
+  first=0
+  "$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$WORK/phantom/intraop_labels.nii.gz" \
+    --image "$WORK/phantom/intraop_t1.nii.gz" --scans "$SCANS" --load-preop --pids "$pids" |
+    sed "1s/^{/{\n  \"np\": $np,/"
+  stop_daemon
+done
+echo "]"
