@@ -17,21 +17,14 @@ namespace {
 
 // The daemon's encoding of register's outputs: the same content, but chosen
 // for latency. Images are plain NIfTI (gzip of the 47 MB field alone took
-// ~1.5 s; the client gzips when it writes field.nii.gz), the ITK field is
-// float32 (the NIfTI field is float32 too, so nothing is lost), and
-// report.png is left out (rendered after the scan is announced, see
-// render_report()). Encoded in memory: no scratch folder written and read back.
+// ~1.5 s; the client gzips when it writes field.nii.gz). field.h5 and
+// report.png are left out here: made after the scan is announced (see
+// render_deferred), since field.h5 repeats field.nii and its 47 MB cost
+// ~0.35 s of encoding and fsync. Encoded in memory: no scratch folder written
+// and read back.
 std::map<std::string, std::string> encode_outputs(const ScanResult& r) {
   std::map<std::string, std::string> files;
   files["field.nii"] = displacement_field_to_bytes(r.pullback_field_mm, /*gzip=*/false);
-  {
-    // HDF5 is not thread-safe in this build: the store's lock keeps the
-    // socket thread's HDF5 calls out meanwhile.
-    ItkTransformWriteOptions itk;
-    itk.single_precision = true;
-    std::lock_guard lock(h5::hdf5_mutex());
-    files["field.h5"] = itk_displacement_transform_bytes(r.pullback_field_mm, itk);
-  }
   files["warped_image.nii"] = scalar_image_to_bytes(r.warped_t1, VoxelType::float32, /*gzip=*/false);
   files["warped_labels.nii"] = label_image_to_bytes(r.warped_labels, /*gzip=*/false);
   for (const auto& [name, surface] : r.models) files["models/" + name + ".vtp"] = vtp_bytes(surface);
@@ -58,7 +51,7 @@ void EngineAdapter::load_preop(const PreopImages& preop, std::optional<TetMesh> 
 EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
                                               double read_seconds, const fs::path& /*scratch_dir*/,
                                               const StageProgressFn& progress) {
-  report_.reset();
+  deferred_.reset();
   ScanResult result = session_.register_scan(IntraopInput{labels, image}, progress);
   auto& intraop = result.timings["intraop"];
   intraop["read"] = intraop.value("read", 0.0) + read_seconds;
@@ -71,25 +64,35 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
   output.kind = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
   output.fallback_reason = result.fallback_reason;
   output.intraop_seconds = intraop.value("total", 0.0);
-  // The picture needs an intraop image to draw on (as in register); its
-  // inputs are kept (moved, not copied) until render_report().
-  if (image) {
-    report_ = std::make_unique<ReportImages>(
-        ReportImages{*image, std::move(result.warped_t1_affine_only), std::move(result.warped_t1),
-                     std::move(result.warped_labels)});
-  }
+  deferred_ = std::make_unique<Deferred>(Deferred{std::move(result.pullback_field_mm), image,
+                                                  std::move(result.warped_t1_affine_only),
+                                                  std::move(result.warped_t1), std::move(result.warped_labels)});
   return output;
 }
 
-std::optional<std::string> EngineAdapter::render_report() {
-  if (!report_) return std::nullopt;
-  const std::unique_ptr<ReportImages> images = std::move(report_);
+void EngineAdapter::render_deferred(const DeferredOutputFn& add) {
+  if (!deferred_) return;
+  const std::unique_ptr<Deferred> d = std::move(deferred_);
+  {
+    // float32 like field.nii, so nothing is lost against it. HDF5 is not
+    // thread-safe in this build: the store's lock keeps the socket thread out.
+    ItkTransformWriteOptions itk;
+    itk.single_precision = true;
+    std::string h5;
+    {
+      std::lock_guard lock(h5::hdf5_mutex());
+      h5 = itk_displacement_transform_bytes(d->field, itk);
+    }
+    add("field.h5", h5);
+  }
+  // The picture needs an intraop image to draw on (as in register).
+  if (!d->intraop) return;
   ReportInputs in;
-  in.intraop = &images->intraop;
-  in.warped_preop_affine = &images->warped_affine_only;
-  in.warped_preop_nonrigid = &images->warped;
-  in.warped_labels = &images->warped_labels;
-  return report_png_bytes(in);
+  in.intraop = &*d->intraop;
+  in.warped_preop_affine = &d->warped_affine_only;
+  in.warped_preop_nonrigid = &d->warped;
+  in.warped_labels = &d->warped_labels;
+  add("report.png", report_png_bytes(in));
 }
 
 }  // namespace brainshift::server

@@ -1,7 +1,7 @@
 #pragma once
 // The EnginePort of the shipped daemon: the pipeline's EngineSession (rank 0)
 // plus the default atlas and register's output files, encoded for latency
-// (plain NIfTI, float32 ITK field, report.png rendered after the scan is done).
+// (plain NIfTI; field.h5 and report.png produced after the scan is done).
 #include <memory>
 
 #include "pipeline/engine_session.h"
@@ -25,16 +25,19 @@ class EngineAdapter final : public EnginePort {
   int ranks() const override { return session_.ranks(); }
   std::size_t max_image_bytes() const override { return session_.parameters().max_image_bytes; }
   void stop_workers() override { session_.stop_workers(); }
-  std::optional<std::string> render_report() override;
+  void render_deferred(const DeferredOutputFn& add) override;
 
  private:
-  // What report.png is drawn from, kept from register_scan to render_report.
-  struct ReportImages {
-    ImageF intraop, warped_affine_only, warped;
+  // What field.h5 and report.png are made from, kept from register_scan to
+  // render_deferred (moved out of the ScanResult, not copied).
+  struct Deferred {
+    VectorImage3 field;
+    std::optional<ImageF> intraop;
+    ImageF warped_affine_only, warped;
     LabelImage warped_labels;
   };
   EngineSession session_;
-  std::unique_ptr<ReportImages> report_;
+  std::unique_ptr<Deferred> deferred_;
 };
 
 }  // namespace brainshift::server

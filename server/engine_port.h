@@ -29,8 +29,8 @@ struct PreopImages {
 
 struct EngineScanOutput {
   // The files `brainshift register --out` writes, by relative name, except
-  // report.png (see render_report) and with images MAY be plain NIfTI:
-  // field.nii or field.nii.gz, field.h5, warped_image.nii[.gz],
+  // the deferred ones (field.h5, report.png: see render_deferred), and with
+  // images MAY be plain NIfTI: field.nii or field.nii.gz, warped_image.nii[.gz],
   // warped_labels.nii[.gz], models/<structure>.vtp, metrics.json, timings.json.
   // The client gzips plain NIfTI when it writes register's .nii.gz names.
   std::map<std::string, std::string> files;
@@ -60,11 +60,13 @@ class EnginePort {
   virtual EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
                                          double read_seconds, const std::filesystem::path& scratch_dir,
                                          const StageProgressFn& progress) = 0;
-  // report.png of the scan register_scan last returned, rendered off the
-  // latency path (after the result is stored and announced); nullopt when
-  // there is none (no intraop image) or it was already rendered. Frees the
-  // images it kept for it.
-  virtual std::optional<std::string> render_report() = 0;
+  // The outputs of the scan register_scan last returned that are produced off
+  // the latency path, after the result is stored and announced: field.h5 (the
+  // same field as field.nii, in ITK's encoding) and report.png (only with an
+  // intraop image). Each is handed to `add` as soon as it is ready; nothing
+  // when already rendered. Frees what it kept for them.
+  using DeferredOutputFn = std::function<void(const std::string& name, const std::string& bytes)>;
+  virtual void render_deferred(const DeferredOutputFn& add) = 0;
   virtual int ranks() const = 0;
   // Bound on decompressed image bytes received from clients.
   virtual std::size_t max_image_bytes() const = 0;

@@ -60,9 +60,10 @@ bool valid_stage_name(const std::string& s) {
 
 // Frames of the requested parts of a done scan, with every missing part in
 // `unavailable` (e.g. no warped_image when the engine wrote none).
-// report_pending: report.png is still being rendered (it follows scan.done).
+// deferred_pending: field.h5 and report.png are still being made (they follow
+// scan.done, see ServerCore::add_deferred_outputs).
 ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRequest& request,
-                                      const ScanRecord& record, bool report_pending) {
+                                      const ScanRecord& record, bool deferred_pending) {
   ScanResultReply reply;
   reply.scan_id = request.scan_id;
   auto add = [&](const std::string& frame, const std::vector<std::string>& files, const char* why_missing) {
@@ -79,9 +80,13 @@ ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRe
   for (ResultPart part : request.parts) {
     if (part == ResultPart::kReport) {
       const char* why = !record.has_image ? "no intraop image was pushed (the report draws on it)"
-                        : report_pending  ? "report.png is being rendered; ask again shortly"
-                                          : "report.png was not rendered (see the server log)";
-      if (!add(frame_name(part), stored_file_names(part), why) && report_pending)
+                        : deferred_pending ? "report.png is being rendered; ask again shortly"
+                                           : "report.png was not rendered (see the server log)";
+      if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending && record.has_image)
+        reply.unavailable.back().pending = true;
+    } else if (part == ResultPart::kDisplacementItk) {
+      const char* why = deferred_pending ? "field.h5 is being written; ask again shortly" : "not in this result";
+      if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending)
         reply.unavailable.back().pending = true;
     } else if (part != ResultPart::kModels) {
       add(frame_name(part), stored_file_names(part),
@@ -297,12 +302,12 @@ Message ServerCore::on_scan_result(const Message& m) {
                             req.scan_id + " failed in stage " + record->error_stage + ": " + record->error_message);
   if (record->state != StoredScanState::done)
     return make_error_reply(rid, ErrorCode::kNotReady, req.scan_id + " is not processed yet");
-  bool report_pending = false;
+  bool deferred_pending = false;
   {
     std::lock_guard lock(mutex_);
-    report_pending = report_pending_.count(req.scan_id) > 0;
+    deferred_pending = deferred_pending_.count(req.scan_id) > 0;
   }
-  ScanResultReply reply = collect_result_frames(store_, req, *record, report_pending);
+  ScanResultReply reply = collect_result_frames(store_, req, *record, deferred_pending);
   return make_scan_result_reply(rid, reply);
 }
 
@@ -515,22 +520,25 @@ void ServerCore::fail_scan(const ScanRecord& record, ErrorCode code, const std::
   emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, stage, ErrorInfo{code, message}}));
 }
 
-// report.png is only a picture for the record: rendered after the scan was
-// announced, so it never delays the field. A failure is logged, never fails
-// the scan. The socket thread answers `report` pulls meanwhile with a pending
-// "unavailable" entry.
-void ServerCore::add_report(const std::string& scan_id, const std::string& preop_id) {
-  const auto t0 = Clock::now();
+// field.h5 (field.nii again, in ITK's encoding) and report.png (a picture for
+// the record) are made after the scan was announced, so they never delay the
+// field; each is stored durably as soon as it is ready. A failure is logged
+// and never fails the scan. Meanwhile the socket thread answers pulls of them
+// with a "pending" unavailable entry.
+void ServerCore::add_deferred_outputs(const std::string& scan_id, const std::string& preop_id) {
+  auto t0 = Clock::now();
   try {
-    if (auto png = engine_.render_report()) {
-      store_.add_result_file(scan_id, "report.png", *png);
-      log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, "report", seconds_since(t0), ""});
-    }
+    engine_.render_deferred([&](const std::string& name, const std::string& bytes) {
+      store_.add_result_file(scan_id, name, bytes);
+      const std::string stage = name == "report.png" ? "report" : name == "field.h5" ? "itk_field" : "deferred";
+      log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, stage, seconds_since(t0), ""});
+      t0 = Clock::now();
+    });
   } catch (const std::exception& e) {
-    spdlog::error("scan {}: report.png not rendered: {}", scan_id, e.what());
+    spdlog::error("scan {}: deferred outputs (field.h5, report.png) incomplete: {}", scan_id, e.what());
   }
   std::lock_guard lock(mutex_);
-  report_pending_.erase(scan_id);
+  deferred_pending_.erase(scan_id);
 }
 
 void ServerCore::run_scan(const std::string& scan_id) {
@@ -577,12 +585,12 @@ void ServerCore::run_scan(const std::string& scan_id) {
     fs::remove_all(scratch);
     const double seconds = seconds_since(t0);
     spdlog::info("scan {} done ({}) in {:.3f} s", scan_id, out.kind, seconds);
-    if (record->has_image) {
+    {
       std::lock_guard lock(mutex_);
-      report_pending_.insert(scan_id);
+      deferred_pending_.insert(scan_id);
     }
     emit(make_event(ScanDoneEvent{scan_id, record->client_scan_id, seconds}));
-    add_report(scan_id, preop_id);
+    add_deferred_outputs(scan_id, preop_id);
   } catch (const InputError& e) {
     fail_scan(*record, ErrorCode::kInvalidRequest, e.what(), stage);
   } catch (const ComputeError& e) {

@@ -68,7 +68,7 @@ class ServerCore {
 
   void run_preop_job(PreopJob job);
   void run_scan(const std::string& scan_id);
-  void add_report(const std::string& scan_id, const std::string& preop_id);
+  void add_deferred_outputs(const std::string& scan_id, const std::string& preop_id);
   void fail_scan(const ScanRecord& record, protocol::ErrorCode code, const std::string& message,
                  const std::string& stage);
   void emit(protocol::Message event);
@@ -98,7 +98,7 @@ class ServerCore {
   std::optional<protocol::ErrorInfo> last_error_;
   std::unique_ptr<PreopJob> pending_preop_;
   std::map<std::string, std::shared_ptr<DecodedScan>> decoded_;  // pushed, not yet run
-  std::set<std::string> report_pending_;  // done, report.png still being rendered
+  std::set<std::string> deferred_pending_;  // done; field.h5/report.png still being made
   int ranks_ = 1;
 };
 

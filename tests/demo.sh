@@ -5,7 +5,7 @@
 #   3. make a phantom intraop scan (`brainshift phantom`) as the scanner would,
 #   4. push it and wait for the result,
 #   5. pull the field and models as the visualisation station would,
-#   6. print the timing table, write everything (with report.png) to OUT_DIR,
+#   6. pull report.png, print the timing table, write everything to OUT_DIR,
 #   7. stop the daemon (also on any error or Ctrl-C: see the trap).
 # Usage: tests/demo.sh BUILD_DIR OUT_DIR [PRESET]
 set -euo pipefail
@@ -102,9 +102,10 @@ echo "demo: scan $SCAN registered"
 echo "demo: pulling the field and models as the visualisation station would"
 bs pull --scan "$SCAN" --out "$OUT/result" \
    --parts field,field_h5,warped_image,warped_labels,models,metrics,timings >/dev/null
-# report.png has no protocol part (v1); it is exported from the store.
-"$DAEMON" --config "$WORK/brainshiftd.toml" --export-result "$SCAN" --out "$WORK/export" >/dev/null
-[[ -f $WORK/export/report.png ]] && cp "$WORK/export/report.png" "$OUT/result/report.png"
+# The picture for the record: rendered by the daemon just after the result
+# (off the latency path); pull waits for it if it is still being drawn.
+bs pull --scan "$SCAN" --out "$OUT/result" --parts report >/dev/null
+[[ -f $OUT/result/report.png ]] || { echo "demo: no report.png" >&2; exit 1; }
 cp "$STORE/timing.jsonl" "$OUT/timing.jsonl"
 
 echo

@@ -5,7 +5,8 @@
 # a `brainshift phantom` scan (256x256x60 intraop grid) one at a time, and
 # reports push->result-ready p50/p95 and VmRSS of every rank after the scans.
 # Prints one JSON object per NP, as a JSON array.
-# Usage: tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]   (default 20, NP 1 2)
+# Usage: [PRESET=name] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
+#        (default 20 scans, NP 1 2, phantom preset left_frontal_sinking_12mm)
 set -euo pipefail
 BUILD=$(cd "${1:?usage: $0 BUILD_DIR [SCANS] [NP...]}" && pwd)
 SCANS=${2:-20}
@@ -35,7 +36,7 @@ stop_daemon() {
 trap 'stop_daemon; rm -rf "$WORK"' EXIT
 
 echo "bench: making the phantom scan" >&2
-"$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --out "$WORK/phantom" >/dev/null
+"$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --preset "${PRESET:-left_frontal_sinking_12mm}" --out "$WORK/phantom" >/dev/null
 
 json_field() { sed -n "s/.*\"$1\":\"\([^\"]*\)\".*/\1/p" "$2"; }
 echo "[" 

@@ -208,6 +208,8 @@ TEST(ServerCore, ReportIsRenderedAfterScanDoneAndServedAsAPart) {
   h.load_preop();
   const std::string id = parse_scan_push_reply(h.push(intraop_labels(), std::nullopt, true)).scan_id;
   const ScanResultRequest want_report{id, {ResultPart::kReport, ResultPart::kTimings}, {}};
+  const ScanResultRequest want_itk{id, {ResultPart::kDisplacementItk}, {}};
+  std::optional<ScanResultReply> itk_during;
   // While the report renders, the scan is already done: the other parts are
   // served and the report is "pending", not refused.
   std::optional<ScanResultReply> during;
@@ -215,6 +217,7 @@ TEST(ServerCore, ReportIsRenderedAfterScanDoneAndServedAsAPart) {
   h.engine.while_rendering_report = [&] {
     done_events_during = h.count_events(MessageType::kEventScanDone);
     during = parse_scan_result_reply(h.call(make_scan_result_request("r-during", want_report)));
+    itk_during = parse_scan_result_reply(h.call(make_scan_result_request("i-during", want_itk)));
   };
   ASSERT_TRUE(h.core->step(10ms));
   EXPECT_EQ(done_events_during, 1) << "scan.done must be announced before the report is rendered";
@@ -224,6 +227,12 @@ TEST(ServerCore, ReportIsRenderedAfterScanDoneAndServedAsAPart) {
   ASSERT_EQ(during->unavailable.size(), 1u);
   EXPECT_EQ(during->unavailable[0].part, "report");
   EXPECT_TRUE(during->unavailable[0].pending);
+  // field.h5 is deferred the same way (this fake never makes one).
+  ASSERT_EQ(itk_during->unavailable.size(), 1u);
+  EXPECT_TRUE(itk_during->unavailable[0].pending);
+  const ScanResultReply itk_after = parse_scan_result_reply(h.call(make_scan_result_request("i-after", want_itk)));
+  ASSERT_EQ(itk_after.unavailable.size(), 1u);
+  EXPECT_FALSE(itk_after.unavailable[0].pending);
 
   const ScanResultReply after = parse_scan_result_reply(h.call(make_scan_result_request("r-after", want_report)));
   ASSERT_NE(after.find("report"), nullptr);

@@ -112,11 +112,11 @@ const std::string FakeEngine::kReportPng(
     "\0\0\x03\x01\x01\0\xc9\xfe\x92\xef\0\0\0\0IEND\xae" "B`\x82",
     69);
 
-std::optional<std::string> FakeEngine::render_report() {
-  if (!report_due_) return std::nullopt;
+void FakeEngine::render_deferred(const DeferredOutputFn& add) {
+  if (!report_due_) return;
   report_due_ = false;
   if (while_rendering_report) while_rendering_report();
-  return kReportPng;
+  add("report.png", kReportPng);
 }
 
 }  // namespace brainshift::test

@@ -46,16 +46,16 @@ class FakeEngine : public server::EnginePort {
   int ranks() const override { return 1; }
   std::size_t max_image_bytes() const override { return std::size_t{64} << 20; }
   void stop_workers() override { stopped = true; }
-  // kReportPng when the last scan had an intraop image (once), as the real
-  // adapter renders report.png only over an intraop image.
-  std::optional<std::string> render_report() override;
+  // report.png = kReportPng when the last scan had an intraop image (once), as
+  // the real adapter draws report.png only over an intraop image.
+  void render_deferred(const DeferredOutputFn& add) override;
 
   // Expected output files for these inputs (what register_scan returns).
   static std::map<std::string, std::string> files_for(const LabelImage& labels, bool with_image);
 
   // A valid 1x1 RGB PNG standing in for report.png.
   static const std::string kReportPng;
-  std::function<void()> while_rendering_report;  // called inside render_report
+  std::function<void()> while_rendering_report;  // called inside render_deferred
 
   bool fail_next_scan = false;   // ComputeError from the next register_scan
   bool fail_preop = false;       // InputError from load_preop
