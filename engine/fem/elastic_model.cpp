@@ -182,7 +182,7 @@ void ElasticModel::assemble() {
   if (m.assembled) throw std::logic_error("ElasticModel::assemble called twice");
   Stopwatch clock;
   const TetMesh& mesh = *m.mesh;
-  Eigen::Matrix<double, 12, 12, Eigen::RowMajor> ke;  // PETSc reads values row-major
+  Eigen::Matrix<double, 12, 12, Eigen::RowMajor> ke, ke_sorted;  // PETSc reads values row-major
   const ElasticityByLabel elasticity(m.options);
   std::string bad_tet;  // first invalid tet on this rank
   for (std::size_t t = 0; t < mesh.tet_count() && bad_tet.empty(); ++t) {
@@ -197,8 +197,17 @@ void ElasticModel::assemble() {
       bad_tet = "tet " + std::to_string(t) + ": " + e.what();
       break;
     }
-    const PetscInt blocks[4] = {tet[0], tet[1], tet[2], tet[3]};
-    BS_PETSC(MatSetValuesBlocked(m.stiffness, 4, blocks, 4, blocks, ke.data(), ADD_VALUES));
+    // Inserting with increasing column indices lets PETSc's AIJ row search
+    // continue where the previous column was found instead of restarting.
+    std::array<int, 4> order{0, 1, 2, 3};
+    std::sort(order.begin(), order.end(), [&tet](int a, int b) { return tet[a] < tet[b]; });
+    PetscInt blocks[4];
+    for (int a = 0; a < 4; ++a) {
+      blocks[a] = tet[order[a]];
+      for (int b = 0; b < 4; ++b)
+        ke_sorted.block<3, 3>(3 * a, 3 * b) = ke.block<3, 3>(3 * order[a], 3 * order[b]);
+    }
+    BS_PETSC(MatSetValuesBlocked(m.stiffness, 4, blocks, 4, blocks, ke_sorted.data(), ADD_VALUES));
   }
   // A rank that threw alone would leave the others hanging in MatAssemblyEnd:
   // agree on failure first, then every rank throws.
