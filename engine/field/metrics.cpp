@@ -95,50 +95,69 @@ SurfaceDistance surface_distance(const Mask& a, const Mask& b) {
   return s;
 }
 
-ImageF jacobian_determinant(const VectorImage3& field) {
+namespace {
+
+// det(I + grad u) at voxel (i,j,k): central differences in index space (one-
+// sided at the border), mapped to world mm through the grid's affine.
+float jacobian_at(const VectorImage3& field, const Eigen::Matrix3d& index_from_world,
+                  const std::array<std::size_t, 3>& stride, int i, int j, int k) {
+  const Grid3& g = field.grid;
+  const std::array<int, 3> ijk{i, j, k};
+  const std::size_t v = g.index(i, j, k);
+  Eigen::Matrix3d d_index;  // column a = du / d index_a
+  for (int a = 0; a < 3; ++a) {
+    const bool has_lo = ijk[a] > 0, has_hi = ijk[a] + 1 < g.dims[a];
+    if (!has_lo && !has_hi) {
+      d_index.col(a).setZero();
+      continue;
+    }
+    const std::size_t hi = has_hi ? v + stride[a] : v;
+    const std::size_t lo = has_lo ? v - stride[a] : v;
+    const double h = (has_hi && has_lo) ? 2.0 : 1.0;
+    d_index.col(a) = (field.vectors[hi] - field.vectors[lo]).cast<double>() / h;
+  }
+  const Eigen::Matrix3d jac = Eigen::Matrix3d::Identity() + d_index * index_from_world;
+  return static_cast<float>(jac.determinant());
+}
+
+// Visits every voxel (or only those in mask) with its determinant.
+template <class Visit>
+void for_each_jacobian(const VectorImage3& field, const Mask* mask, Visit&& visit) {
   const Grid3& g = field.grid;
   // d(world)/d(index) = M, so grad_world u = (du/d index) * M^-1.
   const Eigen::Matrix3d index_from_world = g.world_from_voxel.topLeftCorner<3, 3>().inverse();
-  ImageF det(g, 0.f);
   const std::array<std::size_t, 3> stride{1, static_cast<std::size_t>(g.dims[0]),
                                           static_cast<std::size_t>(g.dims[0]) * g.dims[1]};
   for (int k = 0; k < g.dims[2]; ++k)
     for (int j = 0; j < g.dims[1]; ++j)
       for (int i = 0; i < g.dims[0]; ++i) {
-        const std::array<int, 3> ijk{i, j, k};
         const std::size_t v = g.index(i, j, k);
-        Eigen::Matrix3d d_index;  // column a = du / d index_a
-        for (int a = 0; a < 3; ++a) {
-          const bool has_lo = ijk[a] > 0, has_hi = ijk[a] + 1 < g.dims[a];
-          if (!has_lo && !has_hi) {
-            d_index.col(a).setZero();
-            continue;
-          }
-          const std::size_t hi = has_hi ? v + stride[a] : v;
-          const std::size_t lo = has_lo ? v - stride[a] : v;
-          const double h = (has_hi && has_lo) ? 2.0 : 1.0;
-          d_index.col(a) = (field.vectors[hi] - field.vectors[lo]).cast<double>() / h;
-        }
-        const Eigen::Matrix3d jac = Eigen::Matrix3d::Identity() + d_index * index_from_world;
-        det.voxels[v] = static_cast<float>(jac.determinant());
+        if (mask && !mask->voxels[v]) continue;
+        visit(v, jacobian_at(field, index_from_world, stride, i, j, k));
       }
+}
+
+}  // namespace
+
+ImageF jacobian_determinant(const VectorImage3& field) {
+  ImageF det(field.grid, 0.f);
+  for_each_jacobian(field, nullptr, [&det](std::size_t v, float d) { det.voxels[v] = d; });
   return det;
 }
 
 JacobianStats jacobian_stats(const VectorImage3& field, const Mask* mask) {
   if (mask) require_same_grid(field.grid, mask->grid, "jacobian_stats");
-  const ImageF det = jacobian_determinant(field);
   JacobianStats s;
   s.min_det = std::numeric_limits<double>::infinity();
   s.max_det = -std::numeric_limits<double>::infinity();
-  for (std::size_t v = 0; v < det.voxels.size(); ++v) {
-    if (mask && !mask->voxels[v]) continue;
-    const double d = det.voxels[v];
+  // Only the masked voxels are evaluated: the brain is a fraction of the grid.
+  for_each_jacobian(field, mask, [&s](std::size_t, float det) {
+    const double d = det;
     s.min_det = std::min(s.min_det, d);
     s.max_det = std::max(s.max_det, d);
     s.folded_voxels += d <= 0.0;
     ++s.voxels;
-  }
+  });
   if (s.voxels == 0) s.min_det = s.max_det = 0.0;
   return s;
 }

@@ -112,7 +112,10 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   validate_intraop_input(input, table);
   const auto cavities = table.cavity_labels();
   const std::uint16_t ventricle = cavities.empty() ? 0 : cavities.front();
-  const double intraop_volume_ml = volume_ml(outline_mask(input.labels));
+  // The brain region of the intraop scan (all labels, enclosed holes filled),
+  // computed once: field-of-view check, affine/surface targets, Jacobian region.
+  const Mask brain_region = outline_mask(input.labels);
+  const double intraop_volume_ml = volume_ml(brain_region);
   if (intraop_volume_ml < params.gates.min_intraop_brain_fraction * warm.brain_volume_ml)
     throw InputError("intraop labels: the brain covers only " + std::to_string(intraop_volume_ml) +
                      " ml against " + std::to_string(warm.brain_volume_ml) +
@@ -120,7 +123,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.done("read");
 
   clock.start("affine");
-  const IntraopDistanceMaps maps = prepare_intraop_maps(input.labels, table.brain_label(), ventricle);
+  const IntraopDistanceMaps maps = prepare_intraop_maps(input.labels, brain_region, table.brain_label(), ventricle);
   const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine);
   const Eigen::Matrix4d A = affine.intraop_from_preop;
   result.intraop_from_preop = A;
@@ -156,7 +159,6 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.start("field");
   FieldStats field_stats;
   result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
-  const Mask brain_region = outline_mask(input.labels);
   JacobianStats jac = jacobian_stats(result.pullback_field_mm, &brain_region);
   if (failure.empty() && jac.min_det <= params.gates.min_jacobian_determinant) {
     failure = "the non-rigid field folds (min Jacobian determinant " + std::to_string(jac.min_det) + ")";

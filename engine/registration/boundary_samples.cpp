@@ -113,12 +113,14 @@ PreopBoundarySamples prepare_preop_samples(const LabelImage& preop_labels,
 IntraopDistanceMaps prepare_intraop_maps(const LabelImage& intraop_labels,
                                          std::uint16_t brain_label,
                                          std::uint16_t ventricle_label) {
+  return prepare_intraop_maps(intraop_labels, outline_mask(intraop_labels), brain_label, ventricle_label);
+}
+
+IntraopDistanceMaps prepare_intraop_maps(const LabelImage& intraop_labels, const Mask& outline,
+                                         std::uint16_t brain_label,
+                                         std::uint16_t ventricle_label) {
   require_label(intraop_labels, brain_label, "intraop");
   IntraopDistanceMaps maps;
-  // Holes are filled: an enclosed resection cavity is not part of the outer
-  // brain surface, and matching the cortex to its wall would drag healthy
-  // tissue into it.
-  const Mask outline = fill_holes(nonzero_mask(intraop_labels));
   maps.outer_sdf_mm = signed_distance_mm(outline);
   maps.outer_moments = mask_moments(outline);
   if (has_label(intraop_labels, ventricle_label)) {

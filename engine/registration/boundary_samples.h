@@ -54,5 +54,9 @@ struct IntraopDistanceMaps {
 // brain_label is absent.
 IntraopDistanceMaps prepare_intraop_maps(const LabelImage& intraop_labels,
                                          std::uint16_t brain_label, std::uint16_t ventricle_label);
+// The same with the outline already computed (outline_mask of the labels), so
+// a caller that needs it too computes it once.
+IntraopDistanceMaps prepare_intraop_maps(const LabelImage& intraop_labels, const Mask& outline,
+                                         std::uint16_t brain_label, std::uint16_t ventricle_label);
 
 }  // namespace brainshift

@@ -19,4 +19,8 @@ run 1 --solver direct --dirichlet row_replacement --package mumps
 # Mesh-size sweep (cell / facet / distance mm): ~10k, ~43k, ~150k, ~400k nodes.
 run 1 --solver direct --cell-size 6.5 --facet-size 3.6 --facet-distance 2.0 --repeat 3
 run 1 --solver direct --cell-size 2.2 --facet-size 1.35 --facet-distance 1.0 --repeat 3
-run 1 --solver direct --cell-size 1.55 --facet-size 0.95 --facet-distance 0.7 --repeat 3
+# At ~400k nodes CHOLMOD's 32-bit factor overflows ("problem too large"):
+# the iterative solvers carry the sweep there.
+run 1 --solver cg_gamg --cell-size 2.2 --facet-size 1.35 --facet-distance 1.0 --repeat 3
+run 1 --solver cg_gamg --cell-size 1.55 --facet-size 0.95 --facet-distance 0.7 --repeat 3
+run 2 --solver gmres_bjacobi --cell-size 1.55 --facet-size 0.95 --facet-distance 0.7 --repeat 3
