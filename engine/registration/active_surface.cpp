@@ -1,6 +1,8 @@
 #include "registration/active_surface.h"
 
 #include <algorithm>
+#include <array>
+#include <optional>
 #include <cmath>
 #include <limits>
 #include <sstream>
@@ -108,17 +110,18 @@ Points area_weighted_normals(const TriSurface& s, const Points& x) {
 }
 
 // Offset along the normal (mm, within +-search) of the strongest intensity
-// step, by central differences on a 0.5 mm profile; 0 when the profile leaves the image.
-double edge_offset_mm(const ImageF& image, const Eigen::Vector3d& x, const Eigen::Vector3d& n,
+// step, by central differences on a 0.5 mm profile; 0 when the profile leaves
+// the image. Runs for every vertex in every iteration, so it samples through a
+// LinearSampler (affine inverted once) and keeps the profile on the stack.
+double edge_offset_mm(const LinearSampler& image, const Eigen::Vector3d& x, const Eigen::Vector3d& n,
                       double search_mm) {
   constexpr double h = 0.5;
-  const int half = static_cast<int>(std::ceil(search_mm / h)) + 1;
-  std::vector<float> profile(2 * half + 1);
-  for (int i = -half; i <= half; ++i) {
-    const float v = sample_linear(image, x + (i * h) * n, std::numeric_limits<float>::quiet_NaN());
-    if (std::isnan(v)) return 0.0;
-    profile[i + half] = v;
-  }
+  constexpr int kMaxHalf = 64;
+  const int half = std::min(kMaxHalf, static_cast<int>(std::ceil(search_mm / h)) + 1);
+  std::array<double, 2 * kMaxHalf + 1> profile;
+  Eigen::Vector3d unused_gradient;
+  for (int i = -half; i <= half; ++i)
+    if (!image.sample(x + (i * h) * n, &profile[i + half], &unused_gradient)) return 0.0;
   double best = 0, best_offset = 0;
   for (int i = -half + 1; i <= half - 1; ++i) {
     const double g = std::abs(profile[i + half + 1] - profile[i + half - 1]);
@@ -133,7 +136,7 @@ struct ForceField {
 };
 
 ForceField compute_force(const TriSurface& s, const Points& x, const LinearSampler& target,
-                         const ImageF* image, const ActiveSurfaceParameters& p) {
+                         const LinearSampler* image, const ActiveSurfaceParameters& p) {
   ForceField f{Points(x.size(), Eigen::Vector3d::Zero()), std::vector<char>(x.size(), 0)};
   const Points normals = area_weighted_normals(s, x);
   for (std::size_t v = 0; v < x.size(); ++v) {
@@ -213,7 +216,9 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
   const int smoothing_passes = std::min(
       20, static_cast<int>(std::lround(4 * p.force_smoothing_mm * p.force_smoothing_mm / (h * h))));
   const LinearSampler target(target_sdf);
-  const ImageF* image = intraop_image && !intraop_image->voxels.empty() ? intraop_image : nullptr;
+  std::optional<LinearSampler> image_sampler;
+  if (intraop_image && !intraop_image->voxels.empty()) image_sampler.emplace(*intraop_image);
+  const LinearSampler* image = image_sampler ? &*image_sampler : nullptr;
 
   Eigen::MatrixXd u = Eigen::MatrixXd::Zero(n, 3);
   Points x = surface.vertices_mm;
