@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The daemon latency benchmark of issue 4 (results: docs/DAEMON_BENCHMARK.md).
+# The daemon latency benchmark of issue 4 (results: docs/PERFORMANCE.md, section 4).
 # For each NP: starts brainshiftd on a fresh store with no preop, times
 # preop.load of the default atlas (published mesh size), pushes SCANS copies of
 # a `brainshift phantom` scan (256x256x60 intraop grid) one at a time, and
