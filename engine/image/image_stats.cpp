@@ -26,6 +26,33 @@ VoxelBox bounding_box_voxels(const Mask& mask) {
   return box;
 }
 
+VoxelBox grow_box(const VoxelBox& box, const Grid3& grid, double margin_mm) {
+  if (box.empty) return box;
+  VoxelBox out = box;
+  const Eigen::Vector3d spacing = grid.spacing_mm();
+  for (int a = 0; a < 3; ++a) {
+    const int m = static_cast<int>(std::ceil(margin_mm / spacing[a]));
+    out.lo[a] = std::max(0, box.lo[a] - m);
+    out.hi[a] = std::min(grid.dims[a] - 1, box.hi[a] + m);
+  }
+  return out;
+}
+
+Mask crop_to_box(const Mask& mask, const VoxelBox& box) {
+  if (box.empty) throw InputError("crop_to_box: empty box");
+  Grid3 g;
+  for (int a = 0; a < 3; ++a) g.dims[a] = box.hi[a] - box.lo[a] + 1;
+  g.world_from_voxel = mask.grid.world_from_voxel;
+  g.world_from_voxel.block<3, 1>(0, 3) = mask.grid.world_mm(box.lo[0], box.lo[1], box.lo[2]);
+  Mask out(g, 0);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j) {
+      const std::uint8_t* src = &mask.voxels[mask.grid.index(box.lo[0], j + box.lo[1], k + box.lo[2])];
+      std::copy(src, src + g.dims[0], &out.voxels[g.index(0, j, k)]);
+    }
+  return out;
+}
+
 std::size_t count_nonzero(const Mask& mask) {
   return static_cast<std::size_t>(std::count_if(mask.voxels.begin(), mask.voxels.end(), [](std::uint8_t v) { return v != 0; }));
 }

@@ -16,6 +16,13 @@ struct VoxelBox {
 };
 
 VoxelBox bounding_box_voxels(const Mask& mask);
+// The box grown by margin_mm on every side (per-axis voxel spacing), clipped
+// to the grid.
+VoxelBox grow_box(const VoxelBox& box, const Grid3& grid, double margin_mm);
+// The voxels of mask inside box as an image of their own, placed at the same
+// world position (world_from_voxel shifted to the box's corner): distance maps
+// of a small structure then cost its neighbourhood, not the whole grid.
+Mask crop_to_box(const Mask& mask, const VoxelBox& box);
 std::size_t count_nonzero(const Mask& mask);
 // Voxel count times |det(world_from_voxel)| / 1000 (1 ml = 1000 mm^3).
 double volume_ml(const Mask& mask);

@@ -84,33 +84,17 @@ std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const Intraop
   return values;
 }
 
-// The part of a mask inside box (voxel bounds inclusive), as its own image
-// with the matching world placement, so distance maps only cover the
-// structure's neighbourhood instead of the whole intraop grid.
-Mask crop(const Mask& mask, const VoxelBox& box) {
-  Grid3 g;
-  for (int a = 0; a < 3; ++a) g.dims[a] = box.hi[a] - box.lo[a] + 1;
-  g.world_from_voxel = mask.grid.world_from_voxel;
-  g.world_from_voxel.block<3, 1>(0, 3) = mask.grid.world_mm(box.lo[0], box.lo[1], box.lo[2]);
-  Mask out(g, 0);
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i)
-        out.at(i, j, k) = mask.at(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
-  return out;
-}
-
-// Union of two masks' bounding boxes, grown by margin voxels, within the grid.
-VoxelBox joint_box(const Mask& a, const Mask& b, int margin) {
-  VoxelBox ba = bounding_box_voxels(a), bb = bounding_box_voxels(b), out;
+// Union of two masks' bounding boxes, grown by margin_mm.
+VoxelBox joint_box(const Mask& a, const Mask& b, double margin_mm) {
+  VoxelBox ba = bounding_box_voxels(a), bb = bounding_box_voxels(b);
   if (ba.empty) ba = bb;
   if (bb.empty) bb = ba;
-  out.empty = ba.empty && bb.empty;
+  VoxelBox out = ba;
   for (int d = 0; d < 3; ++d) {
-    out.lo[d] = std::max(0, std::min(ba.lo[d], bb.lo[d]) - margin);
-    out.hi[d] = std::min(a.grid.dims[d] - 1, std::max(ba.hi[d], bb.hi[d]) + margin);
+    out.lo[d] = std::min(ba.lo[d], bb.lo[d]);
+    out.hi[d] = std::max(ba.hi[d], bb.hi[d]);
   }
-  return out;
+  return grow_box(out, a.grid, margin_mm);
 }
 
 nlohmann::json label_metrics(const LabelImage& warped, const LabelImage& intraop, const LabelTable& table) {
@@ -119,8 +103,8 @@ nlohmann::json label_metrics(const LabelImage& warped, const LabelImage& intraop
     const Mask a = mask_of_labels(warped, {e.value});
     const Mask b = mask_of_labels(intraop, {e.value});
     if (count_nonzero(b) == 0) continue;  // only structures the intraop segmentation has
-    const VoxelBox box = joint_box(a, b, 2);
-    const SurfaceDistance d = surface_distance(crop(a, box), crop(b, box));
+    const VoxelBox box = joint_box(a, b, 5.0);
+    const SurfaceDistance d = surface_distance(crop_to_box(a, box), crop_to_box(b, box));
     const double dice = dice_per_label(warped, intraop, {e.value}).front().dice;
     out[e.name] = {{"dice", dice}, {"mean_surface_distance_mm", d.mean_mm}, {"hausdorff95_mm", d.hd95_mm}};
   }

@@ -1,5 +1,7 @@
 #include "registration/boundary_samples.h"
 
+#include "image/image_stats.h"
+
 #include <algorithm>
 #include <random>
 #include <string>
@@ -8,6 +10,9 @@
 #include "image/distance_map.h"
 
 namespace brainshift {
+
+// Margin (mm) of the ventricles' cropped distance map around their bounding box.
+constexpr double kVentricleMapMarginMm = 30.0;
 namespace {
 
 bool has_label(const LabelImage& labels, std::uint16_t value) {
@@ -124,7 +129,12 @@ IntraopDistanceMaps prepare_intraop_maps(const LabelImage& intraop_labels, const
   maps.outer_sdf_mm = signed_distance_mm(outline);
   maps.outer_moments = mask_moments(outline);
   if (has_label(intraop_labels, ventricle_label)) {
-    maps.ventricle_sdf_mm = signed_distance_mm(mask_of_labels(intraop_labels, {ventricle_label}));
+    // The ventricles fill a small box: their distance map is computed only
+    // within a margin around it (wider than any ventricle displacement the
+    // affine leaves), on a grid placed at the same world position.
+    const Mask ventricles = mask_of_labels(intraop_labels, {ventricle_label});
+    const VoxelBox box = grow_box(bounding_box_voxels(ventricles), ventricles.grid, kVentricleMapMarginMm);
+    maps.ventricle_sdf_mm = signed_distance_mm(crop_to_box(ventricles, box));
   }
   return maps;
 }
