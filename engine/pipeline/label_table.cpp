@@ -7,13 +7,15 @@
 
 namespace brainshift {
 
+// Mirrors config/labels.toml (nu = 0.35: the drained response over the time
+// scale of surgery; see the comment there).
 LabelTable LabelTable::defaults() {
   LabelTable table;
   table.entries = {
-      {labels::brain, "brain", LabelRole::parenchyma, 3000.0, 0.45, true},
-      {labels::ventricles, "ventricles", LabelRole::cavity, 3000.0, 0.45, true},
-      {labels::corticospinal_tract, "corticospinal_tract", LabelRole::structure, 3000.0, 0.45, true},
-      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.45, true},
+      {labels::brain, "brain", LabelRole::parenchyma, 3000.0, 0.35, true},
+      {labels::ventricles, "ventricles", LabelRole::cavity, 3000.0, 0.35, true},
+      {labels::corticospinal_tract, "corticospinal_tract", LabelRole::structure, 3000.0, 0.35, true},
+      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.35, true},
   };
   return table;
 }

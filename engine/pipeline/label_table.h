@@ -19,7 +19,7 @@ struct LabelEntry {
   std::string name;  // model name, e.g. "corticospinal_tract"
   LabelRole role = LabelRole::structure;
   double youngs_modulus_pa = 3000.0;
-  double poisson_ratio = 0.45;
+  double poisson_ratio = 0.35;
   bool make_model = true;  // write a surface model of this label
 };
 

@@ -13,7 +13,8 @@ TEST(Config, DefaultsParseAndMatchTheDocumentedTable) {
   EXPECT_EQ(p.label_table.find("corticospinal_tract")->value, 3);
   EXPECT_EQ(p.label_table.find("tumor")->value, 4);
   EXPECT_DOUBLE_EQ(p.label_table.find(1)->youngs_modulus_pa, 3000.0);
-  EXPECT_DOUBLE_EQ(p.label_table.find(1)->poisson_ratio, 0.45);
+  EXPECT_DOUBLE_EQ(p.label_table.find(1)->poisson_ratio, 0.35);
+  EXPECT_DOUBLE_EQ(LabelTable::defaults().find(1)->poisson_ratio, 0.35);  // code and file agree
   EXPECT_EQ(p.elastic.solver, SolverKind::direct_cholesky);
   EXPECT_EQ(p.elastic.dirichlet, DirichletMethod::symmetric_elimination);
 }

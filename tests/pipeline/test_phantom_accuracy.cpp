@@ -7,7 +7,7 @@
 // regressions; the project's targets (issue "Registration pipeline": mean TRE
 // <= 1.0 mm, p95 <= 2.5 mm, >= 80 % of the error removed) are stricter and are
 // tracked in docs/PERFORMANCE.md, not asserted here. Measured on this suite:
-// mean 1.20 mm, worst case p95 4.9 mm (resection collapse), 69 % removed.
+// mean 0.96 mm, worst case p95 4.4 mm (resection collapse), 75 % removed.
 #include <gtest/gtest.h>
 #include <mpi.h>
 
@@ -50,15 +50,15 @@ TEST(PhantomAccuracy, StandardSuiteOnColin27) {
                 c.nonrigid_p95_mm, c.nonrigid_max_mm, c.intraop_total_seconds, c.fallback ? " FALLBACK" : "");
     EXPECT_FALSE(c.fallback) << c.name << ": " << c.metrics.dump();
     EXPECT_LE(c.nonrigid_mean_mm, c.affine_mean_mm + 0.4) << c.name << ": clearly worse than the affine alone";
-    EXPECT_LE(c.nonrigid_mean_mm, 1.8) << c.name;
+    EXPECT_LE(c.nonrigid_mean_mm, 1.5) << c.name;
     EXPECT_LE(c.nonrigid_p95_mm, 5.5) << c.name;
   }
   const auto s = evaluation::summarise(cases);
   std::printf("suite: mean TRE %.2f mm (affine %.2f, uncorrected %.2f), worst p95 %.2f mm, %.0f %% of the error removed\n",
               s.mean_mm, s.affine_mean_mm, s.uncorrected_mean_mm, s.p95_mm, 100 * s.removed_fraction);
-  EXPECT_LE(s.mean_mm, 1.35);
+  EXPECT_LE(s.mean_mm, 1.1);
   EXPECT_LT(s.mean_mm, 0.9 * s.affine_mean_mm) << "the non-rigid step must beat the affine over the suite";
-  EXPECT_GE(s.removed_fraction, 0.6);
+  EXPECT_GE(s.removed_fraction, 0.7);
   if (const char* out = std::getenv("BRAINSHIFT_ACCURACY_JSON")) {
     FILE* f = std::fopen(out, "w");
     if (f) {
