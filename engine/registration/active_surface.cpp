@@ -119,9 +119,8 @@ double edge_offset_mm(const LinearSampler& image, const Eigen::Vector3d& x, cons
   constexpr int kMaxHalf = 64;
   const int half = std::min(kMaxHalf, static_cast<int>(std::ceil(search_mm / h)) + 1);
   std::array<double, 2 * kMaxHalf + 1> profile;
-  Eigen::Vector3d unused_gradient;
   for (int i = -half; i <= half; ++i)
-    if (!image.sample(x + (i * h) * n, &profile[i + half], &unused_gradient)) return 0.0;
+    if (!image.sample(x + (i * h) * n, &profile[i + half], nullptr)) return 0.0;
   double best = 0, best_offset = 0;
   for (int i = -half + 1; i <= half - 1; ++i) {
     const double g = std::abs(profile[i + half + 1] - profile[i + half - 1]);

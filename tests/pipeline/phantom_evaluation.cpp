@@ -53,6 +53,7 @@ CaseResult evaluate_case(EngineSession& session, const PhantomSpec& spec) {
   out.max_true_displacement_mm = *std::max_element(e.uncorrected.begin(), e.uncorrected.end());
   out.intraop_total_seconds = r.timings["intraop"]["total"].get<double>();
   out.fallback = r.kind != ResultKind::nonrigid;
+  out.nonrigid_errors_mm = e.nonrigid;
   out.timings = r.timings;
   out.metrics = r.metrics;
   return out;
@@ -72,7 +73,9 @@ nlohmann::json to_json(const CaseResult& r) {
 Summary summarise(const std::vector<CaseResult>& cases) {
   Summary s;
   double n = 0;
+  std::vector<double> pooled;
   for (const auto& c : cases) {
+    pooled.insert(pooled.end(), c.nonrigid_errors_mm.begin(), c.nonrigid_errors_mm.end());
     s.mean_mm += c.nonrigid_mean_mm;
     s.p95_mm = std::max(s.p95_mm, c.nonrigid_p95_mm);
     s.affine_mean_mm += c.affine_mean_mm;
@@ -84,6 +87,7 @@ Summary summarise(const std::vector<CaseResult>& cases) {
     s.affine_mean_mm /= n;
     s.uncorrected_mean_mm /= n;
   }
+  if (!pooled.empty()) s.pooled_p95_mm = percentile(pooled, 95.0);
   s.removed_fraction = s.uncorrected_mean_mm > 0 ? 1.0 - s.mean_mm / s.uncorrected_mean_mm : 0.0;
   return s;
 }

@@ -19,6 +19,7 @@ struct CaseResult {
   double max_true_displacement_mm = 0;
   double intraop_total_seconds = 0;
   bool fallback = false;
+  std::vector<double> nonrigid_errors_mm;  // per landmark
   nlohmann::json timings, metrics;
 };
 
@@ -29,7 +30,10 @@ nlohmann::json to_json(const CaseResult& r);
 
 // Pools the landmark errors of several cases.
 struct Summary {
-  double mean_mm = 0, p95_mm = 0, removed_fraction = 0, affine_mean_mm = 0, uncorrected_mean_mm = 0;
+  double mean_mm = 0;                  // mean over cases of the per-case mean
+  double p95_mm = 0;                   // worst per-case p95
+  double pooled_p95_mm = 0;            // p95 over every landmark of every case
+  double removed_fraction = 0, affine_mean_mm = 0, uncorrected_mean_mm = 0;
 };
 Summary summarise(const std::vector<CaseResult>& cases);
 

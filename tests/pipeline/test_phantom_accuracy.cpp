@@ -54,8 +54,8 @@ TEST(PhantomAccuracy, StandardSuiteOnColin27) {
     EXPECT_LE(c.nonrigid_p95_mm, 5.5) << c.name;
   }
   const auto s = evaluation::summarise(cases);
-  std::printf("suite: mean TRE %.2f mm (affine %.2f, uncorrected %.2f), worst p95 %.2f mm, %.0f %% of the error removed\n",
-              s.mean_mm, s.affine_mean_mm, s.uncorrected_mean_mm, s.p95_mm, 100 * s.removed_fraction);
+  std::printf("suite: mean TRE %.2f mm (affine %.2f, uncorrected %.2f), p95 over all landmarks %.2f mm, worst case p95 %.2f mm, %.0f %% of the error removed\n",
+              s.mean_mm, s.affine_mean_mm, s.uncorrected_mean_mm, s.pooled_p95_mm, s.p95_mm, 100 * s.removed_fraction);
   EXPECT_LE(s.mean_mm, 1.1);
   EXPECT_LT(s.mean_mm, 0.9 * s.affine_mean_mm) << "the non-rigid step must beat the affine over the suite";
   EXPECT_GE(s.removed_fraction, 0.7);
