@@ -139,6 +139,14 @@ void for_each_jacobian(const VectorImage3& field, const Mask* mask, Visit&& visi
 
 }  // namespace
 
+double jacobian_determinant_at(const VectorImage3& field, int i, int j, int k) {
+  const Grid3& g = field.grid;
+  const Eigen::Matrix3d index_from_world = g.world_from_voxel.topLeftCorner<3, 3>().inverse();
+  const std::array<std::size_t, 3> stride{1, static_cast<std::size_t>(g.dims[0]),
+                                          static_cast<std::size_t>(g.dims[0]) * g.dims[1]};
+  return jacobian_at(field, index_from_world, stride, i, j, k);
+}
+
 ImageF jacobian_determinant(const VectorImage3& field) {
   ImageF det(field.grid, 0.f);
   for_each_jacobian(field, nullptr, [&det](std::size_t v, float d) { det.voxels[v] = d; });

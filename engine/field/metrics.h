@@ -46,6 +46,8 @@ Mask boundary_voxels(const Mask& mask);
 // det(I + grad u) with grad u from central differences in voxel index space
 // (one-sided on the grid faces) mapped to world mm through the grid's linear part.
 ImageF jacobian_determinant(const VectorImage3& field);
+// The same at one voxel (central differences, one-sided at the border).
+double jacobian_determinant_at(const VectorImage3& field, int i, int j, int k);
 struct JacobianStats {
   double min_det = 0.0;
   double max_det = 0.0;

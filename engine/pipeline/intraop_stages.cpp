@@ -7,6 +7,7 @@
 #include "core/timer.h"
 #include "field/displacement_field.h"
 #include "field/metrics.h"
+#include "field/unfold.h"
 #include "field/warp.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
@@ -174,6 +175,16 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   FieldStats field_stats;
   result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
   JacobianStats jac = jacobian_stats(result.pullback_field_mm, &brain_region);
+  if (failure.empty() && jac.min_det <= params.gates.min_jacobian_determinant) {
+    // A few folded voxels (strongly compressed elements under a deep sinking)
+    // are repaired locally before the whole non-rigid result is refused.
+    UnfoldStats unfold;
+    const bool repaired = unfold_field(result.pullback_field_mm, brain_region, params.unfold, &unfold);
+    metrics["unfold"] = {{"folded_voxels_before", jac.folded_voxels}, {"repaired", repaired},
+                         {"changed_voxels", unfold.changed_voxels}, {"rounds", unfold.rounds},
+                         {"max_change_mm", unfold.max_change_mm}};
+    jac = jacobian_stats(result.pullback_field_mm, &brain_region);
+  }
   if (failure.empty() && jac.min_det <= params.gates.min_jacobian_determinant) {
     failure = "the non-rigid field folds (min Jacobian determinant " + std::to_string(jac.min_det) + ")";
     deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());

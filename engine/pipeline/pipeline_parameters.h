@@ -5,6 +5,7 @@
 #include <string>
 
 #include "field/displacement_field.h"
+#include "field/unfold.h"
 #include "fem/elastic_model.h"
 #include "mesh/label_mesher.h"
 #include "models/surface_models.h"
@@ -36,6 +37,7 @@ struct PipelineParameters {
   ActiveSurfaceParameters outer_surface;      // outer brain surface
   ActiveSurfaceParameters ventricle_surface;  // lateral-ventricle wall
   FieldParameters field;
+  UnfoldParameters unfold;  // local repair tried before the fold gate refuses a field
   ModelParameters models;
   QualityGates gates;
   // Bounds on images received from outside (bytes after decompression).
