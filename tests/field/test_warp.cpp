@@ -105,8 +105,7 @@ TEST(Warp, IntraopSizedTiming) {
   std::printf("warp 256x256x60: linear %.3f s, nearest %.3f s\n", linear_s, nearest_s);
   EXPECT_EQ(out.voxels.size(), field_grid.voxel_count());
   EXPECT_EQ(out_labels.voxels.size(), field_grid.voxel_count());
-  EXPECT_LT(linear_s, 0.6);  // target < 0.15 s; loose because the machine is shared
-  EXPECT_LT(nearest_s, 0.6);
+  // The times are printed above; speed goals live in the benchmarks.
 }
 
 }  // namespace

@@ -331,7 +331,9 @@ TEST(GzipBomb, HeaderClaimingTooMuchIsRefusedBeforeAllocation) {
   ASSERT_LT(gz.size(), 1000u);
   const auto t0 = std::chrono::steady_clock::now();
   expect_input_error_naming([&] { scalar_image_from_bytes(gz, "bomb.nii.gz", 64u << 20); }, "bomb.nii.gz", "limit");
-  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 0.5);
+  // Refused from the header, before inflating: decompressing the claimed
+  // 32 GB would take minutes, so even a loaded machine stays far below this.
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 10.0);
 }
 
 TEST(GzipBomb, RealDataBeyondLimitIsRefused) {
