@@ -1,5 +1,6 @@
 #include "protocol/message.h"
 
+#include <algorithm>
 #include <set>
 #include <utility>
 
@@ -46,7 +47,12 @@ void check_frame_sizes(const std::vector<std::string>& wire, const Limits& limit
                                                   std::to_string(limits.max_total_bytes));
 }
 
-json parse_header(const std::string& text) {
+json parse_header(const std::string& text, const Limits& limits) {
+  const std::size_t depth = json_nesting_depth(text);
+  if (depth > limits.max_header_depth)
+    throw ProtocolError(ErrorCode::kTooLarge, "header nests arrays/objects " + std::to_string(depth) +
+                                                  " levels deep; limit is " +
+                                                  std::to_string(limits.max_header_depth));
   json header = json::parse(text, nullptr, /*allow_exceptions=*/false);
   if (header.is_discarded())
     throw ProtocolError(ErrorCode::kMalformedJson, "header frame is not valid JSON");
@@ -158,6 +164,25 @@ void match_frames(const std::vector<Declared>& declared, const std::vector<std::
 
 }  // namespace
 
+std::size_t json_nesting_depth(std::string_view text) {
+  std::size_t depth = 0, deepest = 0;
+  bool in_string = false, escaped = false;
+  for (const char c : text) {
+    if (in_string) {
+      if (escaped) escaped = false;
+      else if (c == '\\') escaped = true;
+      else if (c == '"') in_string = false;
+    } else if (c == '"') {
+      in_string = true;
+    } else if (c == '[' || c == '{') {
+      deepest = std::max(deepest, ++depth);
+    } else if ((c == ']' || c == '}') && depth > 0) {
+      --depth;
+    }
+  }
+  return deepest;
+}
+
 bool is_valid_frame_name(std::string_view name) {
   if (name.empty() || name.size() > 64) return false;
   for (char c : name) {
@@ -226,7 +251,7 @@ std::vector<std::string> encode(const Message& message) {
 Message decode(std::vector<std::string> wire, const Limits& limits) {
   check_header_size(wire, limits);
   Message message;
-  message.header = parse_header(wire[0]);
+  message.header = parse_header(wire[0], limits);
   const auto request_id = readable_request_id(message.header);
   try {
     check_frame_sizes(wire, limits);

@@ -24,6 +24,10 @@ struct Limits {
   std::size_t max_total_bytes = std::size_t{512} << 20;
   std::size_t max_frames = 32;
   std::size_t max_request_id_length = 128;
+  // Arrays/objects nested deeper than this are refused before parsing: the
+  // JSON library copies and prints values recursively, so a 64 KiB header of
+  // brackets would otherwise overflow the stack (found by tests/fuzz).
+  std::size_t max_header_depth = 32;
 
   static Limits server_inbound() { return Limits{}; }
   static Limits client_inbound() {
@@ -72,6 +76,10 @@ Message decode(std::vector<std::string> wire, const Limits& limits = {});
 // decode() for the ROUTER side: additionally refuses replies and events with
 // kUnknownType, since only request types are requests.
 Message decode_request(std::vector<std::string> wire, const Limits& limits = {});
+
+// Deepest nesting of arrays and objects in JSON text, counted without parsing
+// (strings skipped); exact for valid JSON, so it bounds what a parse would build.
+std::size_t json_nesting_depth(std::string_view text);
 
 // Frame-name rule shared by encode, decode and the typed builders.
 bool is_valid_frame_name(std::string_view name);

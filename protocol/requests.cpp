@@ -152,6 +152,9 @@ std::string make_label_table_json(const LabelTable& table) {
 }
 
 LabelTable parse_label_table_json(std::string_view text) {
+  // A label table is two levels deep; the bound keeps recursion in the JSON library shallow.
+  if (json_nesting_depth(text) > Limits{}.max_header_depth)
+    throw ProtocolError(ErrorCode::kInvalidRequest, "label_table: nested too deeply");
   const json j = json::parse(text, nullptr, /*allow_exceptions=*/false);
   if (j.is_discarded()) throw ProtocolError(ErrorCode::kInvalidRequest, "label_table: not valid JSON");
   const FieldReader f(j, "label_table");

@@ -347,7 +347,9 @@ void require_3d(const RawNifti& raw, std::string_view name) {
 ImageF to_scalar(const RawNifti& raw, std::string_view name) {
   require_3d(raw, name);
   ImageF img(grid_of(raw, name));
-  const auto [slope, inter] = scaling(raw, name);
+  // Not a structured binding: clang 14 (the fuzz build) cannot capture one in a lambda.
+  const std::pair<double, double> scale = scaling(raw, name);
+  const double slope = scale.first, inter = scale.second;
   float* out = img.voxels.data();
   std::size_t bad = 0;
   for_each_value(raw, 0, raw.voxel_count, [&](std::size_t i, double v) {
@@ -362,7 +364,8 @@ ImageF to_scalar(const RawNifti& raw, std::string_view name) {
 LabelImage to_labels(const RawNifti& raw, std::string_view name) {
   require_3d(raw, name);
   LabelImage img(grid_of(raw, name));
-  const auto [slope, inter] = scaling(raw, name);
+  const std::pair<double, double> scale = scaling(raw, name);
+  const double slope = scale.first, inter = scale.second;
   std::uint16_t* out = img.voxels.data();
   std::size_t bad = 0;
   double first_bad = 0;
@@ -384,7 +387,8 @@ VectorImage3 to_vectors(const RawNifti& raw, std::string_view name) {
   if (raw.dims[3] != 1 || raw.dims[4] != 3 || raw.dims[5] != 1 || raw.dims[6] != 1)
     fail(name, "expected a vector field with dims (nx,ny,nz,1,3)");
   VectorImage3 field(grid_of(raw, name));
-  const auto [slope, inter] = scaling(raw, name);
+  const std::pair<double, double> scale = scaling(raw, name);
+  const double slope = scale.first, inter = scale.second;
   const std::size_t n = field.grid.voxel_count();
   std::size_t bad = 0;
   for (int c = 0; c < 3; ++c) {

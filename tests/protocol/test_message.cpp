@@ -250,10 +250,29 @@ TEST(Codec, DecodeRequestRefusesRepliesAndEvents) {
                bp::ProtocolError);
 }
 
-TEST(Codec, DeeplyNestedJsonIsRefusedWithoutCrashing) {
+TEST(Codec, DeeplyNestedJsonIsRefusedBeforeParsing) {
   const std::size_t depth = 30000;  // fits the 64 KiB header limit
   const std::string nested = std::string(depth, '[') + std::string(depth, ']');
-  EXPECT_EQ(decode_error({nested}), ErrorCode::kMalformedJson);
-  const std::string in_object = "{\"a\":" + nested + "}";
-  EXPECT_EQ(decode_error({in_object}), ErrorCode::kVersionMismatch);
+  EXPECT_EQ(decode_error({nested}), ErrorCode::kTooLarge);
+  EXPECT_EQ(decode_error({"{\"a\":" + nested + "}"}), ErrorCode::kTooLarge);
+  // Found by fuzz_message: printing a deep "v" for the version error overflowed the stack.
+  EXPECT_EQ(decode_error({"{\"v\":" + nested + R"(,"type":"status","request_id":"r"})"}), ErrorCode::kTooLarge);
+}
+
+TEST(Codec, NestingUpToTheLimitIsAccepted) {
+  const bp::Limits limits;
+  // The header object is level 1, so the field may nest max_header_depth - 1 levels.
+  const std::size_t inner = limits.max_header_depth - 1;
+  const std::string field = std::string(inner, '[') + std::string(inner, ']');
+  const std::string ok = R"({"v":1,"type":"status","request_id":"r","x":)" + field + "}";
+  EXPECT_EQ(bp::json_nesting_depth(ok), limits.max_header_depth);
+  EXPECT_NO_THROW(bp::decode({ok}, limits));
+  const std::string deeper = R"({"v":1,"type":"status","request_id":"r","x":[)" + field + "]}";
+  EXPECT_EQ(decode_error({deeper}, limits), ErrorCode::kTooLarge);
+}
+
+TEST(Codec, NestingDepthSkipsBracketsInsideStrings) {
+  EXPECT_EQ(bp::json_nesting_depth(R"({"a":"[[[{{{\"[["})"), 1u);
+  EXPECT_EQ(bp::json_nesting_depth(R"([{"a":[1,{"b":[]}]}])"), 5u);
+  EXPECT_EQ(bp::json_nesting_depth("42"), 0u);
 }
