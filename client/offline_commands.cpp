@@ -66,6 +66,15 @@ struct RegisterOptions {
 
 int run_register_rank0(const RegisterOptions& o) {
   const PipelineParameters params = read_parameters(o.config);
+  // The intraop files are read first: a broken scan is refused in a moment
+  // instead of after minutes of meshing the preop.
+  Stopwatch read_clock;
+  IntraopInput intraop{read_label_image(o.intraop_labels, params.max_image_bytes), std::nullopt};
+  if (!o.intraop_image.empty()) intraop.t1 = read_scalar_image(o.intraop_image, params.max_image_bytes);
+  if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid, 1e-3))
+    throw InputError(o.intraop_image + ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
+  const double read_seconds = read_clock.seconds();
+
   EngineSession session(MPI_COMM_WORLD, params);
   Stopwatch atlas_clock;
   PreopInput preop = read_preop(o.preop);
@@ -74,10 +83,6 @@ int run_register_rank0(const RegisterOptions& o) {
   session.load_preop(std::move(preop), [](const std::string& s, double f, double t) { print_progress("preop", s, f, t); });
   std::fprintf(stderr, "[preop] mesh: %zu nodes, %zu tets\n", session.mesh().node_count(), session.mesh().tet_count());
 
-  Stopwatch read_clock;
-  IntraopInput intraop{read_label_image(o.intraop_labels), std::nullopt};
-  if (!o.intraop_image.empty()) intraop.t1 = read_scalar_image(o.intraop_image);
-  const double read_seconds = read_clock.seconds();
   ScanResult result = session.register_scan(intraop, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   // Decoding the files is part of what the surgeon waits for.
   result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;

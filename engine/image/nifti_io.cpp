@@ -118,6 +118,24 @@ class ByteStream {
   ByteStream(const ByteStream&) = delete;
   ByteStream& operator=(const ByteStream&) = delete;
 
+  bool is_gzip() const { return gzip_; }
+
+  // gzip only: inflates whatever follows the voxel data to the end of the
+  // stream. zlib checks a member's CRC-32 and length only when it reaches the
+  // member's trailer, so without this a corrupted stream that still inflates
+  // would give wrong voxels silently. Trailing bytes count against budget.
+  void verify_to_end(std::size_t budget) {
+    std::array<char, 1 << 16> scratch;
+    std::size_t extra = 0;
+    for (std::size_t n; (n = read(scratch.data(), scratch.size())) > 0;) {
+      extra += n;
+      if (extra > budget)
+        fail(name_, "gzip stream holds more than the limit of decompressed bytes after the voxel data");
+    }
+    if (!ended_)
+      fail(name_, "truncated gzip stream: it stops before its end-of-stream trailer, so its checksum cannot be verified");
+  }
+
   // Reads up to n bytes into dst; returns how many were available.
   std::size_t read(char* dst, std::size_t n) {
     if (!gzip_) {
@@ -141,9 +159,11 @@ class ByteStream {
       const int rc = inflate(&zs_, Z_NO_FLUSH);
       got += before - zs_.avail_out;
       if (zs_.avail_in == 0 && consumed_ < in_.size()) refill();
-      if (rc == Z_STREAM_END) {
+      if (rc == Z_STREAM_END) {  // the member's CRC-32 and length matched
         // Concatenated gzip members are legal; continue with the next one.
-        if (zs_.avail_in == 0 && consumed_ >= in_.size()) { finished_ = true; break; }
+        // Bytes after the last member that are not gzip are ignored, as gzip(1) does.
+        const bool next_member = zs_.avail_in >= 2 && zs_.next_in[0] == 0x1f && zs_.next_in[1] == 0x8b;
+        if (!next_member) { finished_ = ended_ = true; break; }
         inflateReset(&zs_);
         continue;
       }
@@ -165,6 +185,7 @@ class ByteStream {
   std::string_view name_;
   bool gzip_ = false;
   bool finished_ = false;
+  bool ended_ = false;  // the last member reached its trailer (checksum verified)
   std::size_t pos_ = 0;
   std::size_t consumed_ = 0;
   z_stream zs_{};
@@ -241,6 +262,7 @@ RawNifti decode(std::string_view bytes, std::string_view name, std::size_t max_b
   if (got < want)
     fail(name, "truncated: header promises " + std::to_string(want) + " bytes of voxel data, found only " +
                    std::to_string(got));
+  if (stream.is_gzip()) stream.verify_to_end(max_bytes - static_cast<std::size_t>(total));
   return raw;
 }
 
@@ -620,13 +642,13 @@ void validate_world_from_voxel(const Eigen::Matrix4d& a, std::string_view what) 
     fail(what, "world_from_voxel affine is singular (voxel axes are collinear)");
 }
 
-ImageF read_scalar_image(const std::filesystem::path& path) {
+ImageF read_scalar_image(const std::filesystem::path& path, std::size_t max_bytes) {
   const std::string name = path.string();
-  return to_scalar(decode(read_file_bytes(path), name, kNoLimit), name);
+  return to_scalar(decode(read_file_bytes(path), name, max_bytes), name);
 }
-LabelImage read_label_image(const std::filesystem::path& path) {
+LabelImage read_label_image(const std::filesystem::path& path, std::size_t max_bytes) {
   const std::string name = path.string();
-  return to_labels(decode(read_file_bytes(path), name, kNoLimit), name);
+  return to_labels(decode(read_file_bytes(path), name, max_bytes), name);
 }
 VectorImage3 read_vector_image(const std::filesystem::path& path) {
   const std::string name = path.string();

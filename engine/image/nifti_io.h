@@ -22,9 +22,12 @@ namespace brainshift {
 
 // Reads any of u8,i8,u16,i16,u32,i32,i64,u64,f32,f64, applies scl_slope/scl_inter
 // (when scl_slope != 0) and returns float. Rejects NaN/Inf voxels.
-ImageF read_scalar_image(const std::filesystem::path& path);
+// max_decompressed_bytes bounds memory as for the in-memory readers below.
+ImageF read_scalar_image(const std::filesystem::path& path,
+                         std::size_t max_decompressed_bytes = static_cast<std::size_t>(-1));
 // Integer-valued data in 0..65535 only (after scl_slope/scl_inter), else InputError.
-LabelImage read_label_image(const std::filesystem::path& path);
+LabelImage read_label_image(const std::filesystem::path& path,
+                            std::size_t max_decompressed_bytes = static_cast<std::size_t>(-1));
 // 5-D (nx,ny,nz,1,3) vector field, components planar (dim5 slowest), in mm.
 VectorImage3 read_vector_image(const std::filesystem::path& path);
 

@@ -1,5 +1,6 @@
 // NIfTI round trips, every supported datatype, and every rejected defect.
 #include <gtest/gtest.h>
+#include <zlib.h>
 
 #include <chrono>
 #include <cmath>
@@ -342,6 +343,59 @@ TEST(GzipBomb, RealDataBeyondLimitIsRefused) {
   ASSERT_LT(gz.size(), 20000u);
   expect_input_error_naming([&] { scalar_image_from_bytes(gz, "zeros.nii.gz", 512u << 10); }, "zeros.nii.gz", "limit");
   EXPECT_NO_THROW(scalar_image_from_bytes(gz, "zeros.nii.gz", 2u << 20));
+}
+
+namespace {
+// gzip with stored (level 0) deflate blocks: the voxel bytes appear verbatim in
+// the stream, so one can be flipped and the stream still inflates; only the
+// member's CRC-32 in the trailer tells.
+std::string gzip_stored(const std::string& raw) {
+  z_stream zs{};
+  EXPECT_EQ(deflateInit2(&zs, 0, Z_DEFLATED, 15 + 16, 8, Z_DEFAULT_STRATEGY), Z_OK);
+  std::string out(deflateBound(&zs, raw.size()), '\0');
+  zs.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(raw.data()));
+  zs.avail_in = static_cast<uInt>(raw.size());
+  zs.next_out = reinterpret_cast<Bytef*>(out.data());
+  zs.avail_out = static_cast<uInt>(out.size());
+  EXPECT_EQ(deflate(&zs, Z_FINISH), Z_STREAM_END);
+  out.resize(zs.total_out);
+  deflateEnd(&zs);
+  return out;
+}
+}  // namespace
+
+TEST(GzipIntegrity, AFlippedByteThatStillInflatesIsCaughtByTheChecksum) {
+  const LabelImage labels(Grid3{{8, 8, 8}, Eigen::Matrix4d::Identity()}, 1);
+  const std::string raw = label_image_to_bytes(labels, false);
+  std::string gz = gzip_stored(raw);
+  EXPECT_EQ(label_image_from_bytes(gz, "ok.nii.gz", 1 << 20).voxels, labels.voxels);
+  const std::size_t at = gz.find(std::string(64, '\x01'));  // a run of voxels, stored verbatim
+  ASSERT_NE(at, std::string::npos);
+  gz[at + 10] = '\x07';  // one voxel becomes label 7
+  // Before the trailer was checked this read back with a wrong label, silently.
+  expect_input_error_naming([&] { label_image_from_bytes(gz, "flipped.nii.gz", 1 << 20); }, "flipped.nii.gz",
+                            "corrupt gzip");
+}
+
+TEST(GzipIntegrity, AStreamCutBeforeItsTrailerIsTruncated) {
+  const LabelImage labels(Grid3{{8, 8, 8}, Eigen::Matrix4d::Identity()}, 1);
+  const std::string gz = label_image_to_bytes(labels, true);
+  // All voxel data are there; only the 8-byte trailer (CRC-32, length) is missing.
+  expect_input_error_naming([&] { label_image_from_bytes(gz.substr(0, gz.size() - 8), "cut.nii.gz", 1 << 20); },
+                            "cut.nii.gz", "truncated gzip");
+}
+
+TEST(GzipIntegrity, TrailingBytesAreBoundedAndNonGzipTrailersIgnored) {
+  const LabelImage labels(Grid3{{8, 8, 8}, Eigen::Matrix4d::Identity()}, 1);
+  const std::string raw = label_image_to_bytes(labels, false);
+  // Padding after the last member is ignored, as gzip(1) does.
+  EXPECT_EQ(label_image_from_bytes(test::gzip(raw) + std::string(16, '\0'), "padded.nii.gz", 1 << 20).voxels,
+            labels.voxels);
+  // A second member of 1 MiB of zeros after the image: inflated only within the limit.
+  const std::string tail = test::gzip(std::string(1 << 20, '\0'));
+  expect_input_error_naming([&] { label_image_from_bytes(test::gzip(raw) + tail, "tail.nii.gz", 64 << 10); },
+                            "tail.nii.gz", "limit");
+  EXPECT_NO_THROW(label_image_from_bytes(test::gzip(raw) + tail, "tail.nii.gz", 2 << 20));
 }
 
 TEST(NiftiWrite, RefusesNanAndBadGeometry) {
