@@ -254,12 +254,12 @@ class BadInputE2E : public ::testing::Test {
     ASSERT_EQ(a.code, 0) << a.err << daemon_log();
     good_scan_ = a.out.substr(0, a.out.find('\n'));
     // field.h5 and report.png follow event.scan.done: wait until the result is whole.
-    const auto until = std::chrono::steady_clock::now() + 60s;
+    const auto whole_by = std::chrono::steady_clock::now() + 60s;
     do {
       good_result_ = pull_everything();
       if (good_result_.count("displacement_itk") && good_result_.count("report")) break;
       std::this_thread::sleep_for(100ms);
-    } while (std::chrono::steady_clock::now() < until);
+    } while (std::chrono::steady_clock::now() < whole_by);
     ASSERT_TRUE(good_result_.count("displacement_itk") && good_result_.count("report")) << daemon_log();
   }
   static void TearDownTestSuite() {
