@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <future>
+#include <optional>
 
 #include "core/errors.h"
 #include "core/timer.h"
@@ -13,6 +14,7 @@
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "image/resample.h"
+#include "mesh/surface_self_intersection.h"
 #include "pipeline/warm_state.h"
 #include "registration/active_surface.h"
 #include "registration/affine_registration.h"
@@ -42,6 +44,23 @@ TriSurface mapped_by_affine(const TriSurface& surface, const Eigen::Matrix4d& in
   return out;
 }
 
+// Crossing triangle pairs of the matched surface, also written to the metrics.
+// A surface that is not a polygon mesh cannot be checked: said in the metrics,
+// never a reason to fail the scan (the flipped-triangle gate still applies).
+std::optional<std::size_t> self_intersections_after(const TriSurface& start, const SurfaceMatchResult& r,
+                                                    nlohmann::json& m) {
+  TriSurface matched = start;
+  for (std::size_t v = 0; v < matched.vertices_mm.size(); ++v) matched.vertices_mm[v] += r.displacement_mm[v];
+  try {
+    const std::size_t crossings = count_self_intersections(matched);
+    m["self_intersections"] = crossings;
+    return crossings;
+  } catch (const InputError& e) {
+    m["self_intersections"] = std::string("not checked: ") + e.what();
+    return std::nullopt;
+  }
+}
+
 // Matches every mesh boundary surface to its intraop structure and returns the
 // non-rigid displacement of every fixed node (intraop frame, from A p to the
 // matched position).
@@ -67,7 +86,8 @@ std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const Intraop
     }
     const ImageF& target = outer ? maps.outer_sdf_mm : maps.ventricle_sdf_mm;
     const auto& p = outer ? params.outer_surface : params.ventricle_surface;
-    const SurfaceMatchResult r = match_surface(mapped_by_affine(s.surface, A), target, p, image);
+    const TriSurface start = mapped_by_affine(s.surface, A);
+    const SurfaceMatchResult r = match_surface(start, target, p, image);
     for (std::size_t v = 0; v < s.surface.mesh_node.size(); ++v)
       values[warm.fixed_index_of_node[s.surface.mesh_node[v]]] = r.displacement_mm[v];
     m = {{"matched", true},
@@ -77,8 +97,12 @@ std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const Intraop
          {"mean_residual_mm", r.mean_residual_mm},
          {"max_residual_mm", r.max_residual_mm},
          {"flipped_triangles", r.flipped_triangles}};
+    const std::optional<std::size_t> crossings = self_intersections_after(start, r, m);
     if (r.flipped_triangles > 0 && failure->empty())
       *failure = "surface match of " + s.name + " folded " + std::to_string(r.flipped_triangles) + " triangles";
+    if (crossings.value_or(0) > 0 && failure->empty())
+      *failure = "surface match of " + s.name + " self-intersects (" + std::to_string(*crossings) +
+                 " pairs of crossing triangles)";
     if (r.mean_residual_mm > params.gates.max_mean_surface_residual_mm && failure->empty())
       *failure = "surface match of " + s.name + " diverged (mean residual " +
                  std::to_string(r.mean_residual_mm) + " mm)";

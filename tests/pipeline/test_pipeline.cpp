@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 
 #include "config_file.h"
 #include "core/errors.h"
@@ -176,6 +177,108 @@ TEST(PipelineSession, RegisteringBeforeAPreopIsLoadedIsAnInputError) {
   EngineSession session(MPI_COMM_WORLD, coarse_parameters());
   IntraopInput scan;
   EXPECT_THROW(session.register_scan(scan, nullptr), InputError);
+}
+
+// ------------------------------------------------ registration that goes wrong
+// Each stage is made to fail on the same mesh (no re-meshing) through its
+// parameters; the result must be the affine-only fallback, marked as such in
+// the result kind and in metrics.json, never a non-rigid field.
+
+// The intraop brain sunk under a craniotomy: the top 6 mm of a 30 mm disc
+// removed, so the non-rigid stages have real work to do.
+IntraopInput sunken_scan(const PreopInput& preop) {
+  IntraopInput scan = translated_scan(preop, {1.0, -1.0, 0.5});
+  const Grid3& g = scan.labels.grid;
+  double top = -1e9;
+  for (std::size_t v = 0; v < scan.labels.voxels.size(); ++v)
+    if (scan.labels.voxels[v] != 0) top = std::max(top, g.world_mm(v % g.dims[0], (v / g.dims[0]) % g.dims[1], v / (g.dims[0] * g.dims[1])).z());
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        if (p.z() > top - 6.0 && p.head<2>().norm() < 30.0) scan.labels.at(i, j, k) = 0;
+      }
+  return scan;
+}
+
+ScanResult register_with(const PreopInput& preop, const TetMesh& mesh, const IntraopInput& scan,
+                         const std::function<void(PipelineParameters&)>& break_a_stage) {
+  PipelineParameters p = coarse_parameters();
+  break_a_stage(p);
+  EngineSession session(MPI_COMM_WORLD, p);
+  session.load_preop(preop, nullptr, mesh);
+  return session.register_scan(scan, nullptr);
+}
+
+void expect_marked_affine_only(const ScanResult& r, const IntraopInput& scan, const std::string& reason) {
+  ASSERT_EQ(r.kind, ResultKind::affine_only_fallback) << "accepted as non-rigid; expected: " << reason;
+  EXPECT_NE(r.fallback_reason.find(reason), std::string::npos) << r.fallback_reason;
+  EXPECT_EQ(r.metrics["result"], "affine_only_fallback");
+  EXPECT_EQ(r.metrics["fallback_reason"], r.fallback_reason);
+  // The field is the affine alone: x + u(x) = A^-1 x inside the brain.
+  const Eigen::Matrix4d preop_from_intraop = r.intraop_from_preop.inverse();
+  const Grid3& g = scan.labels.grid;
+  double worst_mm = 0;
+  std::size_t checked = 0;
+  for (std::size_t v = 0; v < scan.labels.voxels.size(); v += 7) {
+    if (scan.labels.voxels[v] == 0) continue;
+    const Eigen::Vector3d x = g.world_mm(v % g.dims[0], (v / g.dims[0]) % g.dims[1], v / (g.dims[0] * g.dims[1]));
+    const Eigen::Vector3d affine_u = (preop_from_intraop * x.homogeneous()).head<3>() - x;
+    worst_mm = std::max(worst_mm, (r.pullback_field_mm.vectors[v].cast<double>() - affine_u).norm());
+    ++checked;
+  }
+  EXPECT_GT(checked, 1000u);
+  EXPECT_LT(worst_mm, 0.01) << "the fallback field is not the affine alone";
+}
+
+TEST_F(PipelineTest, TheSunkenScanIsANonRigidResultWithSoundSurfaces) {
+  // The reference for the failure cases below: with default parameters it passes every gate.
+  const ScanResult r = register_with(*preop_, session_->mesh(), sunken_scan(*preop_), [](PipelineParameters&) {});
+  EXPECT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  ASSERT_TRUE(r.metrics["surfaces"].contains("outer"));
+  for (const auto& [name, m] : r.metrics["surfaces"].items()) {
+    if (m["matched"] != true) continue;
+    EXPECT_EQ(m["self_intersections"], 0) << name;
+  }
+  EXPECT_GT(r.metrics["jacobian"]["min"].get<double>(), 0.0);
+}
+
+TEST_F(PipelineTest, AnAffineThatDoesNotConvergeIsReportedAndFallsBack) {
+  const IntraopInput scan = sunken_scan(*preop_);
+  const ScanResult r = register_with(*preop_, session_->mesh(), scan, [](PipelineParameters& p) {
+    p.affine.iterations_per_level = 1;  // stopped long before its tolerance
+    p.affine.tolerance_mm = 1e-9;
+    p.affine.coarse_tolerance_mm = 1e-9;
+  });
+  EXPECT_EQ(r.metrics["affine"]["converged"], false);
+  expect_marked_affine_only(r, scan, "affine registration did not converge");
+}
+
+TEST_F(PipelineTest, ASurfaceMatchThatDivergesIsReportedAndFallsBack) {
+  const IntraopInput scan = sunken_scan(*preop_);
+  const ScanResult r = register_with(*preop_, session_->mesh(), scan, [](PipelineParameters& p) {
+    p.gates.max_mean_surface_residual_mm = 1e-6;  // any residual at all counts as diverged
+  });
+  expect_marked_affine_only(r, scan, "diverged");
+}
+
+TEST_F(PipelineTest, AFieldThatFoldsIsReportedAndFallsBack) {
+  const IntraopInput scan = sunken_scan(*preop_);
+  const ScanResult r = register_with(*preop_, session_->mesh(), scan, [](PipelineParameters& p) {
+    p.gates.min_jacobian_determinant = 1.5;  // every compressed voxel counts as folded, beyond repair
+  });
+  EXPECT_TRUE(r.metrics.contains("unfold")) << "the local repair is tried before the field is refused";
+  expect_marked_affine_only(r, scan, "folds");
+}
+
+TEST_F(PipelineTest, AnElasticSolveThatFailsIsReportedAndFallsBack) {
+  const IntraopInput scan = sunken_scan(*preop_);
+  const ScanResult r = register_with(*preop_, session_->mesh(), scan, [](PipelineParameters& p) {
+    p.elastic.solver = SolverKind::cg_gamg;  // iterative, stopped after one iteration
+    p.elastic.max_iterations = 1;
+    p.elastic.rtol = 1e-14;
+  });
+  expect_marked_affine_only(r, scan, "elastic solve");
 }
 
 }  // namespace

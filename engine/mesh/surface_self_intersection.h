@@ -1,0 +1,17 @@
+#pragma once
+// Whether a triangulated surface passes through itself. After the active
+// surface match a self-intersecting brain or ventricle surface means the match
+// went wrong (two parts of the cortex pulled through each other): its
+// displacements must not drive the FEM (a quality gate, see DESIGN.md).
+#include <cstddef>
+
+#include "core/tet_mesh.h"
+
+namespace brainshift {
+
+// Number of pairs of triangles that intersect other than along the edge or
+// vertex they share (CGAL exact predicates). 0 for an embedded surface.
+// Throws InputError if the triangles do not form a valid polygon mesh.
+std::size_t count_self_intersections(const TriSurface& surface);
+
+}  // namespace brainshift

@@ -1,0 +1,68 @@
+// The self-intersection check behind the surface-match quality gate.
+#include <gtest/gtest.h>
+
+#include <map>
+
+#include "core/errors.h"
+#include "mesh/surface_self_intersection.h"
+
+using namespace brainshift;
+
+namespace {
+
+// A closed, outward-facing sphere: an octahedron subdivided `levels` times.
+TriSurface sphere(double radius_mm, const Eigen::Vector3d& centre, int levels) {
+  TriSurface s;
+  s.vertices_mm = {{1, 0, 0}, {-1, 0, 0}, {0, 1, 0}, {0, -1, 0}, {0, 0, 1}, {0, 0, -1}};
+  s.triangles = {{0, 2, 4}, {2, 1, 4}, {1, 3, 4}, {3, 0, 4}, {2, 0, 5}, {1, 2, 5}, {3, 1, 5}, {0, 3, 5}};
+  for (int l = 0; l < levels; ++l) {
+    std::map<std::pair<int, int>, int> midpoint;
+    auto mid = [&](int a, int b) {
+      const auto key = std::minmax(a, b);
+      if (auto it = midpoint.find(key); it != midpoint.end()) return it->second;
+      s.vertices_mm.push_back((s.vertices_mm[a] + s.vertices_mm[b]).normalized());
+      return midpoint[key] = static_cast<int>(s.vertices_mm.size()) - 1;
+    };
+    std::vector<std::array<int, 3>> finer;
+    for (const auto& t : s.triangles) {
+      const int ab = mid(t[0], t[1]), bc = mid(t[1], t[2]), ca = mid(t[2], t[0]);
+      finer.insert(finer.end(), {{t[0], ab, ca}, {ab, t[1], bc}, {ca, bc, t[2]}, {ab, bc, ca}});
+    }
+    s.triangles = std::move(finer);
+  }
+  for (auto& v : s.vertices_mm) v = centre + radius_mm * v.normalized();
+  return s;
+}
+
+}  // namespace
+
+TEST(SurfaceSelfIntersection, AnEmbeddedSphereHasNone) {
+  const TriSurface s = sphere(50, {1, 2, 3}, 3);
+  ASSERT_EQ(s.triangles.size(), 512u);
+  EXPECT_EQ(count_self_intersections(s), 0u);
+  EXPECT_GT(enclosed_volume_mm3(s), 0.0);
+}
+
+TEST(SurfaceSelfIntersection, AVertexPulledThroughTheFarSideIsFound) {
+  TriSurface s = sphere(50, {0, 0, 0}, 3);
+  // The north pole dragged through the south pole: its fan crosses the far side.
+  for (auto& v : s.vertices_mm)
+    if (v.z() > 49.9) v = {0, 0, -80};
+  EXPECT_GT(count_self_intersections(s), 0u);
+}
+
+TEST(SurfaceSelfIntersection, AFoldThatDoesNotCrossIsNotAnIntersection) {
+  TriSurface s = sphere(50, {0, 0, 0}, 3);
+  // A deep dent (the pole pushed inwards to 10 mm from the centre) stays embedded.
+  for (auto& v : s.vertices_mm)
+    if (v.z() > 49.9) v = {0, 0, 10};
+  EXPECT_EQ(count_self_intersections(s), 0u);
+}
+
+TEST(SurfaceSelfIntersection, TrianglesThatAreNotAPolygonMeshAreAnInputError) {
+  TriSurface s = sphere(50, {0, 0, 0}, 1);
+  s.triangles.push_back(s.triangles.front());  // the same face twice: not manifold
+  EXPECT_THROW(count_self_intersections(s), InputError);
+  s.triangles.back() = {0, 1, 999};
+  EXPECT_THROW(count_self_intersections(s), InputError);
+}
