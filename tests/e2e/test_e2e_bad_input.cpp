@@ -504,4 +504,22 @@ TEST_F(BadInputE2E, BrokenImagesThroughRegisterExitWithAClearError) {
   }
 }
 
+TEST_F(BadInputE2E, ARefusedNonRigidResultIsExit4AndMarkedAffineOnlyInMetrics) {
+  // A surface gate no match can pass: `brainshift register` must say so by its
+  // exit code and in metrics.json, and still write the (affine-only) outputs.
+  const fs::path config = path("strict_gates.toml");
+  std::ofstream(config) << config_text() << "\n[gates]\nmax_mean_surface_residual_mm = 0.000001\n";
+  const fs::path out = path("register_fallback");
+  const RunResult r = run({BRAINSHIFT_BIN, "register", "--config", config.string(), "--preop-image",
+                           path("preop_t1.nii.gz").string(), "--preop-labels", path("preop_labels.nii.gz").string(),
+                           "--intraop-labels", path("scan_a_labels.nii.gz").string(), "--out", out.string()},
+                          g->dir, 600);
+  EXPECT_EQ(r.code, 4) << r.err;
+  EXPECT_NE(r.err.find("AFFINE-ONLY"), std::string::npos) << r.err;
+  const json metrics = json::parse(read_file(out / "metrics.json"));
+  EXPECT_EQ(metrics.at("result"), "affine_only_fallback");
+  EXPECT_NE(metrics.at("fallback_reason").get<std::string>().find("diverged"), std::string::npos);
+  EXPECT_TRUE(fs::exists(out / "field.nii.gz"));
+}
+
 }  // namespace

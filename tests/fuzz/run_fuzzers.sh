@@ -39,7 +39,7 @@ fi
 launcher=()
 if command -v ccache > /dev/null; then launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache -DCMAKE_C_COMPILER_LAUNCHER=ccache); fi
 mkdir -p "$build"
-cmake -S "$here/targets" -B "$build/build" -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+cmake -S "$here/targets" -B "$build/build" \
   -DCMAKE_CXX_COMPILER="$clangxx" -DCMAKE_C_COMPILER="$clangc" "${launcher[@]}" > "$build/configure.log" ||
   { cat "$build/configure.log"; echo "FAIL: cannot configure the fuzz targets" >&2; exit 1; }
 nice -n 5 cmake --build "$build/build" -j "$jobs" --target fuzz_message fuzz_nifti
