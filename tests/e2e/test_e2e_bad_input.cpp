@@ -253,14 +253,20 @@ class BadInputE2E : public ::testing::Test {
                                 path("scan_a_t1.nii.gz").string(), "--id", "good-a", "--wait"});
     ASSERT_EQ(a.code, 0) << a.err << daemon_log();
     good_scan_ = a.out.substr(0, a.out.find('\n'));
-    // field.h5 and report.png follow event.scan.done: wait until the result is whole.
+    // Deferred parts (field.h5, report.png, metrics) follow event.scan.done:
+    // wait until none is pending, so the reference is the whole result.
     const auto whole_by = std::chrono::steady_clock::now() + 60s;
-    do {
-      good_result_ = pull_everything();
-      if (good_result_.count("displacement_itk") && good_result_.count("report")) break;
-      std::this_thread::sleep_for(100ms);
-    } while (std::chrono::steady_clock::now() < whole_by);
-    ASSERT_TRUE(good_result_.count("displacement_itk") && good_result_.count("report")) << daemon_log();
+    bool pending = true;
+    while (pending && std::chrono::steady_clock::now() < whole_by) {
+      const bp::ScanResultReply reply = pull_reply();
+      pending = std::any_of(reply.unavailable.begin(), reply.unavailable.end(),
+                            [](const bp::UnavailablePart& u) { return u.pending; });
+      if (pending) std::this_thread::sleep_for(100ms);
+    }
+    ASSERT_FALSE(pending) << daemon_log();
+    good_result_ = pull_everything();
+    ASSERT_TRUE(good_result_.count("displacement_itk") && good_result_.count("report") && good_result_.count("metrics"))
+        << daemon_log();
   }
   static void TearDownTestSuite() {
     g->daemon.reset();  // SIGKILL if still running
@@ -270,18 +276,20 @@ class BadInputE2E : public ::testing::Test {
     delete g;
   }
 
-  // Every part of the good scan, as raw reply frames (the bytes the store holds).
-  static std::map<std::string, std::string> pull_everything() {
+  // Every part of the good scan: the reply (frames = the bytes the store holds).
+  static bp::ScanResultReply pull_reply() {
     RawClient c;
     const bp::Message r = c.request(bp::make_scan_result_request(
         "pull", {good_scan_,
-                       {bp::ResultPart::kDisplacement, bp::ResultPart::kDisplacementItk, bp::ResultPart::kWarpedImage,
-                        bp::ResultPart::kWarpedLabels, bp::ResultPart::kModels, bp::ResultPart::kMetrics,
-                        bp::ResultPart::kTimings, bp::ResultPart::kReport},
-                       {}}));
-    const bp::ScanResultReply reply = bp::parse_scan_result_reply(r);
+                 {bp::ResultPart::kDisplacement, bp::ResultPart::kDisplacementItk, bp::ResultPart::kWarpedImage,
+                  bp::ResultPart::kWarpedLabels, bp::ResultPart::kModels, bp::ResultPart::kMetrics,
+                  bp::ResultPart::kTimings, bp::ResultPart::kReport},
+                 {}}));
+    return bp::parse_scan_result_reply(r);
+  }
+  static std::map<std::string, std::string> pull_everything() {
     std::map<std::string, std::string> parts;
-    for (const auto& f : reply.frames) parts[f.name] = f.bytes;
+    for (const auto& f : pull_reply().frames) parts[f.name] = f.bytes;
     return parts;
   }
 
