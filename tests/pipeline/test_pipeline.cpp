@@ -281,4 +281,28 @@ TEST_F(PipelineTest, AnElasticSolveThatFailsIsReportedAndFallsBack) {
   expect_marked_affine_only(r, scan, "elastic solve");
 }
 
+TEST_F(PipelineTest, ASurfaceMatchThatCrossesItselfIsReportedAndFallsBack) {
+  // A 6 mm resection slit 25 mm deep into the top of the brain, matched by a
+  // membrane without stiffness or smoothing: vertices from both lips of the
+  // slit are pulled past each other and the surface passes through itself.
+  IntraopInput scan = translated_scan(*preop_, Eigen::Vector3d::Zero());
+  const Grid3& g = scan.labels.grid;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        if (std::abs(p.x()) < 3.0 && std::abs(p.y()) < 25.0 && p.z() > 15.0) scan.labels.at(i, j, k) = 0;
+      }
+  const ScanResult r = register_with(*preop_, session_->mesh(), scan, [](PipelineParameters& p) {
+    p.outer_surface.membrane_stiffness = 0.0;
+    p.outer_surface.force_smoothing_mm = 0.0;
+    p.outer_surface.edge_weight = 0.0;
+    p.outer_surface.max_step_mm = 20.0;
+    p.outer_surface.max_iterations = 200;
+  });
+  EXPECT_GT(r.metrics["surfaces"]["outer"]["self_intersections"].get<std::size_t>(), 0u);
+  // The flipped-triangle gate is checked first and fires on the same match.
+  expect_marked_affine_only(r, scan, "surface match of outer");
+}
+
 }  // namespace
