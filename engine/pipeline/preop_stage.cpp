@@ -73,8 +73,14 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   const double mesh_seconds = stage.lap();
   report(progress, "mesh", 1.0, mesh_seconds);
 
-  warm->surfaces = matched_surfaces(mesh, table);
   std::vector<int> fixed_nodes = boundary_nodes(mesh);
+  // A brain label of a few voxels meshes to a handful of tets with every node
+  // on the surface: nothing for the FEM to solve. That is bad input, and is
+  // said so here instead of surfacing later as a solver failure.
+  if (mesh.tet_count() == 0 || fixed_nodes.size() >= mesh.node_count())
+    throw InputError("preop labels: the brain is too small to mesh (" + std::to_string(mesh.node_count()) +
+                     " mesh nodes, none inside); check the brain label");
+  warm->surfaces = matched_surfaces(mesh, table);
   warm->fixed_index_of_node.assign(mesh.node_count(), -1);
   for (std::size_t i = 0; i < fixed_nodes.size(); ++i) warm->fixed_index_of_node[fixed_nodes[i]] = static_cast<int>(i);
 

@@ -152,6 +152,11 @@ TEST_F(PipelineTest, AFailedPreopLoadKeepsTheWarmState) {
   PreopInput bad = *preop_;
   std::fill(bad.labels.voxels.begin(), bad.labels.voxels.end(), 0);
   EXPECT_THROW(session_->load_preop(bad, nullptr), InputError);
+  PreopInput speck = bad;  // a brain of 8 voxels: meshes, but with no interior node
+  for (int k = 40; k < 42; ++k)
+    for (int j = 50; j < 52; ++j)
+      for (int i = 45; i < 47; ++i) speck.labels.at(i, j, k) = 1;
+  EXPECT_THROW(session_->load_preop(speck, nullptr), InputError);
   ASSERT_TRUE(session_->ready());
   EXPECT_EQ(session_->mesh().node_count(), nodes);
   EXPECT_EQ(session_->register_scan(translated_scan(*preop_, {1, 0, 0}), nullptr).kind, ResultKind::nonrigid);
