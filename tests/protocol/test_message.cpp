@@ -80,6 +80,9 @@ TEST(Codec, MalformedJson) {
   EXPECT_EQ(decode_error({"{\"v\":1,"}), ErrorCode::kMalformedJson);
   EXPECT_EQ(decode_error({"[1,2,3]"}), ErrorCode::kMalformedJson);
   EXPECT_EQ(decode_error({std::string("\xff\xfe", 2)}), ErrorCode::kMalformedJson);
+  // Inside a string too: an error message quoting it must stay encodable JSON.
+  EXPECT_EQ(decode_error({"{\"v\":1,\"type\":\"st\xffus\",\"request_id\":\"r\"}"}), ErrorCode::kMalformedJson);
+  EXPECT_EQ(decode_error({R"({"v":1,"type":"\ud800","request_id":"r"})"}), ErrorCode::kMalformedJson);
 }
 
 TEST(Codec, EmptyMessageIsABadHeader) { EXPECT_EQ(decode_error({}), ErrorCode::kBadHeader); }

@@ -4,8 +4,8 @@
 // Oracles, besides ASan/UBSan/LeakSanitizer:
 // - the only exception the reader may throw is InputError (the daemon maps it
 //   to invalid_request; anything else would be "internal" or a crash);
-// - memory stays bounded by the decompressed-size limit (run with
-//   -malloc_limit_mb above kMaxBytes: a larger allocation is a finding);
+// - memory stays bounded by the decompressed-size limit (run_fuzzers.sh sets
+//   -malloc_limit_mb to 8x kMaxBytes: a larger allocation is a finding);
 // - what reads back is a consistent image that survives write + read unchanged.
 #include <cmath>
 #include <cstdio>
