@@ -8,8 +8,23 @@
 
 namespace brainshift::cli {
 
-Connection::Connection(std::string endpoint, std::chrono::milliseconds timeout)
-    : endpoint_(std::move(endpoint)), timeout_(timeout), context_(1) {
+namespace {
+
+// Why a server may stay silent; a refused CURVE handshake looks exactly like
+// an absent server to the client (libzmq retries it quietly).
+std::string silence_hint(const CurveKeys& curve) {
+  if (curve)
+    return "is brainshiftd running there, and does it accept this client? A key missing from the server's "
+           "allow-list, or a wrong --server-key, is refused at the CURVE handshake without any answer "
+           "(see --server, --key, --server-key, --timeout)";
+  return "is brainshiftd running there? A server with CURVE authentication answers only clients that "
+         "give --key and --server-key (see --server, --timeout)";
+}
+
+}  // namespace
+
+Connection::Connection(std::string endpoint, std::chrono::milliseconds timeout, CurveKeys curve)
+    : endpoint_(std::move(endpoint)), timeout_(timeout), curve_(std::move(curve)), context_(1) {
   reconnect();
 }
 
@@ -19,6 +34,7 @@ void Connection::reconnect() {
   socket_ = std::make_unique<zmq::socket_t>(context_, zmq::socket_type::dealer);
   // Never block the exit on unsent requests to a server that is not there.
   socket_->set(zmq::sockopt::linger, 0);
+  if (curve_) protocol::curve::set_client_options(*socket_, *curve_);
   try {
     socket_->connect(endpoint_);
   } catch (const zmq::error_t& e) {
@@ -51,7 +67,7 @@ protocol::Message Connection::call_raw(const protocol::Message& request) {
   reconnect();
   throw CommandError(kExitUnreachable, "no reply from " + endpoint_ + " within " +
                                            std::to_string(timeout_.count() / 1000.0).substr(0, 5) +
-                                           " s: is brainshiftd running there? (see --server, --timeout)");
+                                           " s: " + silence_hint(curve_));
 }
 
 protocol::Message Connection::call(const protocol::Message& request) {
@@ -64,9 +80,10 @@ protocol::Message Connection::call(const protocol::Message& request) {
   return reply;
 }
 
-EventStream::EventStream(const std::string& endpoint, const std::string& topic_prefix)
+EventStream::EventStream(const std::string& endpoint, const std::string& topic_prefix, const CurveKeys& curve)
     : context_(1), socket_(context_, zmq::socket_type::sub) {
   socket_.set(zmq::sockopt::linger, 0);
+  if (curve) protocol::curve::set_client_options(socket_, *curve);
   socket_.set(zmq::sockopt::subscribe, topic_prefix);
   try {
     socket_.connect(endpoint);

@@ -10,6 +10,7 @@
 
 #include <zmq.hpp>
 
+#include "protocol/curve_keys.h"
 #include "protocol/message.h"
 
 namespace brainshift::cli {
@@ -31,9 +32,13 @@ class CommandError : public std::runtime_error {
   int exit_code_;
 };
 
+// CURVE keys of this client, or nullopt for plain TCP (loopback servers
+// without CURVE).
+using CurveKeys = std::optional<protocol::curve::ClientKeys>;
+
 class Connection {
  public:
-  Connection(std::string endpoint, std::chrono::milliseconds timeout);
+  Connection(std::string endpoint, std::chrono::milliseconds timeout, CurveKeys curve = std::nullopt);
   ~Connection();
 
   // Sends the request and returns the reply. Throws CommandError: kExitUnreachable
@@ -49,6 +54,7 @@ class Connection {
 
   std::string endpoint_;
   std::chrono::milliseconds timeout_;
+  CurveKeys curve_;
   zmq::context_t context_;
   std::unique_ptr<zmq::socket_t> socket_;
   unsigned counter_ = 0;
@@ -57,7 +63,7 @@ class Connection {
 class EventStream {
  public:
   // topic_prefix "" = every event.
-  EventStream(const std::string& endpoint, const std::string& topic_prefix = "");
+  EventStream(const std::string& endpoint, const std::string& topic_prefix = "", const CurveKeys& curve = std::nullopt);
   // nullopt when nothing arrived within timeout.
   std::optional<protocol::Message> next(std::chrono::milliseconds timeout);
 
