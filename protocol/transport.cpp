@@ -53,9 +53,11 @@ std::optional<RoutedRequest> receive_request(zmq::socket_ref router,
   auto parts = receive_parts(router, timeout);
   if (!parts) return std::nullopt;
   RoutedRequest req;
+  // The ROUTER makes the identity frame itself, without metadata; the frames
+  // that came over the connection carry it.
   if (!parts->empty()) {
-    req.user_id = property(parts->front(), "User-Id");
-    req.client_name = property(parts->front(), kClientNameProperty);
+    req.user_id = property(parts->back(), "User-Id");
+    req.client_name = property(parts->back(), kClientNameProperty);
   }
   auto wire = std::optional<Wire>(std::in_place);
   wire->reserve(parts->size());

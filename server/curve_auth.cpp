@@ -124,7 +124,7 @@ void ZapHandler::answer(std::vector<zmq::message_t>& request) {
 void ZapHandler::log_refusal(const std::string& key_z85, const std::string& domain, const std::string& address,
                              const std::string& why) {
   const auto now = std::chrono::steady_clock::now();
-  const std::string who = key_z85.empty() ? "mechanism:" + address : key_z85;
+  const std::string who = domain + " " + (key_z85.empty() ? "mechanism:" + address : key_z85);
   auto it = last_logged_.find(who);
   if (it != last_logged_.end() && now - it->second < 60s) return;
   if (last_logged_.size() > 1024) last_logged_.clear();  // bounded, whatever a stranger tries
