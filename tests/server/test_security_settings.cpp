@@ -5,6 +5,8 @@
 #include <fstream>
 
 #include "core/errors.h"
+#include "image/nifti_io.h"
+#include "protocol/media.h"
 #include "protocol/curve_keys.h"
 #include "protocol/requests.h"
 #include "server/case_store.h"
@@ -226,6 +228,58 @@ TEST(Roles, ServerCoreRefusesBeforeReadingTheRequest) {
   EXPECT_EQ(core.handle_wire(encode(make_shutdown_request("x")), Peer::from_zap("admin", "a")).type(),
             MessageType::kShutdownReply);
   EXPECT_TRUE(core.shutdown_requested());
+}
+
+}  // namespace
+
+namespace {
+
+// No request field is ever a path the server opens: paths in a header are
+// ignored, ids are only looked up in the store's index, and store paths are
+// made of server-assigned ids.
+TEST(ClientPaths, AreNeverOpened) {
+  test::TempDir dir;
+  ServerSettings settings;
+  settings.store = dir.path() / "store";
+  settings.preop.kind = DefaultPreop::Kind::none;
+  CaseStore store(settings.store);
+  test::FakeEngine engine;
+  ServerCore core(settings, store, engine, [](Message) {});
+  core.start();
+  auto code = [](const Message& reply) {
+    return reply.type() == MessageType::kError ? parse_error_reply(reply).code : ErrorCode::kInternal;
+  };
+  // A preop.load naming files instead of sending frames is refused; nothing loads.
+  Message named = make_message(MessageType::kPreopLoad, "p");
+  named.header["t1"] = (settings.store / "preop.h5").string();
+  named.header["labels"] = "/etc/passwd";
+  named.header["path"] = "/etc/shadow";
+  EXPECT_EQ(code(core.handle_wire(encode(named))), ErrorCode::kInvalidRequest);
+  EXPECT_FALSE(core.step(std::chrono::milliseconds(1)));
+  EXPECT_EQ(core.status().state, ServerState::kIdle);
+
+  // Load the double's atlas, push with a path-like client id, then ask for path-like scan ids.
+  PreopLoadRequest atlas;
+  atlas.use_default_atlas = true;
+  ASSERT_EQ(core.handle_wire(encode(make_preop_load_request("a", atlas))).type(), MessageType::kPreopLoadReply);
+  ASSERT_TRUE(core.step(std::chrono::milliseconds(10)));
+  ScanPushRequest push;
+  push.labels = media::nifti_frame("labels", label_image_to_bytes(test::ball_labels(12), true));
+  push.client_scan_id = "../../escape";
+  const Message pushed = core.handle_wire(encode(make_scan_push_request("s", push)));
+  ASSERT_EQ(pushed.type(), MessageType::kScanPushReply) << pushed.header.dump();
+  ASSERT_TRUE(core.step(std::chrono::milliseconds(10)));
+  for (const auto& e : fs::directory_iterator(settings.store / "scans"))
+    EXPECT_EQ(e.path().filename().string().rfind("scan-", 0), 0u) << e.path();
+  EXPECT_FALSE(fs::exists(dir.path() / "escape"));
+  for (const char* id : {"../preop.h5", "../../store/scans/scan-000001", "scans/scan-000001", "/etc/passwd"}) {
+    const Message r = core.handle_wire(encode(make_scan_result_request("r", {id, {ResultPart::kMetrics}, {}})));
+    EXPECT_EQ(code(r), ErrorCode::kNotFound) << id;
+  }
+  EXPECT_EQ(core.handle_wire(encode(make_scan_result_request("r", {parse_scan_push_reply(pushed).scan_id,
+                                                                    {ResultPart::kMetrics}, {}})))
+                .type(),
+            MessageType::kScanResultReply);
 }
 
 }  // namespace
