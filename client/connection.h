@@ -10,6 +10,7 @@
 
 #include <zmq.hpp>
 
+#include "handshake_monitor.h"
 #include "protocol/curve_keys.h"
 #include "protocol/message.h"
 
@@ -57,6 +58,7 @@ class Connection {
   CurveKeys curve_;
   zmq::context_t context_;
   std::unique_ptr<zmq::socket_t> socket_;
+  std::unique_ptr<HandshakeMonitor> monitor_;  // after socket_: destroyed first
   unsigned counter_ = 0;
 };
 
@@ -64,12 +66,15 @@ class EventStream {
  public:
   // topic_prefix "" = every event.
   EventStream(const std::string& endpoint, const std::string& topic_prefix = "", const CurveKeys& curve = std::nullopt);
-  // nullopt when nothing arrived within timeout.
+  // nullopt when nothing arrived within timeout. Throws
+  // CommandError(kExitUnreachable) when the server refused the handshake.
   std::optional<protocol::Message> next(std::chrono::milliseconds timeout);
 
  private:
+  std::string endpoint_;
   zmq::context_t context_;
   zmq::socket_t socket_;
+  std::unique_ptr<HandshakeMonitor> monitor_;
 };
 
 }  // namespace brainshift::cli

@@ -104,6 +104,15 @@ TEST_F(SecurityE2E, KeygenKeysWorkThroughARealCurveHandshake) {
   const RunResult stranger = client(endpoint, "stranger", {"status"}, "1");
   EXPECT_EQ(stranger.code, 3);
   EXPECT_NE(stranger.err.find("allow-list"), std::string::npos) << stranger.err;
+  // watch is refused the same way and says so instead of waiting silently.
+  for (const std::string who : {"stranger", ""}) {
+    std::vector<std::string> argv = {BRAINSHIFT_BIN, "--events", events};
+    if (!who.empty()) argv.insert(argv.end(), {"--key", path(who).string(), "--server-key", path("server.key").string()});
+    argv.insert(argv.end(), {"watch", "--for", "30"});
+    const RunResult w = run(argv, dir_, 60);
+    EXPECT_EQ(w.code, 3) << who << ": " << w.err;
+    EXPECT_NE(w.err.find(who.empty() ? "--key and --server-key" : "allow-list"), std::string::npos) << w.err;
+  }
   // A role that may not: a typed server error.
   const RunResult viewer_stop = client(endpoint, "viewer", {"shutdown"});
   EXPECT_EQ(viewer_stop.code, 1);
