@@ -98,6 +98,7 @@ class CurveDaemon {
   }
 
   const Keys& keys() const { return keys_; }
+  const std::string& endpoint() const { return endpoint_; }
   const std::string& events() const { return events_; }
 
  private:
@@ -188,6 +189,39 @@ TEST(DaemonSecurity, RolesStrangersAndEventsOverCurve) {
   // Only admin stops the daemon.
   EXPECT_EQ(d.error_of(&k.scanner, make_shutdown_request("s")), ErrorCode::kUnauthorised);
   EXPECT_EQ(d.error_of(&k.viewer, make_shutdown_request("s")), ErrorCode::kUnauthorised);
+  EXPECT_EQ(d.type_of(&k.admin, make_shutdown_request("s")), MessageType::kShutdownReply);
+  EXPECT_EQ(d.join(), 0);
+}
+
+// Many strangers at once (unknown keys, no CURVE, a wrong server key) get
+// nothing, and a listed client is served among them.
+TEST(DaemonSecurity, StrangersDoNotStopTheOthersBeingServed) {
+  CurveDaemon d;
+  const Keys& k = d.keys();
+  constexpr int kEach = 20;
+  std::vector<std::unique_ptr<zmq::socket_t>> strangers;
+  std::vector<curve::KeyPair> unknown(kEach);
+  const curve::KeyPair fake_server = curve::generate_key_pair();
+  for (int i = 0; i < kEach; ++i) {
+    unknown[i] = curve::generate_key_pair();
+    strangers.push_back(d.socket(zmq::socket_type::dealer, &unknown[i]));  // unknown key
+    strangers.push_back(d.socket(zmq::socket_type::dealer, nullptr));      // no CURVE
+    auto wrong = d.socket(zmq::socket_type::dealer, nullptr);              // trusts another server key
+    curve::set_client_options(*wrong, {fake_server.public_z85, k.scanner});
+    strangers.push_back(std::move(wrong));
+  }
+  for (auto& s : strangers) {
+    s->connect(d.endpoint());
+    tp::send_request(*s, make_status_request("stranger"));
+  }
+  int served = 0;
+  for (int i = 0; i < 10; ++i) served += d.type_of(&k.scanner, make_status_request("s")) == MessageType::kStatusReply;
+  EXPECT_EQ(served, 10);
+  int answered = 0;
+  for (auto& s : strangers) answered += tp::receive_reply(*s, Limits::client_inbound(), 20ms).has_value();
+  EXPECT_EQ(answered, 0) << "a stranger got a reply";
+  std::printf("%zu stranger connections (unknown key, no CURVE, wrong server key): %d answered; 10/10 scanner "
+              "requests served among them\n", strangers.size(), answered);
   EXPECT_EQ(d.type_of(&k.admin, make_shutdown_request("s")), MessageType::kShutdownReply);
   EXPECT_EQ(d.join(), 0);
 }
