@@ -135,3 +135,46 @@ void ZapHandler::log_refusal(const std::string& key_z85, const std::string& doma
 }
 
 }  // namespace brainshift::server
+
+namespace brainshift::server {
+
+class HandshakeFailureLog::Monitor : public zmq::monitor_t {
+ public:
+  explicit Monitor(std::string what) : what_(std::move(what)) {}
+  std::uint64_t failures = 0;
+
+  void on_event_handshake_failed_protocol(const zmq_event_t&, const char* endpoint) override { failed(endpoint); }
+  void on_event_handshake_failed_no_detail(const zmq_event_t&, const char* endpoint) override { failed(endpoint); }
+
+ private:
+  void failed(const char* endpoint) {
+    ++failures;
+    const auto now = std::chrono::steady_clock::now();
+    if (logged_once_ && now - last_logged_ < std::chrono::minutes(1)) return;
+    logged_once_ = true;
+    last_logged_ = now;
+    spdlog::warn("a client failed the CURVE handshake on the {} socket {} (no CURVE, or another server key); "
+                 "{} such failure(s) so far, logged once a minute",
+                 what_, endpoint, failures);
+  }
+  std::string what_;
+  bool logged_once_ = false;
+  std::chrono::steady_clock::time_point last_logged_;
+};
+
+HandshakeFailureLog::HandshakeFailureLog(zmq::socket_t& socket, std::string what)
+    : monitor_(std::make_unique<Monitor>(what)) {
+  monitor_->init(socket, "inproc://brainshift-handshake-" + what,
+                 ZMQ_EVENT_HANDSHAKE_FAILED_PROTOCOL | ZMQ_EVENT_HANDSHAKE_FAILED_NO_DETAIL);
+}
+
+HandshakeFailureLog::~HandshakeFailureLog() = default;
+
+void HandshakeFailureLog::poll() {
+  while (monitor_->check_event(0)) {
+  }
+}
+
+std::uint64_t HandshakeFailureLog::failures() const { return monitor_->failures; }
+
+}  // namespace brainshift::server

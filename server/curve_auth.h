@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cstdint>
 #include <map>
+#include <memory>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -58,6 +59,23 @@ class ZapHandler {
   // A refused client reconnects every few hundred ms: one log line per key a minute.
   std::map<std::string, std::chrono::steady_clock::time_point> last_logged_;
   std::thread thread_;
+};
+
+// Handshakes that fail before the ZAP handler is asked (a client without
+// CURVE, or one holding another server key) are invisible to it; a socket
+// monitor sees them. Logged as a count at most once a minute per socket (the
+// peer address is not in libzmq's event, only the local endpoint).
+class HandshakeFailureLog {
+ public:
+  HandshakeFailureLog(zmq::socket_t& socket, std::string what);  // what: "requests", "events"
+  ~HandshakeFailureLog();
+  // Reads pending monitor events without blocking; call from the socket's thread.
+  void poll();
+  std::uint64_t failures() const;
+
+ private:
+  class Monitor;
+  std::unique_ptr<Monitor> monitor_;
 };
 
 }  // namespace brainshift::server

@@ -64,7 +64,14 @@ void publish_all(zmq::socket_t& pub, EventOutbox& outbox) {
 // without it the peer is an unauthenticated loopback client.
 void socket_loop(zmq::socket_t& router, zmq::socket_t& pub, ServerCore& core, EventOutbox& outbox,
                  const std::atomic<bool>& running, bool curve) {
+  // Monitors are read by this thread, the one that owns the sockets.
+  std::vector<std::unique_ptr<HandshakeFailureLog>> handshake_logs;
+  if (curve) {
+    handshake_logs.push_back(std::make_unique<HandshakeFailureLog>(router, "requests"));
+    handshake_logs.push_back(std::make_unique<HandshakeFailureLog>(pub, "events"));
+  }
   while (running) {
+    for (auto& log : handshake_logs) log->poll();
     try {
       auto request = protocol::transport::receive_request(router, 10ms);
       if (request) {

@@ -9,6 +9,8 @@
 #include <thread>
 
 #include <nlohmann/json.hpp>
+#include <spdlog/sinks/ringbuffer_sink.h>
+#include <spdlog/spdlog.h>
 
 #include "image/nifti_io.h"
 #include "protocol/curve_keys.h"
@@ -196,6 +198,14 @@ TEST(DaemonSecurity, RolesStrangersAndEventsOverCurve) {
 // Many strangers at once (unknown keys, no CURVE, a wrong server key) get
 // nothing, and a listed client is served among them.
 TEST(DaemonSecurity, StrangersDoNotStopTheOthersBeingServed) {
+  // Capture the daemon's log to check what it says about the strangers.
+  auto sink = std::make_shared<spdlog::sinks::ringbuffer_sink_mt>(10000);
+  auto previous = spdlog::default_logger();
+  spdlog::set_default_logger(std::make_shared<spdlog::logger>("capture", sink));
+  struct Restore {
+    std::shared_ptr<spdlog::logger> logger;
+    ~Restore() { spdlog::set_default_logger(logger); }
+  } restore{previous};
   CurveDaemon d;
   const Keys& k = d.keys();
   constexpr int kEach = 20;
@@ -224,6 +234,23 @@ TEST(DaemonSecurity, StrangersDoNotStopTheOthersBeingServed) {
               "requests served among them\n", strangers.size(), answered);
   EXPECT_EQ(d.type_of(&k.admin, make_shutdown_request("s")), MessageType::kShutdownReply);
   EXPECT_EQ(d.join(), 0);
+
+  // Unknown keys are logged by fingerprint, once each; handshakes that never
+  // reach the ZAP handler are counted, rate-limited; no secret is ever logged.
+  int refused_lines = 0, failed_lines = 0;
+  for (const std::string& line : sink->last_formatted()) {
+    refused_lines += line.find("key not in the allow-list") != std::string::npos;
+    failed_lines += line.find("failed the CURVE handshake") != std::string::npos;
+    const std::initializer_list<const curve::KeyPair*> secrets = {&k.server, &k.scanner, &k.admin, &unknown[0],
+                                                                  &unknown[kEach - 1]};
+    for (const curve::KeyPair* secret : secrets)
+      EXPECT_EQ(line.find(secret->secret_z85), std::string::npos) << line;
+  }
+  EXPECT_GE(refused_lines, 1);
+  EXPECT_LE(refused_lines, kEach);
+  EXPECT_GE(failed_lines, 1);
+  EXPECT_LE(failed_lines, 2);  // once a minute per socket
+  std::printf("log: %d refused-key lines, %d handshake-failure lines\n", refused_lines, failed_lines);
 }
 
 // The ZAP handler's verdict reaches each message as User-Id (the role) and the
