@@ -60,7 +60,7 @@ bool valid_stage_name(const std::string& s) {
 
 // Frames of the requested parts of a done scan, with every missing part in
 // `unavailable` (e.g. no warped_image when the engine wrote none).
-// deferred_pending: field.h5 and report.png are still being made (they follow
+// deferred_pending: metrics.json, field.h5 and report.png are still being made (they follow
 // scan.done, see ServerCore::add_deferred_outputs).
 ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRequest& request,
                                       const ScanRecord& record, bool deferred_pending) {
@@ -84,8 +84,8 @@ ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRe
                                            : "report.png was not rendered (see the server log)";
       if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending && record.has_image)
         reply.unavailable.back().pending = true;
-    } else if (part == ResultPart::kDisplacementItk) {
-      const char* why = deferred_pending ? "field.h5 is being written; ask again shortly" : "not in this result";
+    } else if (part == ResultPart::kDisplacementItk || part == ResultPart::kMetrics) {
+      const char* why = deferred_pending ? "being written just after the field; ask again shortly" : "not in this result";
       if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending)
         reply.unavailable.back().pending = true;
     } else if (part != ResultPart::kModels) {
@@ -524,8 +524,9 @@ void ServerCore::fail_scan(const ScanRecord& record, ErrorCode code, const std::
   emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, stage, ErrorInfo{code, message}}));
 }
 
-// field.h5 (field.nii again, in ITK's encoding) and report.png (a picture for
-// the record) are made after the scan was announced, so they never delay the
+// metrics.json (label overlap figures that judge the result), field.h5
+// (field.nii again, in ITK's encoding) and report.png (a picture for the
+// record) are made after the scan was announced, so they never delay the
 // field; each is stored durably as soon as it is ready. A failure is logged
 // and never fails the scan. Meanwhile the socket thread answers pulls of them
 // with a "pending" unavailable entry.
@@ -534,7 +535,10 @@ void ServerCore::add_deferred_outputs(const std::string& scan_id, const std::str
   try {
     engine_.render_deferred([&](const std::string& name, const std::string& bytes) {
       store_.add_result_file(scan_id, name, bytes);
-      const std::string stage = name == "report.png" ? "report" : name == "field.h5" ? "itk_field" : "deferred";
+      const std::string stage = name == "report.png"     ? "report"
+                                : name == "field.h5"     ? "itk_field"
+                                : name == "metrics.json" ? "metrics"
+                                                         : "deferred";
       log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, stage, seconds_since(t0), ""});
       t0 = Clock::now();
     });
