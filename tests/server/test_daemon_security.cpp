@@ -163,7 +163,7 @@ TEST(DaemonSecurity, RolesStrangersAndEventsOverCurve) {
   const std::string scan_id = parse_scan_push_reply(*pushed).scan_id;
 
   // Both pull the result once it is done, and both list.
-  const Message result = make_scan_result_request("r", {scan_id, {ResultPart::kMetrics}, {}});
+  const Message result = make_scan_result_request("r", {scan_id, {ResultPart::kDisplacement}, {}});
   std::optional<Message> done;
   for (int i = 0; i < 500; ++i) {
     done = d.call(&k.viewer, result);
@@ -171,7 +171,7 @@ TEST(DaemonSecurity, RolesStrangersAndEventsOverCurve) {
     std::this_thread::sleep_for(10ms);
   }
   ASSERT_TRUE(done && done->type() == MessageType::kScanResultReply) << done->header.dump();
-  EXPECT_NE(parse_scan_result_reply(*done).find("metrics"), nullptr);
+  EXPECT_NE(parse_scan_result_reply(*done).find("displacement"), nullptr);  // durable before scan.done
   EXPECT_EQ(d.type_of(&k.scanner, result), MessageType::kScanResultReply);
   for (const auto* key : {&k.scanner, &k.viewer})
     EXPECT_EQ(parse_scan_list_reply(*d.call(key, make_scan_list_request("l", {10}))).scans.size(), 1u);

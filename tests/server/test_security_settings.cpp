@@ -273,11 +273,11 @@ TEST(ClientPaths, AreNeverOpened) {
     EXPECT_EQ(e.path().filename().string().rfind("scan-", 0), 0u) << e.path();
   EXPECT_FALSE(fs::exists(dir.path() / "escape"));
   for (const char* id : {"../preop.h5", "../../store/scans/scan-000001", "scans/scan-000001", "/etc/passwd"}) {
-    const Message r = core.handle_wire(encode(make_scan_result_request("r", {id, {ResultPart::kMetrics}, {}})));
+    const Message r = core.handle_wire(encode(make_scan_result_request("r", {id, {ResultPart::kDisplacement}, {}})));
     EXPECT_EQ(code(r), ErrorCode::kNotFound) << id;
   }
   EXPECT_EQ(core.handle_wire(encode(make_scan_result_request("r", {parse_scan_push_reply(pushed).scan_id,
-                                                                    {ResultPart::kMetrics}, {}})))
+                                                                    {ResultPart::kDisplacement}, {}})))
                 .type(),
             MessageType::kScanResultReply);
 }
