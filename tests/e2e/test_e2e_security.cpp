@@ -158,6 +158,18 @@ TEST_F(SecurityE2E, UnsafeConfigurationsAreRefusedAtStartUp) {
                                  dir_, 120);
   EXPECT_NE(readable.code, 0);
   EXPECT_NE(readable.out.find("too open"), std::string::npos) << readable.out;
+
+  // The client checks its own keys the same way, before any connection.
+  keygen("client");
+  const RunResult half = run({BRAINSHIFT_BIN, "--key", path("client").string(), "status"}, dir_, 30);
+  EXPECT_EQ(half.code, 2);
+  EXPECT_NE(half.err.find("both --key"), std::string::npos) << half.err;
+  fs::permissions(path("client.key_secret"), fs::perms::group_read, fs::perm_options::add);
+  const RunResult open_key = run({BRAINSHIFT_BIN, "--key", path("client").string(), "--server-key",
+                                  path("server.key").string(), "status"},
+                                 dir_, 30);
+  EXPECT_EQ(open_key.code, 2);
+  EXPECT_NE(open_key.err.find("too open"), std::string::npos) << open_key.err;
 }
 
 }  // namespace
