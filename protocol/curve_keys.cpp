@@ -135,6 +135,10 @@ std::string read_secret_key_file(const fs::path& path) {
   if (::stat(path.c_str(), &st) != 0)
     throw KeyFileError(path.string() + ": cannot read the secret key file (" + std::strerror(errno) + ")");
   if (!S_ISREG(st.st_mode)) throw KeyFileError(path.string() + ": a secret key must be a regular file");
+  // Another user could replace a key they own (ssh refuses those too).
+  if (st.st_uid != ::geteuid() && st.st_uid != 0)
+    throw KeyFileError(path.string() + ": owned by uid " + std::to_string(st.st_uid) +
+                       ", not by this user (uid " + std::to_string(::geteuid()) + ") or root");
   if ((st.st_mode & 077) != 0) {
     char mode[8];
     std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));

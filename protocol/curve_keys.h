@@ -5,8 +5,8 @@
 // Key files hold one Z85 key (40 characters) on a line; blank lines and lines
 // starting with '#' are ignored. `brainshift keygen --out P` writes
 // P.key (public, shareable) and P.key_secret (mode 0600). A secret key file
-// that its group or other users may access is refused, as ssh refuses a
-// private key with open permissions.
+// that its group or other users may access, or that another user owns, is
+// refused, as ssh refuses such a private key.
 #include <filesystem>
 #include <stdexcept>
 #include <string>
@@ -48,7 +48,8 @@ std::string binary_to_z85(std::string_view binary32);  // 40 characters
 std::string fingerprint(std::string_view public_z85);
 
 std::string read_public_key_file(const std::filesystem::path& path);
-// Refuses (KeyFileError) a file with any group/other permission bit.
+// Refuses (KeyFileError) a file with any group/other permission bit, or one
+// owned by another user than this one or root.
 std::string read_secret_key_file(const std::filesystem::path& path);
 // PREFIX.key_secret and PREFIX.key, checked to belong together.
 KeyPair read_key_pair(const std::string& prefix);

@@ -110,6 +110,12 @@ TEST_F(KeyDir, OpenSecretKeyFilesAreRefused) {
   EXPECT_EQ(curve::read_secret_key_file(write("ok.key_secret", "# comment\n\n" + key + "\n")), key);
   EXPECT_EQ(curve::read_secret_key_file(write("ro.key_secret", key, fs::perms::owner_read)), key);
   EXPECT_NE(refusal([&] { curve::read_secret_key_file(dir_ / "missing"); }).find("cannot read"), std::string::npos);
+  // Owned by somebody else (only root can hand a file over; skipped otherwise).
+  if (::geteuid() == 0) {
+    const fs::path theirs = write("theirs.key_secret", key + "\n");
+    ASSERT_EQ(::chown(theirs.c_str(), 4242, 4242), 0);
+    EXPECT_NE(refusal([&] { curve::read_secret_key_file(theirs); }).find("owned by uid 4242"), std::string::npos);
+  }
   EXPECT_NE(refusal([&] { curve::read_secret_key_file(dir_); }).find("regular file"), std::string::npos);
 }
 
