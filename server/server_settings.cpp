@@ -74,6 +74,16 @@ DefaultPreop read_preop(const toml::table& t, const std::string& source) {
   return p;
 }
 
+toml::table parse_toml(const std::string& text, const std::string& source) {
+  try {
+    return toml::parse(text, source);
+  } catch (const toml::parse_error& e) {
+    std::ostringstream os;
+    os << source << ": TOML parse error at line " << e.source().begin.line << ": " << e.description();
+    throw InputError(os.str());
+  }
+}
+
 // One allow-list entry {name, role, public_key}; `where` names it in messages.
 AllowedClient read_allowed_client(const toml::node& node, const std::string& where) {
   const toml::table* t = node.as_table();
@@ -147,14 +157,7 @@ SecuritySettings read_security(const toml::node* section, const std::string& sou
 }  // namespace
 
 std::vector<AllowedClient> allowed_clients_from_text(const std::string& toml_text, const std::string& source) {
-  toml::table root;
-  try {
-    root = toml::parse(toml_text, source);
-  } catch (const toml::parse_error& e) {
-    std::ostringstream os;
-    os << source << ": TOML parse error at line " << e.source().begin.line << ": " << e.description();
-    throw InputError(os.str());
-  }
+  const toml::table root = parse_toml(toml_text, source);
   for (const auto& [k, v] : root)
     if (k.str() != "clients") throw InputError(source + ": unknown key \"" + std::string(k.str()) + "\" (only [[clients]])");
   return read_allowed_clients(root.get("clients"), source + ": [[clients]]");
@@ -179,14 +182,7 @@ std::filesystem::path ServerSettings::atlas_cache_path() const {
 
 ServerSettings server_settings_from_text(const std::string& toml_text, const std::string& source,
                                          const fs::path& base_dir) {
-  toml::table root;
-  try {
-    root = toml::parse(toml_text, source);
-  } catch (const toml::parse_error& e) {
-    std::ostringstream os;
-    os << source << ": TOML parse error at line " << e.source().begin.line << ": " << e.description();
-    throw InputError(os.str());
-  }
+  const toml::table root = parse_toml(toml_text, source);
   ServerSettings s;
   s.security = read_security(root.get("security"), source, base_dir);
   const toml::node* section = root.get("server");
