@@ -7,6 +7,8 @@
 // scan is stored.
 #include <gtest/gtest.h>
 
+#include <signal.h>
+
 #include <chrono>
 #include <cstring>
 #include <limits>
@@ -48,8 +50,11 @@ Env* g = nullptr;
 fs::path path(const std::string& name) { return g->dir / name; }
 
 std::string config_text() {
+  // Unauthenticated shutdown allowed (loopback, no CURVE) so that a shutdown
+  // with a bad field reaches its parser; the test never sends a valid one.
   return "[server]\npreop = \"none\"\nqueue_depth = 3\nmax_frame_bytes = " + std::to_string(kMaxFrameBytes) +
-         "\n\n[mesh]\ncell_size_mm = 7.0\nfacet_size_mm = 4.0\nfacet_distance_mm = 1.5\n";
+         "\n\n[security]\nallow_unauthenticated_shutdown = true\n"
+         "\n[mesh]\ncell_size_mm = 7.0\nfacet_size_mm = 4.0\nfacet_distance_mm = 1.5\n";
 }
 
 RunResult client(std::vector<std::string> args, double timeout_s = 300) {
@@ -270,7 +275,11 @@ class BadInputE2E : public ::testing::Test {
         << daemon_log();
   }
   static void TearDownTestSuite() {
-    g->daemon.reset();  // SIGKILL if still running
+    if (g->daemon && g->daemon->running()) {
+      g->daemon->signal(SIGTERM);
+      EXPECT_EQ(g->daemon->wait(30).value_or(-1), 0) << "the daemon did not stop cleanly: " << daemon_log();
+    }
+    g->daemon.reset();  // SIGKILL if it is somehow still running
     std::error_code ec;
     if (::testing::UnitTest::GetInstance()->failed_test_count() == 0) fs::remove_all(g->dir, ec);
     else std::printf("bad-input e2e files kept in %s\n", g->dir.c_str());
