@@ -4,7 +4,9 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <stdexcept>
 
 #include <nlohmann/json.hpp>
@@ -46,19 +48,40 @@ Grid3 read_grid(hid_t file, const std::string& name) {
   return g;
 }
 
+// Runs a store write; on failure removes what it left (`leftover`, so a full
+// disk is not kept full by half a file) and throws StoreWriteError naming the
+// system's reason. errno is cleared first: HDF5 reports only "cannot write",
+// the failing write() leaves ENOSPC/EFBIG/EROFS/EACCES behind.
+template <class Write>
+void guarded_write(const fs::path& leftover, const std::string& what, Write&& write) {
+  errno = 0;
+  try {
+    write();
+  } catch (const std::exception& e) {
+    const int saved = errno;
+    std::error_code ec;
+    fs::remove_all(leftover, ec);
+    std::string reason = e.what();
+    if (saved != 0) reason += std::string(" (") + std::strerror(saved) + ")";
+    throw StoreWriteError("cannot write " + what + ": " + reason);
+  }
+}
+
 // Writes path via path.tmp + fsync + rename + fsync(dir). fill gets the open file.
 template <class Fill>
 void write_atomically(const fs::path& path, Fill&& fill) {
   const fs::path tmp = path.string() + ".tmp";
-  {
-    std::lock_guard lock(h5::hdf5_mutex());
-    h5::Handle file = h5::create_file(tmp);
-    fill(file.get());
-    if (H5Fflush(file.get(), H5F_SCOPE_GLOBAL) < 0)
-      throw std::runtime_error("HDF5: cannot flush " + tmp.string());
-  }
-  h5::fsync_path(tmp);
-  fs::rename(tmp, path);
+  guarded_write(tmp, path.string(), [&] {
+    {
+      std::lock_guard lock(h5::hdf5_mutex());
+      h5::Handle file = h5::create_file(tmp);
+      fill(file.get());
+      if (H5Fflush(file.get(), H5F_SCOPE_GLOBAL) < 0)
+        throw std::runtime_error("HDF5: cannot flush " + tmp.string());
+    }
+    h5::fsync_path(tmp);
+    fs::rename(tmp, path);
+  });
   h5::fsync_path(path.parent_path());
 }
 
@@ -82,21 +105,23 @@ bool is_temporary_name(const std::string& n) {
 
 void write_plain_file_atomically(const fs::path& path, const std::string& bytes) {
   const fs::path tmp = path.string() + ".tmp";
-  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) throw std::runtime_error("store: cannot create " + tmp.string());
-  std::size_t done = 0;
-  while (done < bytes.size()) {
-    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
-    if (n <= 0) {
-      ::close(fd);
-      throw std::runtime_error("store: cannot write " + tmp.string());
+  guarded_write(tmp, path.string(), [&] {
+    const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+    if (fd < 0) throw std::runtime_error("store: cannot create " + tmp.string());
+    std::size_t done = 0;
+    while (done < bytes.size()) {
+      const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
+      if (n <= 0) {
+        ::close(fd);
+        throw std::runtime_error("store: cannot write " + tmp.string());
+      }
+      done += static_cast<std::size_t>(n);
     }
-    done += static_cast<std::size_t>(n);
-  }
-  const bool synced = ::fsync(fd) == 0;
-  ::close(fd);
-  if (!synced) throw std::runtime_error("store: cannot fsync " + tmp.string());
-  fs::rename(tmp, path);
+    const bool synced = ::fsync(fd) == 0;
+    ::close(fd);
+    if (!synced) throw std::runtime_error("store: cannot fsync " + tmp.string());
+    fs::rename(tmp, path);
+  });
   h5::fsync_path(path.parent_path());
 }
 
@@ -330,8 +355,8 @@ ScanRecord CaseStore::add_scan(const ScanInput& input, const std::optional<std::
   r.has_image = input.image_bytes.has_value();
 
   const fs::path tmp_dir = dir_ / "scans" / (".tmp-" + r.scan_id);
-  fs::create_directories(tmp_dir);
-  try {
+  guarded_write(tmp_dir, "scan " + r.scan_id, [&] {
+    fs::create_directories(tmp_dir);
     {
       std::lock_guard lock(h5::hdf5_mutex());
       h5::Handle f = h5::create_file(tmp_dir / "scan.h5");
@@ -343,12 +368,8 @@ ScanRecord CaseStore::add_scan(const ScanInput& input, const std::optional<std::
     h5::fsync_path(tmp_dir / "scan.h5");
     h5::fsync_path(tmp_dir);
     fs::rename(tmp_dir, scan_dir(r.scan_id));
-    h5::fsync_path(dir_ / "scans");
-  } catch (...) {
-    std::error_code ec;
-    fs::remove_all(tmp_dir, ec);
-    throw;
-  }
+  });
+  h5::fsync_path(dir_ / "scans");
   std::lock_guard lock(index_mutex_);
   if (r.client_scan_id) by_client_id_[*r.client_scan_id] = r.scan_id;
   scans_[r.scan_id] = Entry{r, {}};
@@ -436,6 +457,31 @@ void CaseStore::save_failure(const std::string& scan_id, const std::string& erro
   r.error_code = error_code;
   r.error_message = message;
   r.error_stage = stage;
+}
+
+void CaseStore::mark_failed_unstored(const std::string& scan_id, const std::string& error_code,
+                                     const std::string& message, const std::string& stage) {
+  std::lock_guard lock(index_mutex_);
+  auto it = scans_.find(scan_id);
+  if (it == scans_.end()) return;
+  ScanRecord& r = it->second.record;
+  r.state = StoredScanState::failed;
+  r.finished_at = protocol::utc_now();
+  r.error_code = error_code;
+  r.error_message = message;
+  r.error_stage = stage;
+}
+
+void CaseStore::mark_queued(const std::string& scan_id) {
+  std::lock_guard lock(index_mutex_);
+  auto it = scans_.find(scan_id);
+  if (it == scans_.end()) return;
+  ScanRecord& r = it->second.record;
+  r.state = StoredScanState::queued;
+  r.finished_at.reset();
+  r.error_code.clear();
+  r.error_message.clear();
+  r.error_stage.clear();
 }
 
 void CaseStore::add_result_file(const std::string& scan_id, const std::string& name, const std::string& bytes) {

@@ -38,6 +38,9 @@ void install_signal_handlers() {
   sigaction(SIGTERM, &sa, nullptr);
   // A client vanishing mid-write must not kill the daemon.
   signal(SIGPIPE, SIG_IGN);
+  // A file-size limit (RLIMIT_FSIZE) must fail the write with EFBIG, which the
+  // store reports, not kill the daemon.
+  signal(SIGXFSZ, SIG_IGN);
 }
 
 struct Configuration {

@@ -1,6 +1,7 @@
 #include "server/server_core.h"
 
 #include <algorithm>
+#include <limits>
 #include <chrono>
 #include <thread>
 #include <cstdio>
@@ -278,13 +279,26 @@ Message ServerCore::on_scan_push(const Message& m) {
   ScanRecord record;
   try {
     record = store_.add_scan(input, req.client_scan_id, digest, preop_id);
+  } catch (const StoreWriteError& e) {
+    spdlog::error("could not store a pushed scan: {}", e.what());
+    return make_error_reply(rid, ErrorCode::kInternal,
+                            std::string("the scan was NOT stored and is not queued (the store refused the write: ") +
+                                e.what() + "); push it again once the store has space");
   } catch (const std::exception& e) {
     spdlog::error("could not store a pushed scan: {}", e.what());
     return make_error_reply(rid, ErrorCode::kInternal, std::string("the scan could not be stored: ") + e.what());
   }
+  std::vector<std::string> retry;
   {
     std::lock_guard lock(mutex_);
     decoded_[record.scan_id] = decoded;
+    retry.swap(unstored_results_);
+  }
+  // The store takes writes again: results it refused earlier are computed again first.
+  for (const auto& id : retry) {
+    spdlog::info("scan {}: the store takes writes again; processing it again", id);
+    store_.mark_queued(id);
+    queue_.restore(id);
   }
   if (!queue_.offer(record.scan_id)) queue_.restore(record.scan_id);  // stored: it must run
   spdlog::info("scan {} stored and queued (client id {})", record.scan_id,
@@ -399,12 +413,34 @@ void ServerCore::start() {
     spdlog::info("re-queueing acknowledged scan {} (no result yet)", r.scan_id);
     queue_.restore(r.scan_id);
   }
+  recover_itk_fields();
   std::lock_guard lock(mutex_);
   if (job) {
     loading_preop_id_ = job->preop_id;
     state_ = ServerState::kLoadingPreop;
     progress_ = Progress{"queued", 0.0};
     pending_preop_ = std::move(job);
+  }
+}
+
+// field.h5 is written after the result (add_deferred_outputs); a daemon
+// killed in between leaves a done scan without it. It is the stored
+// field.nii re-encoded, so it is made again here rather than lost.
+void ServerCore::recover_itk_fields() {
+  for (const auto& r : store_.list_newest_first(std::numeric_limits<std::size_t>::max())) {
+    if (r.state != StoredScanState::done) continue;
+    const auto names = store_.result_file_names(r.scan_id);
+    auto has = [&](const char* n) { return std::find(names.begin(), names.end(), n) != names.end(); };
+    if (has("field.h5") || !has("field.nii")) continue;
+    try {
+      const auto h5 = engine_.itk_field_from_nifti(store_.read_result_file(r.scan_id, "field.nii").value());
+      if (!h5) continue;
+      store_.add_result_file(r.scan_id, "field.h5", *h5);
+      spdlog::warn("scan {}: field.h5 was missing (stopped before it was written); made again from field.nii",
+                   r.scan_id);
+    } catch (const std::exception& e) {
+      spdlog::error("scan {}: field.h5 missing and could not be made again: {}", r.scan_id, e.what());
+    }
   }
 }
 
@@ -515,9 +551,27 @@ void ServerCore::fail_scan(const ScanRecord& record, ErrorCode code, const std::
   try {
     store_.save_failure(record.scan_id, std::string(to_string(code)), message, stage);
   } catch (const std::exception& e) {
+    // Shown now; the store still holds the scan without a result, so a
+    // restart processes it again.
     spdlog::error("scan {}: the failure could not be stored: {}", record.scan_id, e.what());
+    store_.mark_failed_unstored(record.scan_id, std::string(to_string(code)), message, stage);
   }
   emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, stage, ErrorInfo{code, message}}));
+}
+
+// The result was computed but the store refused it (disk full, file-size
+// limit): the scan is reported failed for now and computed again after the
+// next successful write to the store (a push) or at the next start.
+void ServerCore::result_not_stored(const ScanRecord& record, const std::string& why) {
+  const std::string message = "the result could not be stored (" + why +
+                              "); the scan is kept and processed again once the store takes writes";
+  spdlog::error("scan {}: {}", record.scan_id, message);
+  store_.mark_failed_unstored(record.scan_id, std::string(to_string(ErrorCode::kInternal)), message, "store");
+  {
+    std::lock_guard lock(mutex_);
+    unstored_results_.push_back(record.scan_id);
+  }
+  emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, "store", ErrorInfo{ErrorCode::kInternal, message}}));
 }
 
 // field.h5 (field.nii again, in ITK's encoding) and report.png (a picture for
@@ -591,6 +645,8 @@ void ServerCore::run_scan(const std::string& scan_id) {
     }
     emit(make_event(ScanDoneEvent{scan_id, record->client_scan_id, seconds}));
     add_deferred_outputs(scan_id, preop_id);
+  } catch (const StoreWriteError& e) {
+    result_not_stored(*record, e.what());
   } catch (const InputError& e) {
     fail_scan(*record, ErrorCode::kInvalidRequest, e.what(), stage);
   } catch (const ComputeError& e) {
