@@ -50,7 +50,10 @@ Daemon::Daemon(DaemonSpec spec) : spec_(std::move(spec)) {
   rank0_pid_ = r.at("pid").get<pid_t>();
 }
 
-std::string Daemon::log() const { return read_file(spec_.work_dir / (spec_.name + ".err")); }
+// spdlog writes to stdout; MPI and crashes to stderr.
+std::string Daemon::log() const {
+  return read_file(spec_.work_dir / (spec_.name + ".out")) + read_file(spec_.work_dir / (spec_.name + ".err"));
+}
 
 // ---------------------------------------------------------------- client
 
