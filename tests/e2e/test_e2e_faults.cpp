@@ -571,6 +571,10 @@ TEST(DaemonFaults, FullFilesystemRefusesWritesCleanly) {
   fs::create_directories(mnt);
   if (::mount("tmpfs", mnt.c_str(), "tmpfs", 0, "size=96m") != 0)
     GTEST_SKIP() << "cannot mount a tmpfs here (" << std::strerror(errno) << "); the RLIMIT_FSIZE test covers refusals";
+  struct Unmount {
+    fs::path at;
+    ~Unmount() { ::umount2(at.c_str(), MNT_DETACH); }
+  } unmount{mnt};
   const std::size_t scan_bytes = inputs().scans[1].labels.size() + inputs().scans[1].image.size();
   const fs::path filler = mnt / "filler";
   StoreFault fault{"tmpfs-full",
@@ -581,7 +585,6 @@ TEST(DaemonFaults, FullFilesystemRefusesWritesCleanly) {
                    },
                    [filler](Daemon&) { fs::remove(filler); }};
   refused_writes_scenario(fault, mnt / "store");
-  ::umount2(mnt.c_str(), MNT_DETACH);
 }
 
 // ---------------------------------------------------------------- MPI ranks
