@@ -17,18 +17,18 @@ namespace {
 
 // The daemon's encoding of register's outputs: the same content, but chosen
 // for latency. Images are plain NIfTI (gzip of the 47 MB field alone took
-// ~1.5 s; the client gzips when it writes field.nii.gz). field.h5 and
-// report.png are left out here: made after the scan is announced (see
-// render_deferred), since field.h5 repeats field.nii and its 47 MB cost
-// ~0.35 s of encoding and fsync. Encoded in memory: no scratch folder written
-// and read back.
+// ~1.5 s; the client gzips when it writes field.nii.gz). metrics.json,
+// field.h5 and report.png are left out here: made after the scan is announced
+// (see render_deferred). The label overlap metrics take ~0.3 s and judge the
+// result rather than make it (the quality gates ran before); field.h5 repeats
+// field.nii and its 47 MB cost ~0.35 s of encoding and fsync. Encoded in
+// memory: no scratch folder written and read back.
 std::map<std::string, std::string> encode_outputs(const ScanResult& r) {
   std::map<std::string, std::string> files;
   files["field.nii"] = displacement_field_to_bytes(r.pullback_field_mm, /*gzip=*/false);
   files["warped_image.nii"] = scalar_image_to_bytes(r.warped_t1, VoxelType::float32, /*gzip=*/false);
   files["warped_labels.nii"] = label_image_to_bytes(r.warped_labels, /*gzip=*/false);
   for (const auto& [name, surface] : r.models) files["models/" + name + ".vtp"] = vtp_bytes(surface);
-  files["metrics.json"] = r.metrics.dump(2) + "\n";
   files["timings.json"] = r.timings.dump(2) + "\n";
   return files;
 }
@@ -52,7 +52,7 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
                                               double read_seconds, const fs::path& /*scratch_dir*/,
                                               const StageProgressFn& progress) {
   deferred_.reset();
-  ScanResult result = session_.register_scan(IntraopInput{labels, image}, progress);
+  ScanResult result = session_.register_scan(IntraopInput{labels, image}, progress, /*defer_quality_metrics=*/true);
   auto& intraop = result.timings["intraop"];
   intraop["read"] = intraop.value("read", 0.0) + read_seconds;
   intraop["total"] = intraop.value("total", 0.0) + read_seconds;
@@ -64,9 +64,7 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
   output.kind = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
   output.fallback_reason = result.fallback_reason;
   output.intraop_seconds = intraop.value("total", 0.0);
-  deferred_ = std::make_unique<Deferred>(Deferred{std::move(result.pullback_field_mm), image,
-                                                  std::move(result.warped_t1_affine_only),
-                                                  std::move(result.warped_t1), std::move(result.warped_labels)});
+  deferred_ = std::make_unique<Deferred>(Deferred{IntraopInput{labels, image}, std::move(result)});
   return output;
 }
 
@@ -90,14 +88,17 @@ std::optional<std::string> EngineAdapter::itk_field_from_nifti(const std::string
 void EngineAdapter::render_deferred(const DeferredOutputFn& add) {
   if (!deferred_) return;
   const std::unique_ptr<Deferred> d = std::move(deferred_);
-  add("field.h5", itk_field_bytes(d->field));
+  ScanResult& r = d->result;
+  session_.add_quality_metrics(d->input, r, nullptr);
+  add("metrics.json", r.metrics.dump(2) + "\n");
+  add("field.h5", itk_field_bytes(r.pullback_field_mm));
   // The picture needs an intraop image to draw on (as in register).
-  if (!d->intraop) return;
+  if (!d->input.t1) return;
   ReportInputs in;
-  in.intraop = &*d->intraop;
-  in.warped_preop_affine = &d->warped_affine_only;
-  in.warped_preop_nonrigid = &d->warped;
-  in.warped_labels = &d->warped_labels;
+  in.intraop = &*d->input.t1;
+  in.warped_preop_affine = &r.warped_t1_affine_only;
+  in.warped_preop_nonrigid = &r.warped_t1;
+  in.warped_labels = &r.warped_labels;
   add("report.png", report_png_bytes(in));
 }
 

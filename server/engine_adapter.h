@@ -29,13 +29,11 @@ class EngineAdapter final : public EnginePort {
   std::optional<std::string> itk_field_from_nifti(const std::string& field_nii) override;
 
  private:
-  // What field.h5 and report.png are made from, kept from register_scan to
-  // render_deferred (moved out of the ScanResult, not copied).
+  // What metrics.json, field.h5 and report.png are made from, kept from
+  // register_scan to render_deferred (the result is moved, not copied).
   struct Deferred {
-    VectorImage3 field;
-    std::optional<ImageF> intraop;
-    ImageF warped_affine_only, warped;
-    LabelImage warped_labels;
+    IntraopInput input;
+    ScanResult result;
   };
   EngineSession session_;
   std::unique_ptr<Deferred> deferred_;

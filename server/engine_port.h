@@ -29,9 +29,10 @@ struct PreopImages {
 
 struct EngineScanOutput {
   // The files `brainshift register --out` writes, by relative name, except
-  // the deferred ones (field.h5, report.png: see render_deferred), and with
-  // images MAY be plain NIfTI: field.nii or field.nii.gz, warped_image.nii[.gz],
-  // warped_labels.nii[.gz], models/<structure>.vtp, metrics.json, timings.json.
+  // the deferred ones (metrics.json, field.h5, report.png: see
+  // render_deferred), and with images MAY be plain NIfTI: field.nii or
+  // field.nii.gz, warped_image.nii[.gz], warped_labels.nii[.gz],
+  // models/<structure>.vtp, timings.json.
   // The client gzips plain NIfTI when it writes register's .nii.gz names.
   std::map<std::string, std::string> files;
   std::string kind = "nonrigid";  // or "affine_only_fallback"
@@ -61,10 +62,12 @@ class EnginePort {
                                          double read_seconds, const std::filesystem::path& scratch_dir,
                                          const StageProgressFn& progress) = 0;
   // The outputs of the scan register_scan last returned that are produced off
-  // the latency path, after the result is stored and announced: field.h5 (the
-  // same field as field.nii, in ITK's encoding) and report.png (only with an
-  // intraop image). Each is handed to `add` as soon as it is ready; nothing
-  // when already rendered. Frees what it kept for them.
+  // the latency path, after the result is stored and announced, in this
+  // order: metrics.json (the label overlap figures judge the result; the
+  // quality gates already ran), field.h5 (the same field as field.nii, in
+  // ITK's encoding) and report.png (only with an intraop image). Each is
+  // handed to `add` as soon as it is ready; nothing when already rendered.
+  // Frees what it kept for them.
   using DeferredOutputFn = std::function<void(const std::string& name, const std::string& bytes)>;
   virtual void render_deferred(const DeferredOutputFn& add) = 0;
   // field.h5 made from a stored field.nii (the same field in ITK's

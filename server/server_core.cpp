@@ -61,7 +61,7 @@ bool valid_stage_name(const std::string& s) {
 
 // Frames of the requested parts of a done scan, with every missing part in
 // `unavailable` (e.g. no warped_image when the engine wrote none).
-// deferred_pending: field.h5 and report.png are still being made (they follow
+// deferred_pending: metrics.json, field.h5 and report.png are still being made (they follow
 // scan.done, see ServerCore::add_deferred_outputs).
 ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRequest& request,
                                       const ScanRecord& record, bool deferred_pending) {
@@ -85,8 +85,8 @@ ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRe
                                            : "report.png was not rendered (see the server log)";
       if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending && record.has_image)
         reply.unavailable.back().pending = true;
-    } else if (part == ResultPart::kDisplacementItk) {
-      const char* why = deferred_pending ? "field.h5 is being written; ask again shortly" : "not in this result";
+    } else if (part == ResultPart::kDisplacementItk || part == ResultPart::kMetrics) {
+      const char* why = deferred_pending ? "being written just after the field; ask again shortly" : "not in this result";
       if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending)
         reply.unavailable.back().pending = true;
     } else if (part != ResultPart::kModels) {
@@ -413,7 +413,7 @@ void ServerCore::start() {
     spdlog::info("re-queueing acknowledged scan {} (no result yet)", r.scan_id);
     queue_.restore(r.scan_id);
   }
-  recover_itk_fields();
+  find_incomplete_results();
   std::lock_guard lock(mutex_);
   if (job) {
     loading_preop_id_ = job->preop_id;
@@ -423,25 +423,65 @@ void ServerCore::start() {
   }
 }
 
-// field.h5 is written after the result (add_deferred_outputs); a daemon
-// killed in between leaves a done scan without it. It is the stored
-// field.nii re-encoded, so it is made again here rather than lost.
-void ServerCore::recover_itk_fields() {
+// The deferred outputs (metrics.json, field.h5, report.png) are stored after
+// the result; a daemon killed in between leaves a done scan without some of
+// them. field.h5 is the stored field.nii re-encoded, so it is made again here,
+// exactly. metrics.json and report.png need the registration's images: the
+// scan is registered again from its stored input (repair_scan) and only the
+// missing files are added; result.h5 is never touched.
+void ServerCore::find_incomplete_results() {
   for (const auto& r : store_.list_newest_first(std::numeric_limits<std::size_t>::max())) {
     if (r.state != StoredScanState::done) continue;
     const auto names = store_.result_file_names(r.scan_id);
     auto has = [&](const char* n) { return std::find(names.begin(), names.end(), n) != names.end(); };
-    if (has("field.h5") || !has("field.nii")) continue;
-    try {
-      const auto h5 = engine_.itk_field_from_nifti(store_.read_result_file(r.scan_id, "field.nii").value());
-      if (!h5) continue;
-      store_.add_result_file(r.scan_id, "field.h5", *h5);
-      spdlog::warn("scan {}: field.h5 was missing (stopped before it was written); made again from field.nii",
-                   r.scan_id);
-    } catch (const std::exception& e) {
-      spdlog::error("scan {}: field.h5 missing and could not be made again: {}", r.scan_id, e.what());
+    if (!has("field.h5") && has("field.nii")) {
+      try {
+        const auto h5 = engine_.itk_field_from_nifti(store_.read_result_file(r.scan_id, "field.nii").value());
+        if (h5) {
+          store_.add_result_file(r.scan_id, "field.h5", *h5);
+          spdlog::warn("scan {}: field.h5 was missing (stopped before it was stored); made again from field.nii",
+                       r.scan_id);
+        }
+      } catch (const std::exception& e) {
+        spdlog::error("scan {}: field.h5 missing and could not be made again: {}", r.scan_id, e.what());
+      }
+    }
+    if (!has("metrics.json") || (r.has_image && !has("report.png"))) {
+      repairs_.push_back(r.scan_id);
+      std::lock_guard lock(mutex_);
+      deferred_pending_.insert(r.scan_id);  // pulls answer "pending" until the repair ends
     }
   }
+}
+
+void ServerCore::repair_scan(const std::string& scan_id) {
+  const fs::path scratch = store_.dir() / "scans" / scan_id / "repair.tmp";
+  try {
+    const auto record = store_.find(scan_id);
+    std::string preop_id;
+    {
+      std::lock_guard lock(mutex_);
+      preop_id = ready_preop_id_;
+    }
+    if (!record || record->preop_id != preop_id)
+      throw InputError("it was registered against another preop than the one loaded");
+    const auto names = store_.result_file_names(scan_id);
+    const DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
+    fs::create_directories(scratch);
+    engine_.register_scan(d.labels, d.image, d.read_seconds, scratch, [](const std::string&, double, double) {});
+    engine_.render_deferred([&](const std::string& name, const std::string& bytes) {
+      if (std::find(names.begin(), names.end(), name) != names.end()) return;
+      store_.add_result_file(scan_id, name, bytes);
+      spdlog::warn("scan {}: {} was missing (stopped before it was stored); made again by registering the stored "
+                   "scan again", scan_id, name);
+    });
+  } catch (const std::exception& e) {
+    spdlog::error("scan {}: missing deferred outputs could not be made again: {}", scan_id, e.what());
+  }
+  std::error_code ec;
+  fs::remove_all(scratch, ec);
+  std::lock_guard lock(mutex_);
+  deferred_pending_.erase(scan_id);
 }
 
 void ServerCore::request_stop() {
@@ -468,6 +508,12 @@ bool ServerCore::step(std::chrono::milliseconds wait) {
   if (!engine_.ready()) {
     std::this_thread::sleep_for(wait);
     return false;
+  }
+  if (!repairs_.empty()) {
+    const std::string id = repairs_.back();
+    repairs_.pop_back();
+    repair_scan(id);
+    return true;
   }
   auto scan_id = queue_.take(wait);
   if (!scan_id) return false;
@@ -574,8 +620,9 @@ void ServerCore::result_not_stored(const ScanRecord& record, const std::string& 
   emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, "store", ErrorInfo{ErrorCode::kInternal, message}}));
 }
 
-// field.h5 (field.nii again, in ITK's encoding) and report.png (a picture for
-// the record) are made after the scan was announced, so they never delay the
+// metrics.json (label overlap figures that judge the result), field.h5
+// (field.nii again, in ITK's encoding) and report.png (a picture for the
+// record) are made after the scan was announced, so they never delay the
 // field; each is stored durably as soon as it is ready. A failure is logged
 // and never fails the scan. Meanwhile the socket thread answers pulls of them
 // with a "pending" unavailable entry.
@@ -584,12 +631,15 @@ void ServerCore::add_deferred_outputs(const std::string& scan_id, const std::str
   try {
     engine_.render_deferred([&](const std::string& name, const std::string& bytes) {
       store_.add_result_file(scan_id, name, bytes);
-      const std::string stage = name == "report.png" ? "report" : name == "field.h5" ? "itk_field" : "deferred";
+      const std::string stage = name == "report.png"     ? "report"
+                                : name == "field.h5"     ? "itk_field"
+                                : name == "metrics.json" ? "metrics"
+                                                         : "deferred";
       log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, stage, seconds_since(t0), ""});
       t0 = Clock::now();
     });
   } catch (const std::exception& e) {
-    spdlog::error("scan {}: deferred outputs (field.h5, report.png) incomplete: {}", scan_id, e.what());
+    spdlog::error("scan {}: deferred outputs (metrics.json, field.h5, report.png) incomplete: {}", scan_id, e.what());
   }
   std::lock_guard lock(mutex_);
   deferred_pending_.erase(scan_id);

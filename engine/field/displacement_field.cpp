@@ -7,6 +7,7 @@
 #include <string>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "core/timer.h"
 #include "field/field_fill.h"
 #include "image/distance_map.h"
@@ -140,21 +141,32 @@ void rasterise(const TetMesh& mesh, const MeshDeformation& def, const Grid3& gri
     const Eigen::Vector3d q = def.node_intraop_mm(mesh.nodes_mm[n], n);
     node_voxel[n] = (voxel_from_world * q.homogeneous()).head<3>();
   }
-  for (const auto& tet : mesh.tets) {
-    const std::array<Eigen::Vector3d, 4> v{node_voxel[tet[0]], node_voxel[tet[1]],
-                                           node_voxel[tet[2]], node_voxel[tet[3]]};
-    TetScan scan;
-    double det = 0;
-    if (!make_scan(v, grid, tol, scan, det)) {
-      ++stats.skipped_tets;
-      continue;
+  // The grid's slices are split in two halves, one per thread; each scans
+  // every tet but writes only its own slices, in the same tet order as one
+  // thread would (so the owner of a voxel shared by two tets is the same).
+  // Counts are taken by the half that starts at slice 0.
+  const int nz = grid.dims[2];
+  parallel_halves(static_cast<std::size_t>(nz), 4, [&](std::size_t k_begin, std::size_t k_end) {
+    const bool counts = k_begin == 0;
+    for (const auto& tet : mesh.tets) {
+      const std::array<Eigen::Vector3d, 4> v{node_voxel[tet[0]], node_voxel[tet[1]],
+                                             node_voxel[tet[2]], node_voxel[tet[3]]};
+      TetScan scan;
+      double det = 0;
+      if (!make_scan(v, grid, tol, scan, det)) {
+        if (counts) ++stats.skipped_tets;
+        continue;
+      }
+      // Voxel axes may be left-handed, so orientation is judged against the grid's.
+      if (counts && det * grid.world_from_voxel.topLeftCorner<3, 3>().determinant() < 0) ++stats.inverted_tets;
+      scan.lo[2] = std::max(scan.lo[2], static_cast<int>(k_begin));
+      scan.hi[2] = std::min(scan.hi[2], static_cast<int>(k_end) - 1);
+      if (scan.lo[2] > scan.hi[2]) continue;
+      const std::array<Eigen::Vector3d, 4> preop{mesh.nodes_mm[tet[0]], mesh.nodes_mm[tet[1]],
+                                                 mesh.nodes_mm[tet[2]], mesh.nodes_mm[tet[3]]};
+      scan_tet(scan, preop, grid, tol, raster);
     }
-    // Voxel axes may be left-handed, so orientation is judged against the grid's.
-    if (det * grid.world_from_voxel.topLeftCorner<3, 3>().determinant() < 0) ++stats.inverted_tets;
-    const std::array<Eigen::Vector3d, 4> preop{mesh.nodes_mm[tet[0]], mesh.nodes_mm[tet[1]],
-                                               mesh.nodes_mm[tet[2]], mesh.nodes_mm[tet[3]]};
-    scan_tet(scan, preop, grid, tol, raster);
-  }
+  });
 }
 
 double smoothstep(double t) {

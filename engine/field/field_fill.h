@@ -20,7 +20,7 @@ namespace brainshift {
 void fill_push_pull(const Grid3& grid, const std::vector<std::uint8_t>& known,
                     const std::vector<std::uint32_t>& targets, std::vector<Eigen::Vector3f>& values);
 
-// Gauss-Seidel sweeps of the (spacing-weighted, 6-neighbour) Laplace equation on
+// Red-black Gauss-Seidel sweeps of the (spacing-weighted, 6-neighbour) Laplace equation on
 // the voxels listed in `free_voxels`; every other voxel acts as a fixed value.
 // Removes the blockiness of the pyramid and makes the extension meet the known
 // values continuously.

@@ -5,8 +5,9 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
-#include <thread>
 #include <vector>
+
+#include "core/parallel.h"
 
 namespace brainshift {
 namespace {
@@ -18,11 +19,12 @@ constexpr float kInf = std::numeric_limits<float>::infinity();
 template <class IsFeature>
 void row_pass(const Grid3& g, double sx, IsFeature&& is_feature, std::vector<float>& out) {
   const int nx = g.dims[0];
-  std::vector<int> gap(nx);
   const int far = std::numeric_limits<int>::max() / 4;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j) {
-      const std::size_t base = g.index(0, j, k);
+  const std::size_t rows = static_cast<std::size_t>(g.dims[1]) * static_cast<std::size_t>(g.dims[2]);
+  parallel_halves(rows, 64, [&](std::size_t r0, std::size_t r1) {
+    std::vector<int> gap(nx);
+    for (std::size_t r = r0; r < r1; ++r) {
+      const std::size_t base = r * static_cast<std::size_t>(nx);
       int last = -far;
       for (int i = 0; i < nx; ++i) {
         if (is_feature(base + i)) last = i;
@@ -35,6 +37,7 @@ void row_pass(const Grid3& g, double sx, IsFeature&& is_feature, std::vector<flo
         out[base + i] = d >= far / 2 ? kInf : static_cast<float>(d * sx * d * sx);
       }
     }
+  });
 }
 
 // Lower envelope of parabolas on one line: d[q] = min_p (s^2 (q-p)^2 + f[p]).
@@ -89,21 +92,6 @@ void transpose(const float* src, std::size_t rows, std::size_t cols, std::size_t
     }
 }
 
-// Runs fn(begin, end) on contiguous chunks of [0, n) in up to two threads: the
-// OR machines have two cores and this stage sits on the intraop critical path.
-template <class Fn>
-void parallel_chunks(int n, Fn&& fn) {
-  const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  const int workers = std::min({2, cores, std::max(1, n / 8)});
-  if (workers <= 1) {
-    fn(0, n);
-    return;
-  }
-  std::thread helper([&] { fn(n / 2, n); });
-  fn(0, n / 2);
-  helper.join();
-}
-
 template <class IsFeature>
 ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
   ImageF out(g);
@@ -115,10 +103,11 @@ ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
   // Lines along y and z are strided in memory; each slab is transposed into a
   // buffer where those lines are contiguous (3-4x faster than strided access).
   const std::size_t snx = nx, sny = ny, snz = nz, slab = snx * sny;
-  parallel_chunks(nz, [&](int k0, int k1) {
+  // The OR machines have two cores and this sits on the intraop critical path.
+  parallel_halves(snz, 8, [&](std::size_t k0, std::size_t k1) {
     LinePass along_y(ny);
     std::vector<float> buf(snx * sny);
-    for (int k = k0; k < k1; ++k) {
+    for (std::size_t k = k0; k < k1; ++k) {
       float* slice = d + k * slab;
       transpose(slice, sny, snx, snx, buf.data(), sny);  // buf: nx lines of ny
       for (std::size_t i = 0; i < snx; ++i) along_y.run(buf.data() + i * sny, ny, sp[1]);
@@ -127,10 +116,10 @@ ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
   });
   if (nz == 1) return out;
   // The (x, z) plane at fixed y: rows of nx values, nx*ny apart.
-  parallel_chunks(ny, [&](int j0, int j1) {
+  parallel_halves(sny, 8, [&](std::size_t j0, std::size_t j1) {
     LinePass along_z(nz);
     std::vector<float> buf(snx * snz);
-    for (int j = j0; j < j1; ++j) {
+    for (std::size_t j = j0; j < j1; ++j) {
       float* plane = d + j * snx;
       transpose(plane, snz, snx, slab, buf.data(), snz);  // buf: nx lines of nz
       for (std::size_t i = 0; i < snx; ++i) along_z.run(buf.data() + i * snz, nz, sp[2]);

@@ -1,25 +1,54 @@
 #include "mesh/vtk_io.h"
 
+#include <cctype>
+#include <charconv>
+#include <concepts>
 #include <fstream>
-#include <iomanip>
-#include <limits>
 #include <sstream>
+#include <string_view>
 
 #include "core/errors.h"
 
 namespace brainshift {
 namespace {
 
-// max_digits10 so coordinates round-trip exactly through text.
-void set_precision(std::ostream& os) { os << std::setprecision(std::numeric_limits<double>::max_digits10); }
+// Text output for the ASCII VTK writers. std::to_chars gives the shortest
+// text that reads back to the same double (exact round trip) and is ~10x
+// faster than an ostream at max_digits10: the daemon encodes every model of
+// every scan on the latency path.
+class TextOut {
+ public:
+  TextOut& operator<<(std::string_view s) {
+    text_.append(s);
+    return *this;
+  }
+  TextOut& operator<<(const char* s) { return *this << std::string_view(s); }
+  TextOut& operator<<(char c) {
+    text_.push_back(c);
+    return *this;
+  }
+  TextOut& operator<<(std::floating_point auto v) { return put(static_cast<double>(v)); }
+  TextOut& operator<<(std::integral auto v) { return put(v); }
+  std::string str() && { return std::move(text_); }
 
-void write_points(std::ostream& os, const std::vector<Eigen::Vector3d>& points) {
+ private:
+  template <class T>
+  TextOut& put(T v) {
+    char buffer[32];
+    const auto [end, ec] = std::to_chars(buffer, buffer + sizeof buffer, v);
+    text_.append(buffer, end);
+    return *this;
+  }
+  std::string text_;
+};
+
+void write_points(TextOut& os, const std::vector<Eigen::Vector3d>& points) {
   os << "<Points>\n<DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
   for (const auto& p : points) os << p.x() << ' ' << p.y() << ' ' << p.z() << '\n';
   os << "</DataArray>\n</Points>\n";
 }
 
-void write_vectors(std::ostream& os, const std::string& name, const std::vector<Eigen::Vector3d>& v) {
+void write_vectors(TextOut& os, const std::string& name, const std::vector<Eigen::Vector3d>& v) {
   os << "<DataArray type=\"Float64\" Name=\"" << name << "\" NumberOfComponents=\"3\" format=\"ascii\">\n";
   for (const auto& p : v) os << p.x() << ' ' << p.y() << ' ' << p.z() << '\n';
   os << "</DataArray>\n";
@@ -53,12 +82,18 @@ std::string_view data_array(std::string_view xml, std::size_t from, std::size_t 
 
 template <class T>
 std::vector<T> parse_numbers(std::string_view text, std::string_view what, std::string_view name) {
-  std::istringstream in{std::string(text)};
   std::vector<T> values;
-  T v;
-  while (in >> v) values.push_back(v);
-  if (!in.eof()) throw InputError(std::string(name) + ": bad number in " + std::string(what));
-  return values;
+  const char* p = text.data();
+  const char* const end = p + text.size();
+  while (true) {
+    while (p != end && std::isspace(static_cast<unsigned char>(*p))) ++p;
+    if (p == end) return values;
+    T v{};
+    const auto [next, ec] = std::from_chars(p, end, v);
+    if (ec != std::errc()) throw InputError(std::string(name) + ": bad number in " + std::string(what));
+    values.push_back(v);
+    p = next;
+  }
 }
 
 std::size_t section(std::string_view xml, std::string_view tag, std::string_view name) {
@@ -72,8 +107,7 @@ std::size_t section(std::string_view xml, std::string_view tag, std::string_view
 std::string vtu_bytes(const TetMesh& mesh, const std::vector<Eigen::Vector3d>* displacements) {
   if (displacements) check_size(displacements->size(), mesh.node_count(), "write_vtu displacement");
   if (mesh.tet_labels.size() != mesh.tet_count()) throw InputError("write_vtu: tet_labels size differs from tet count");
-  std::ostringstream os;
-  set_precision(os);
+  TextOut os;
   os << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
      << "<UnstructuredGrid>\n<Piece NumberOfPoints=\"" << mesh.node_count() << "\" NumberOfCells=\"" << mesh.tet_count() << "\">\n";
   if (displacements) {
@@ -92,7 +126,7 @@ std::string vtu_bytes(const TetMesh& mesh, const std::vector<Eigen::Vector3d>* d
   os << "</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n";
   for (std::size_t t = 0; t < mesh.tet_count(); ++t) os << "10\n";  // VTK_TETRA
   os << "</DataArray>\n</Cells>\n</Piece>\n</UnstructuredGrid>\n</VTKFile>\n";
-  return os.str();
+  return std::move(os).str();
 }
 
 void write_vtu(const std::filesystem::path& path, const TetMesh& mesh, const std::vector<Eigen::Vector3d>* displacements) {
@@ -104,8 +138,7 @@ std::string vtp_bytes(const TriSurface& s, const SurfaceAttributes& attributes) 
   if (!s.mesh_node.empty()) check_size(s.mesh_node.size(), nv, "write_vtp mesh_node");
   for (const auto& [name, v] : attributes.vectors) check_size(v.size(), nv, "write_vtp " + name);
   for (const auto& [name, v] : attributes.scalars) check_size(v.size(), nv, "write_vtp " + name);
-  std::ostringstream os;
-  set_precision(os);
+  TextOut os;
   os << "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
      << "<PolyData>\n<Piece NumberOfPoints=\"" << nv << "\" NumberOfVerts=\"0\" NumberOfLines=\"0\" NumberOfStrips=\"0\" NumberOfPolys=\""
      << s.triangles.size() << "\">\n<PointData>\n";
@@ -127,7 +160,7 @@ std::string vtp_bytes(const TriSurface& s, const SurfaceAttributes& attributes) 
   os << "</DataArray>\n<DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n";
   for (std::size_t t = 1; t <= s.triangles.size(); ++t) os << 3 * t << '\n';
   os << "</DataArray>\n</Polys>\n</Piece>\n</PolyData>\n</VTKFile>\n";
-  return os.str();
+  return std::move(os).str();
 }
 
 void write_vtp(const std::filesystem::path& path, const TriSurface& surface, const SurfaceAttributes& attributes) {

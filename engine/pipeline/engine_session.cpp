@@ -74,11 +74,18 @@ void EngineSession::set_atlas_seconds(double seconds) {
   if (warm_) warm_->timings["atlas"] = seconds;
 }
 
-ScanResult EngineSession::register_scan(const IntraopInput& input, const ProgressFn& progress) {
+ScanResult EngineSession::register_scan(const IntraopInput& input, const ProgressFn& progress,
+                                        bool defer_quality_metrics) {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
-  ScanResult result = run_intraop(*warm_, input, params_, progress);
+  ScanResult result = run_intraop(*warm_, input, params_, progress, !defer_quality_metrics);
   result.timings["preop"] = preop_timings();
   return result;
+}
+
+void EngineSession::add_quality_metrics(const IntraopInput& input, ScanResult& result,
+                                        const ProgressFn& progress) const {
+  if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
+  brainshift::add_quality_metrics(*warm_, input, params_, result, progress);
 }
 
 void EngineSession::stop_workers() {

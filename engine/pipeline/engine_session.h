@@ -80,7 +80,12 @@ class EngineSession {
   // Runs the intraop stages (affine, surfaces, solve, field, warp, models,
   // metrics). Throws InputError for bad input; quality-gate failures return an
   // affine_only_fallback result, never a silent bad field.
-  ScanResult register_scan(const IntraopInput& input, const ProgressFn& progress);
+  // With defer_quality_metrics, result.metrics lacks the label overlap
+  // figures ("labels", "labels_affine_only") and warped_t1_affine_only is
+  // empty until add_quality_metrics(): the daemon announces the field first.
+  ScanResult register_scan(const IntraopInput& input, const ProgressFn& progress,
+                           bool defer_quality_metrics = false);
+  void add_quality_metrics(const IntraopInput& input, ScanResult& result, const ProgressFn& progress) const;
 
   // Tells the workers to leave run_worker_loop (also done by the destructor).
   void stop_workers();

@@ -55,19 +55,32 @@ std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const Intraop
       std::any_of(maps.ventricle_sdf_mm.voxels.begin(), maps.ventricle_sdf_mm.voxels.end(),
                   [](float d) { return d < 0.f; });
   const ImageF* image = input.t1 ? &*input.t1 : nullptr;
-  for (const auto& s : warm.surfaces) {
+  // The surfaces are independent: each is matched in its own thread (the
+  // outer surface dominates; the ventricles then come for free on the second
+  // core). Results are gathered in surface order, so the outcome is the same
+  // as a sequential run.
+  std::vector<std::future<SurfaceMatchResult>> matches(warm.surfaces.size());
+  for (std::size_t i = 0; i < warm.surfaces.size(); ++i) {
+    const auto& s = warm.surfaces[i];
     const bool outer = s.cavity_label == 0;
+    if (!outer && !intraop_has_ventricles) continue;
+    const ImageF& target = outer ? maps.outer_sdf_mm : maps.ventricle_sdf_mm;
+    const auto& p = outer ? params.outer_surface : params.ventricle_surface;
+    matches[i] = std::async(std::launch::async, [&s, &target, &p, &A, image] {
+      return match_surface(mapped_by_affine(s.surface, A), target, p, image);
+    });
+  }
+  for (std::size_t i = 0; i < warm.surfaces.size(); ++i) {
+    const auto& s = warm.surfaces[i];
     nlohmann::json& m = metrics["surfaces"][s.name];
-    if (!outer && !intraop_has_ventricles) {
+    if (!matches[i].valid()) {
       // No intraop data for this wall: it follows the affine (non-rigid 0) and
       // the metrics say so rather than inventing a match.
       m["matched"] = false;
       m["reason"] = "structure absent from the intraop labels";
       continue;
     }
-    const ImageF& target = outer ? maps.outer_sdf_mm : maps.ventricle_sdf_mm;
-    const auto& p = outer ? params.outer_surface : params.ventricle_surface;
-    const SurfaceMatchResult r = match_surface(mapped_by_affine(s.surface, A), target, p, image);
+    const SurfaceMatchResult r = matches[i].get();
     for (std::size_t v = 0; v < s.surface.mesh_node.size(); ++v)
       values[warm.fixed_index_of_node[s.surface.mesh_node[v]]] = r.displacement_mm[v];
     m = {{"matched", true},
@@ -116,7 +129,7 @@ nlohmann::json label_metrics(const LabelImage& warped, const LabelImage& intraop
 }  // namespace
 
 ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                       const ProgressFn& progress) {
+                       const ProgressFn& progress, bool with_quality_metrics) {
   const LabelTable& table = params.label_table;
   Stopwatch total;
   ScanResult result;
@@ -207,12 +220,35 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.done("models");
 
   // "total" is the registration itself: the stages the issue lists (read,
-  // affine, surface, solve, field, warp, models). The quality metrics that
-  // follow are timed on their own as "metrics" (about 0.3 s) and reported next
-  // to it, never hidden. Their three pieces are independent and run side by side.
+  // affine, surface, solve, field, warp, models). The quality metrics are
+  // timed on their own as "metrics" (about 0.3 s) and reported next to it,
+  // never hidden; the daemon computes them just after announcing the field.
   timings["total"] = total.seconds();
+  if (!failure.empty()) {
+    result.kind = ResultKind::affine_only_fallback;
+    result.fallback_reason = failure;
+  }
+  metrics["result"] = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
+  if (!failure.empty()) metrics["fallback_reason"] = failure;
+  result.metrics = std::move(metrics);
+  result.timings = {{"intraop", timings},
+                    {"preop", warm.timings},
+                    {"mesh", {{"nodes", warm.fem.mesh().node_count()}, {"tets", warm.fem.mesh().tet_count()}}}};
+  if (with_quality_metrics) add_quality_metrics(warm, input, params, result, progress);
+  return result;
+}
+
+// Dice and surface distances of the warped preop labels against the intraop
+// labels, after the non-rigid step and through the affine alone, and the
+// affine-only warped T1 the report compares against. The three pieces are
+// independent and run side by side.
+void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                         ScanResult& result, const ProgressFn& progress) {
+  const LabelTable& table = params.label_table;
+  nlohmann::json& timings = result.timings["intraop"];
+  StageClock clock{progress, timings, {}};
   clock.start("metrics");
-  const Eigen::Matrix4d preop_from_intraop = A.inverse();
+  const Eigen::Matrix4d preop_from_intraop = result.intraop_from_preop.inverse();
   auto affine_only = std::async(std::launch::async, [&] {
     const LabelImage affine_labels = resample_nearest(warm.preop.labels, input.labels.grid, preop_from_intraop);
     return label_metrics(affine_labels, input.labels, table);
@@ -220,21 +256,10 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   auto affine_t1 = std::async(std::launch::async, [&] {
     return resample_linear(warm.preop.t1, input.labels.grid, preop_from_intraop);
   });
-  metrics["labels"] = label_metrics(result.warped_labels, input.labels, table);
-  metrics["labels_affine_only"] = affine_only.get();
+  result.metrics["labels"] = label_metrics(result.warped_labels, input.labels, table);
+  result.metrics["labels_affine_only"] = affine_only.get();
   result.warped_t1_affine_only = affine_t1.get();
-  if (!failure.empty()) {
-    result.kind = ResultKind::affine_only_fallback;
-    result.fallback_reason = failure;
-  }
-  metrics["result"] = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
   clock.done("metrics");
-  if (!failure.empty()) metrics["fallback_reason"] = failure;
-  result.metrics = std::move(metrics);
-  result.timings = {{"intraop", timings},
-                    {"preop", warm.timings},
-                    {"mesh", {{"nodes", warm.fem.mesh().node_count()}, {"tets", warm.fem.mesh().tet_count()}}}};
-  return result;
 }
 
 }  // namespace brainshift

@@ -46,9 +46,13 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
                                             const ProgressFn& progress,
                                             std::optional<TetMesh> stored_mesh);
 
-// The intraop stages on rank 0.
-ScanResult run_intraop(WarmState& warm, const IntraopInput& input,
-                       const PipelineParameters& params, const ProgressFn& progress);
+// The intraop stages on rank 0. Without quality metrics, result.metrics holds
+// only what the registration itself reports (affine, surfaces, solve,
+// Jacobian, result kind); add_quality_metrics() completes it later.
+ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                       const ProgressFn& progress, bool with_quality_metrics = true);
+void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                         ScanResult& result, const ProgressFn& progress);
 
 // Checks shared by both phases (InputError with a clear message).
 void validate_preop_input(const PreopInput& input, const LabelTable& table);

@@ -3,6 +3,7 @@
 #include <dirent.h>
 #include <stdlib.h>
 
+#include <algorithm>
 #include <fstream>
 #include <sstream>
 #include <stdexcept>
@@ -112,8 +113,8 @@ Message Client::result(const std::string& scan_id, const std::vector<ResultPart>
   return *r;
 }
 
-ScanListReply Client::list() {
-  auto r = call(make_scan_list_request(next_id(), {kMaxScanListLimit}));
+ScanListReply Client::list(std::uint64_t limit) {
+  auto r = call(make_scan_list_request(next_id(), {limit}));
   if (!r) throw std::runtime_error("scan.list: no reply");
   throw_if_error(*r);
   return parse_scan_list_reply(*r);
@@ -210,6 +211,19 @@ std::map<std::string, std::string> frames_by_name(const Message& reply) {
   std::map<std::string, std::string> out;
   for (const auto& f : parse_scan_result_reply(reply).frames) out[f.name] = f.bytes;
   return out;
+}
+
+std::map<std::string, std::string> pull_complete(Client& c, const std::string& scan_id,
+                                                 const std::vector<ResultPart>& parts, std::chrono::seconds timeout) {
+  const auto until = std::chrono::steady_clock::now() + timeout;
+  for (;;) {
+    const Message reply = c.result(scan_id, parts);
+    throw_if_error(reply);
+    const ScanResultReply r = parse_scan_result_reply(reply);
+    const bool pending = std::any_of(r.unavailable.begin(), r.unavailable.end(), [](const auto& u) { return u.pending; });
+    if (!pending || std::chrono::steady_clock::now() > until) return frames_by_name(reply);
+    std::this_thread::sleep_for(100ms);
+  }
 }
 
 std::uint64_t resident_kib(pid_t pid) {

@@ -65,7 +65,7 @@ class Client {
   protocol::Message push(const std::string& labels_bytes, const std::string& image_bytes,
                          const std::optional<std::string>& client_scan_id);
   protocol::Message result(const std::string& scan_id, const std::vector<protocol::ResultPart>& parts);
-  protocol::ScanListReply list();
+  protocol::ScanListReply list(std::uint64_t limit = protocol::kMaxScanListLimit);
   // Polls status until ready (throws after timeout).
   void wait_ready(std::chrono::seconds timeout);
 
@@ -103,6 +103,11 @@ class EventRecorder {
 std::vector<protocol::ResultPart> all_result_parts();
 // frame name -> bytes of a scan.result reply.
 std::map<std::string, std::string> frames_by_name(const protocol::Message& result_reply);
+// Pulls parts of a done scan, asking again while some are still being made
+// (metrics.json, field.h5 and report.png follow event.scan.done).
+std::map<std::string, std::string> pull_complete(Client& c, const std::string& scan_id,
+                                                 const std::vector<protocol::ResultPart>& parts,
+                                                 std::chrono::seconds timeout = std::chrono::seconds(120));
 
 std::uint64_t resident_kib(pid_t pid);  // VmRSS from /proc/<pid>/status
 std::size_t open_fds(pid_t pid);        // entries of /proc/<pid>/fd

@@ -165,9 +165,10 @@ void verify_store(Client& c, KillLedger& ledger, bool all_finished) {
       EXPECT_EQ(it->second.state, ScanState::kDone) << scan_id;
     }
     if (it->second.state != ScanState::kDone) continue;
-    const auto frames = frames_by_name(c.result(scan_id, all_result_parts()));
-    // field.h5 follows the result; a kill in between is repaired at start-up.
-    EXPECT_TRUE(frames.count(frame_name(ResultPart::kDisplacementItk))) << scan_id << " has no field.h5";
+    const auto frames = pull_complete(c, scan_id, all_result_parts());
+    // The deferred outputs follow the result; a kill in between is repaired at start-up.
+    for (ResultPart p : {ResultPart::kDisplacementItk, ResultPart::kMetrics, ResultPart::kReport})
+      EXPECT_TRUE(frames.count(frame_name(p))) << scan_id << " has no " << frame_name(p);
     auto& known = ledger.frames[scan_id];
     for (const auto& [name, bytes] : known) {
       ASSERT_TRUE(frames.count(name)) << scan_id << ": " << name << " vanished after a kill";
@@ -188,7 +189,7 @@ TEST(DaemonFaults, KillNineAtManyPointsLosesNoAcknowledgedScan) {
                               KillPoint::during_solve, KillPoint::during_push};
   KillLedger ledger;
   std::map<std::string, int> kills_at;
-  std::size_t leftovers_removed = 0, requeued = 0, itk_recovered = 0, in_flight_stored = 0;
+  std::size_t leftovers_removed = 0, requeued = 0, itk_recovered = 0, deferred_repaired = 0, in_flight_stored = 0;
   std::optional<std::string> in_flight_client_id;
   int kills = 0, restarts = 0;
 
@@ -216,6 +217,7 @@ TEST(DaemonFaults, KillNineAtManyPointsLosesNoAcknowledgedScan) {
       requeued += count_log(log, "re-queueing acknowledged scan");
       leftovers_removed += count_log(log, "removing an unfinished write");
       itk_recovered += count_log(log, "made again from field.nii");
+      deferred_repaired += count_log(log, "made again by registering the stored scan again");
       d.process().signal(SIGTERM);
       EXPECT_EQ(d.process().wait(60).value_or(-1), 0) << d.log();
       break;
@@ -273,6 +275,7 @@ TEST(DaemonFaults, KillNineAtManyPointsLosesNoAcknowledgedScan) {
     requeued += count_log(log, "re-queueing acknowledged scan");
     leftovers_removed += count_log(log, "removing an unfinished write");
     itk_recovered += count_log(log, "made again from field.nii");
+    deferred_repaired += count_log(log, "made again by registering the stored scan again");
   }
   std::size_t finished = 0;
   for (const auto& [id, frames] : ledger.frames) finished += !frames.empty();
@@ -288,6 +291,7 @@ TEST(DaemonFaults, KillNineAtManyPointsLosesNoAcknowledgedScan) {
                     {"requeued_after_restart", requeued},
                     {"unfinished_writes_removed_on_open", leftovers_removed},
                     {"field_h5_remade_on_start", itk_recovered},
+                    {"metrics_or_report_remade_on_start", deferred_repaired},
                     {"result_frames_compared_identical", ledger.results_compared}};
   std::printf("%s\n", report.dump().c_str());
 }
@@ -405,7 +409,7 @@ TEST(DaemonFaults, VanishingAndNonReadingClientsDoNotBlockOthers) {
   int answered = 0;
   for (int i = 0; i < 20; ++i) {
     EXPECT_NE(good.status().state, ServerState::kIdle);
-    const auto frames = frames_by_name(good.result(done_scan, {ResultPart::kMetrics, ResultPart::kDisplacement}));
+    const auto frames = pull_complete(good, done_scan, {ResultPart::kMetrics, ResultPart::kDisplacement});
     EXPECT_EQ(frames.size(), 2u);
     ++answered;
   }
@@ -510,7 +514,7 @@ void refused_writes_scenario(const StoreFault& fault, const fs::path& store) {
     ASSERT_TRUE(events.wait_for([&](const Message& m) { return is_scan_event(m, MessageType::kEventScanDone, id); }, 300s))
         << id << " " << d.log();
   for (const auto& id : {unstored, after})
-    EXPECT_EQ(frames_by_name(c.result(id, all_result_parts())).count(frame_name(ResultPart::kDisplacement)), 1u);
+    EXPECT_EQ(pull_complete(c, id, all_result_parts()).count(frame_name(ResultPart::kDisplacement)), 1u);
   std::size_t fds_after = open_fds(d.rank0_pid());
   EXPECT_LE(fds_after, fds_before) << "failed writes leaked descriptors";
   // And the store reopens as it is.
@@ -624,16 +628,16 @@ TEST(DaemonFaults, FailureOnRankOneIsReportedAndKillingItEndsTheJob) {
     }
     // Scan 0: rank 1 failed its solve; every rank agreed, and the result is
     // the clearly marked affine-only fallback naming the failing rank.
-    const json m0 = json::parse(frames_by_name(c.result(ids[0], {ResultPart::kMetrics})).at(frame_name(ResultPart::kMetrics)));
+    const json m0 = json::parse(pull_complete(c, ids[0], {ResultPart::kMetrics}).at(frame_name(ResultPart::kMetrics)));
     EXPECT_EQ(m0.at("result"), "affine_only_fallback");
     const std::string reason = m0.value("fallback_reason", "");
     EXPECT_NE(reason.find("rank 1"), std::string::npos) << reason;
     EXPECT_NE(reason.find("injected fault"), std::string::npos) << reason;
     std::printf("scan after a rank-1 solve failure: %s\n", reason.c_str());
     // Scan 1: the next solve works on every rank.
-    const json m1 = json::parse(frames_by_name(c.result(ids[1], {ResultPart::kMetrics})).at(frame_name(ResultPart::kMetrics)));
+    const json m1 = json::parse(pull_complete(c, ids[1], {ResultPart::kMetrics}).at(frame_name(ResultPart::kMetrics)));
     EXPECT_EQ(m1.at("result"), "nonrigid");
-    for (const auto& id : ids) before[id] = frames_by_name(c.result(id, all_result_parts()));
+    for (const auto& id : ids) before[id] = pull_complete(c, id, all_result_parts());
 
     // SIGKILL of rank 1 while a scan runs: mpirun ends the whole job.
     in_flight = scan_id_of(c.push(in.scans[2].labels, in.scans[2].image, "mpi-2"));
@@ -665,7 +669,7 @@ TEST(DaemonFaults, FailureOnRankOneIsReportedAndKillingItEndsTheJob) {
   ASSERT_EQ(list.scans.size(), 3u);
   for (const auto& s : list.scans) EXPECT_EQ(s.state, ScanState::kDone) << s.scan_id;
   for (const auto& [id, frames] : before) {
-    const auto now = frames_by_name(c.result(id, all_result_parts()));
+    const auto now = pull_complete(c, id, all_result_parts());
     for (const auto& [name, bytes] : frames) EXPECT_TRUE(now.count(name) && now.at(name) == bytes) << id << " " << name;
   }
   EXPECT_EQ(frames_by_name(c.result(in_flight, {ResultPart::kDisplacement})).size(), 1u);

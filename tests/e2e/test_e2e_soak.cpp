@@ -83,10 +83,10 @@ TEST(DaemonSoak, TwoHundredScansBackToBack) {
     Client c(d.endpoint);
     std::set<std::string> pulled;
     while (!stop) {
-      for (const auto& s : c.list().scans) {
+      for (const auto& s : c.list(50).scans) {
         if (s.state != ScanState::kDone || pulled.count(s.scan_id)) continue;
-        const auto frames = frames_by_name(c.result(s.scan_id, {ResultPart::kDisplacement, ResultPart::kMetrics,
-                                                                 ResultPart::kModels}));
+        const auto frames =
+            pull_complete(c, s.scan_id, {ResultPart::kDisplacement, ResultPart::kMetrics, ResultPart::kModels});
         if (frames.count(frame_name(ResultPart::kDisplacement)) && frames.count(frame_name(ResultPart::kMetrics)))
           ++pulls;
         else

@@ -1,0 +1,44 @@
+#pragma once
+// Two-way data parallelism for the intraop stages. The OR machines have two
+// cores; at one MPI rank the second core is otherwise idle while the surgeon
+// waits, and at two ranks the workers sleep between commands (see
+// mpi_commands.cpp), so rank 0 may use both.
+#include <algorithm>
+#include <cstddef>
+#include <exception>
+#include <thread>
+
+namespace brainshift {
+
+// Runs fn(begin, end) on the two halves of [0, n), the upper half on a helper
+// thread, when the machine has a second core and each half gets at least
+// min_per_thread items; otherwise fn(0, n) on the calling thread. fn must only
+// write state owned by its own range; with that, the result does not depend
+// on the number of threads.
+template <class Fn>
+void parallel_halves(std::size_t n, std::size_t min_per_thread, Fn&& fn) {
+  const bool two = std::thread::hardware_concurrency() >= 2 && n >= 2 * std::max<std::size_t>(1, min_per_thread);
+  if (!two) {
+    fn(std::size_t{0}, n);
+    return;
+  }
+  const std::size_t mid = n / 2;
+  std::exception_ptr helper_error;
+  std::thread helper([&] {
+    try {
+      fn(mid, n);
+    } catch (...) {
+      helper_error = std::current_exception();
+    }
+  });
+  try {
+    fn(std::size_t{0}, mid);
+  } catch (...) {
+    helper.join();
+    throw;
+  }
+  helper.join();
+  if (helper_error) std::rethrow_exception(helper_error);
+}
+
+}  // namespace brainshift
