@@ -684,15 +684,24 @@ void ServerCore::run_scan(const std::string& scan_id) {
     EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, scratch, progress);
     const auto t_store = Clock::now();
     stage = "store";
-    store_.save_result(scan_id, out.files, out.kind, out.fallback_reason);
+    {
+      // Marked before the result becomes visible: a pull in between must see
+      // the deferred parts as pending, not as missing for good (the soak
+      // caught one such pull at np 2).
+      std::lock_guard lock(mutex_);
+      deferred_pending_.insert(scan_id);
+    }
+    try {
+      store_.save_result(scan_id, out.files, out.kind, out.fallback_reason);
+    } catch (...) {
+      std::lock_guard lock(mutex_);
+      deferred_pending_.erase(scan_id);
+      throw;
+    }
     progress("store", 1.0, seconds_since(t_store));
     fs::remove_all(scratch);
     const double seconds = seconds_since(t0);
     spdlog::info("scan {} done ({}) in {:.3f} s", scan_id, out.kind, seconds);
-    {
-      std::lock_guard lock(mutex_);
-      deferred_pending_.insert(scan_id);
-    }
     emit(make_event(ScanDoneEvent{scan_id, record->client_scan_id, seconds}));
     add_deferred_outputs(scan_id, preop_id);
   } catch (const StoreWriteError& e) {
