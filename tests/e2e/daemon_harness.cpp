@@ -3,6 +3,8 @@
 #include <dirent.h>
 #include <stdlib.h>
 
+#include <cstdlib>
+
 #include <algorithm>
 #include <fstream>
 #include <sstream>
@@ -32,6 +34,12 @@ Daemon::Daemon(DaemonSpec spec) : spec_(std::move(spec)) {
       exported.push_back(name);
       argv.insert(argv.end(), {"-x", name});
     }
+  }
+  // By hand: BRAINSHIFT_DAEMON_WRAPPER="/usr/bin/heaptrack -o /tmp/bs" runs
+  // the daemon under a memory profiler (space-separated, absolute path first).
+  if (const char* wrapper = std::getenv("BRAINSHIFT_DAEMON_WRAPPER")) {
+    std::istringstream words(wrapper);
+    for (std::string w; words >> w;) argv.push_back(w);
   }
   for (const std::string& a : {std::string(BRAINSHIFTD_BIN), std::string("--config"), spec_.config.string(),
                                std::string("--store"), spec_.store.string(), std::string("--endpoint"),
