@@ -12,7 +12,9 @@
 //   <dir>/scans/<scan_id>/<name>     result files added after the result
 //                                    (report.png, rendered off the latency path)
 // A scan directory is created as scans/.tmp-<id> and renamed once scan.h5 is
-// durable: a scan exists exactly when it was acknowledged.
+// durable: a scan exists exactly when it was acknowledged. HDF5 files are
+// built in memory and written with plain write()/fsync(), so a full disk is
+// an ordinary write error (StoreWriteError) that leaves nothing behind.
 //
 // Thread safety: all methods may be called from any thread. HDF5 calls run
 // under h5::hdf5_mutex(); read_result_file() uses pread() at offsets recorded
