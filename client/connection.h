@@ -10,6 +10,8 @@
 
 #include <zmq.hpp>
 
+#include "handshake_monitor.h"
+#include "protocol/curve_keys.h"
 #include "protocol/message.h"
 
 namespace brainshift::cli {
@@ -31,9 +33,13 @@ class CommandError : public std::runtime_error {
   int exit_code_;
 };
 
+// CURVE keys of this client, or nullopt for plain TCP (loopback servers
+// without CURVE).
+using CurveKeys = std::optional<protocol::curve::ClientKeys>;
+
 class Connection {
  public:
-  Connection(std::string endpoint, std::chrono::milliseconds timeout);
+  Connection(std::string endpoint, std::chrono::milliseconds timeout, CurveKeys curve = std::nullopt);
   ~Connection();
 
   // Sends the request and returns the reply. Throws CommandError: kExitUnreachable
@@ -49,21 +55,26 @@ class Connection {
 
   std::string endpoint_;
   std::chrono::milliseconds timeout_;
+  CurveKeys curve_;
   zmq::context_t context_;
   std::unique_ptr<zmq::socket_t> socket_;
+  std::unique_ptr<HandshakeMonitor> monitor_;  // after socket_: destroyed first
   unsigned counter_ = 0;
 };
 
 class EventStream {
  public:
   // topic_prefix "" = every event.
-  EventStream(const std::string& endpoint, const std::string& topic_prefix = "");
-  // nullopt when nothing arrived within timeout.
+  EventStream(const std::string& endpoint, const std::string& topic_prefix = "", const CurveKeys& curve = std::nullopt);
+  // nullopt when nothing arrived within timeout. Throws
+  // CommandError(kExitUnreachable) when the server refused the handshake.
   std::optional<protocol::Message> next(std::chrono::milliseconds timeout);
 
  private:
+  std::string endpoint_;
   zmq::context_t context_;
   zmq::socket_t socket_;
+  std::unique_ptr<HandshakeMonitor> monitor_;
 };
 
 }  // namespace brainshift::cli

@@ -22,6 +22,11 @@ int main(int argc, char** argv) {
   app.add_option("--timeout", options.timeout_s, "seconds to wait for each reply")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  app.add_option("--key", options.key_prefix,
+                 "CURVE: this client's key pair PREFIX (PREFIX.key, PREFIX.key_secret from brainshift keygen)")
+      ->envname("BRAINSHIFT_KEY");
+  app.add_option("--server-key", options.server_key_file, "CURVE: the server's public key file")
+      ->envname("BRAINSHIFT_SERVER_KEY");
   int exit_code = 0;
   brainshift::cli::add_network_commands(app, options, &exit_code);
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS

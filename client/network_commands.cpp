@@ -23,6 +23,7 @@ namespace brainshift::cli {
 namespace fs = std::filesystem;
 using namespace protocol;
 using namespace std::chrono_literals;
+namespace curve = protocol::curve;
 
 namespace {
 
@@ -130,7 +131,7 @@ std::string describe_event(const Message& e) {
 // ---- status ----------------------------------------------------------------
 
 int cmd_status(const NetworkOptions& o, bool json) {
-  Connection c(o.server, as_ms(o.timeout_s));
+  Connection c(o.server, as_ms(o.timeout_s), curve_keys(o));
   const Message reply = c.call(make_status_request(c.next_request_id()));
   if (json) {
     std::cout << reply.header.dump() << '\n';
@@ -190,7 +191,7 @@ int cmd_load_preop(const NetworkOptions& o, const LoadPreopArgs& a) {
     r.labels = nifti_file_frame("labels", a.labels);
     if (!a.label_table.empty()) r.label_table = media::json_frame("label_table", read_file(a.label_table));
   }
-  Connection c(o.server, as_ms(std::max(o.timeout_s, 60.0)));  // the upload of a 1 mm head takes a moment
+  Connection c(o.server, as_ms(std::max(o.timeout_s, 60.0)), curve_keys(o));  // the upload of a 1 mm head takes a moment
   const std::string id = parse_preop_load_reply(c.call(make_preop_load_request(c.next_request_id(), r))).preop_id;
   std::cout << id << '\n' << std::flush;
   return a.wait ? wait_preop_ready(c, id, a.wait_s) : kExitOk;
@@ -245,8 +246,8 @@ int cmd_push(const NetworkOptions& o, const PushArgs& a) {
   if (!a.id.empty()) r.client_scan_id = a.id;
   // Subscribed before the push so that no event of this scan is missed.
   std::optional<EventStream> events;
-  if (a.wait) events.emplace(o.events, "event.");
-  Connection c(o.server, as_ms(o.timeout_s));
+  if (a.wait) events.emplace(o.events, "event.", curve_keys(o));
+  Connection c(o.server, as_ms(o.timeout_s), curve_keys(o));
   const ScanPushReply reply = parse_scan_push_reply(c.call(make_scan_push_request(c.next_request_id(), r)));
   std::cout << reply.scan_id << '\n' << std::flush;
   if (reply.duplicate) std::cerr << "note: client scan id already pushed; this is the same scan\n";
@@ -302,7 +303,7 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
   }
   if (req.parts.empty()) return kExitOk;
   const double timeout_s = std::max(o.timeout_s, 30.0);  // a field is tens of MB
-  Connection c(o.server, as_ms(timeout_s));
+  Connection c(o.server, as_ms(timeout_s), curve_keys(o));
   req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
   // report.png follows event.scan.done by a moment: ask again for what is
   // pending (only that) until it comes or the timeout ends.
@@ -320,7 +321,7 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
 // ---- list, watch, shutdown -------------------------------------------------
 
 int cmd_list(const NetworkOptions& o, std::uint64_t limit) {
-  Connection c(o.server, as_ms(o.timeout_s));
+  Connection c(o.server, as_ms(o.timeout_s), curve_keys(o));
   const ScanListReply r = parse_scan_list_reply(c.call(make_scan_list_request(c.next_request_id(), {limit})));
   for (const auto& s : r.scans) {
     std::cout << s.scan_id << '\t' << to_string(s.state) << '\t' << s.received_at << '\t'
@@ -333,7 +334,7 @@ int cmd_list(const NetworkOptions& o, std::uint64_t limit) {
 }
 
 int cmd_watch(const NetworkOptions& o, bool json, long count, double duration_s) {
-  EventStream events(o.events);
+  EventStream events(o.events, "", curve_keys(o));
   std::signal(SIGINT, on_interrupt);
   std::signal(SIGTERM, on_interrupt);
   const auto until = std::chrono::steady_clock::now() + as_ms(duration_s > 0 ? duration_s : 1e9);
@@ -364,15 +365,48 @@ int cmd_watch(const NetworkOptions& o, bool json, long count, double duration_s)
 }
 
 int cmd_shutdown(const NetworkOptions& o, const std::string& reason) {
-  Connection c(o.server, as_ms(o.timeout_s));
+  Connection c(o.server, as_ms(o.timeout_s), curve_keys(o));
   c.call(make_shutdown_request(c.next_request_id(), {reason}));
   std::cerr << "brainshiftd at " << o.server << " is shutting down\n";
   return kExitOk;
 }
 
+// ---- keygen ----------------------------------------------------------------
+
+int cmd_keygen(const std::string& prefix) {
+  if (!curve::available()) throw CommandError(kExitUsage, "this libzmq has no CURVE support (libsodium)");
+  curve::KeyPair pair;
+  try {
+    pair = curve::write_new_key_pair(prefix);
+  } catch (const curve::KeyFileError& e) {
+    throw CommandError(kExitUsage, e.what());
+  }
+  std::cout << pair.public_z85 << '\n';
+  std::cerr << "wrote " << curve::secret_key_path(prefix).string() << " (secret, mode 0600: keep it on this machine) and "
+            << curve::public_key_path(prefix).string()
+            << " (public: put it in the server's allow-list, or give it to clients as --server-key)\n";
+  return kExitOk;
+}
+
 }  // namespace
 
+CurveKeys curve_keys(const NetworkOptions& o) {
+  if (o.key_prefix.empty() && o.server_key_file.empty()) return std::nullopt;
+  if (o.key_prefix.empty() || o.server_key_file.empty())
+    throw CommandError(kExitUsage, "CURVE needs both --key PREFIX (this client's key pair) and --server-key FILE");
+  try {
+    return curve::ClientKeys{curve::read_public_key_file(o.server_key_file), curve::read_key_pair(o.key_prefix)};
+  } catch (const curve::KeyFileError& e) {
+    throw CommandError(kExitUsage, e.what());
+  }
+}
+
 void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
+  auto keygen_out = std::make_shared<std::string>();
+  auto* keygen = app.add_subcommand("keygen", "make a CURVE key pair: PREFIX.key (public) and PREFIX.key_secret (0600)");
+  keygen->add_option("--out", *keygen_out, "file name prefix, e.g. keys/or1-scanner")->required();
+  keygen->callback([exit_code, keygen_out] { run(exit_code, [&] { return cmd_keygen(*keygen_out); }); });
+
   auto* status = app.add_subcommand("status", "server state, preop, mesh size, queue");
   auto json_status = std::make_shared<bool>(false);
   status->add_flag("--json", *json_status, "print the status reply header as JSON");

@@ -1,7 +1,9 @@
 #pragma once
 // The commands of `brainshift` that talk to brainshiftd: status, load-preop,
-// push, pull, list, watch, shutdown.
+// push, pull, list, watch, shutdown; and keygen, which makes CURVE keys.
 #include <CLI/CLI.hpp>
+
+#include "connection.h"
 
 namespace brainshift::cli {
 
@@ -9,7 +11,14 @@ struct NetworkOptions {
   std::string server = "tcp://127.0.0.1:5555";
   std::string events = "tcp://127.0.0.1:5556";
   double timeout_s = 10.0;  // per request
+  // CURVE (PROTOCOL.md section 13): both or neither.
+  std::string key_prefix;       // this client's PREFIX.key / PREFIX.key_secret
+  std::string server_key_file;  // the server's public key file
 };
+
+// The CURVE keys the options name (nullopt: plain TCP). Throws
+// CommandError(kExitUsage) for a missing, malformed or too open key file.
+CurveKeys curve_keys(const NetworkOptions& options);
 
 void add_network_commands(CLI::App& app, NetworkOptions& options, int* exit_code);
 

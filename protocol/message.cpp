@@ -127,11 +127,15 @@ Declared parse_manifest_entry(const json& entry, std::size_t index) {
   return {name->get<std::string>(), media->get<std::string>(), size->get<std::size_t>()};
 }
 
-std::vector<Declared> parse_manifest(const json& header) {
+std::vector<Declared> parse_manifest(const json& header, const Limits& limits) {
   std::vector<Declared> declared;
   const auto it = header.find("frames");
   if (it == header.end()) return declared;  // no binary frames
   if (!it->is_array()) throw ProtocolError(ErrorCode::kBadHeader, "\"frames\" must be an array");
+  // Counted before any entry is read (a 64 KiB header can list thousands).
+  if (it->size() > limits.max_frames)
+    throw ProtocolError(ErrorCode::kTooLarge, "\"frames\" lists " + std::to_string(it->size()) +
+                                                  " frames; limit is " + std::to_string(limits.max_frames));
   std::set<std::string> names;
   for (std::size_t i = 0; i < it->size(); ++i) {
     declared.push_back(parse_manifest_entry((*it)[i], i));
@@ -233,7 +237,7 @@ Message decode(std::vector<std::string> wire, const Limits& limits) {
     check_version(message.header);
     const auto type = check_type(message.header);
     check_request_id(message.header, type, limits);
-    const auto declared = parse_manifest(message.header);
+    const auto declared = parse_manifest(message.header, limits);
     match_frames(declared, wire);
     message.frames.reserve(declared.size());
     for (std::size_t i = 0; i < declared.size(); ++i)

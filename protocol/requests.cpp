@@ -152,6 +152,10 @@ std::string make_label_table_json(const LabelTable& table) {
 }
 
 LabelTable parse_label_table_json(std::string_view text) {
+  if (text.size() > kMaxLabelTableBytes)
+    throw ProtocolError(ErrorCode::kInvalidRequest, "label_table: " + std::to_string(text.size()) +
+                                                        " bytes; a label table is at most " +
+                                                        std::to_string(kMaxLabelTableBytes));
   const json j = json::parse(text, nullptr, /*allow_exceptions=*/false);
   if (j.is_discarded()) throw ProtocolError(ErrorCode::kInvalidRequest, "label_table: not valid JSON");
   const FieldReader f(j, "label_table");
@@ -250,6 +254,11 @@ PreopLoadRequest parse_preop_load_request(const Message& m) {
     expect_frames(m, {"t1", "labels", "label_table"});
     r.t1 = get_frame(m, "t1", nifti_media);
     r.labels = get_frame(m, "labels", nifti_media);
+    // Bounded before its JSON is even checked.
+    if (const Frame* t = m.find_frame("label_table"); t && t->bytes.size() > kMaxLabelTableBytes)
+      throw ProtocolError(ErrorCode::kInvalidRequest,
+                          "preop.load: frame \"label_table\" is " + std::to_string(t->bytes.size()) +
+                              " bytes; a label table is at most " + std::to_string(kMaxLabelTableBytes));
     r.label_table = get_frame(m, "label_table", json_media);
     if (!r.t1 || !r.labels)
       throw ProtocolError(ErrorCode::kInvalidRequest,
@@ -346,6 +355,8 @@ ScanResultRequest parse_scan_result_request(const Message& m) {
     const FieldReader f(m.header, "scan.result");
     ScanResultRequest r;
     r.scan_id = f.string("scan_id");
+    if (!detail::is_valid_id(r.scan_id))
+      f.fail("scan_id", "must be 1..128 printable ASCII characters without spaces");
     r.parts = parse_name_list<ResultPart>(f, "parts", f.array("parts"), result_part_from_string);
     if (r.parts.empty()) f.fail("parts", "must name at least one part");
     if (const json* s = f.opt_array("structures"))
@@ -479,7 +490,11 @@ ShutdownRequest parse_shutdown_request(const Message& m) {
   expect_type(m, MessageType::kShutdown);
   return with_request_id(m, [&] {
     expect_frames(m, {});
-    return ShutdownRequest{FieldReader(m.header, "shutdown").text("reason")};
+    const FieldReader f(m.header, "shutdown");
+    ShutdownRequest r{f.text("reason")};
+    if (r.reason.size() > kMaxShutdownReasonLength)
+      f.fail("reason", "at most " + std::to_string(kMaxShutdownReasonLength) + " characters");
+    return r;
   });
 }
 

@@ -49,6 +49,10 @@ std::string model_frame_name(Structure s);  // "model.brain"
 
 // ---- Label table (optional frame of preop.load) ---------------------------
 
+// Bounds on what a client sends (PROTOCOL.md section 13.5).
+inline constexpr std::size_t kMaxLabelTableBytes = 64 * 1024;
+inline constexpr std::size_t kMaxShutdownReasonLength = 256;
+
 // Which label values of the preop label image make up each structure, e.g.
 // JHU labels 7 and 8 both belong to the corticospinal tract. "brain" is required.
 struct LabelTable {

@@ -9,6 +9,22 @@ namespace {
 
 bool is_dealer(zmq::socket_ref s) { return s.get(zmq::sockopt::type) == ZMQ_DEALER; }
 
+// A metadata property of the connection the message came through; nullopt
+// when libzmq has none (e.g. User-Id without a ZAP handler).
+std::optional<std::string> property(const zmq::message_t& m, const char* name) {
+  const char* value = zmq_msg_gets(m.handle(), name);
+  if (!value) return std::nullopt;
+  return std::string(value);
+}
+
+std::optional<std::vector<zmq::message_t>> receive_parts(zmq::socket_ref socket,
+                                                         std::chrono::milliseconds timeout) {
+  if (timeout.count() >= 0 && !wait_readable(socket, timeout)) return std::nullopt;
+  std::vector<zmq::message_t> parts;
+  if (!zmq::recv_multipart(socket, std::back_inserter(parts))) return std::nullopt;
+  return parts;
+}
+
 }  // namespace
 
 bool wait_readable(zmq::socket_ref socket, std::chrono::milliseconds timeout) {
@@ -17,12 +33,11 @@ bool wait_readable(zmq::socket_ref socket, std::chrono::milliseconds timeout) {
 }
 
 std::optional<Wire> receive_wire(zmq::socket_ref socket, std::chrono::milliseconds timeout) {
-  if (timeout.count() >= 0 && !wait_readable(socket, timeout)) return std::nullopt;
-  std::vector<zmq::message_t> parts;
-  if (!zmq::recv_multipart(socket, std::back_inserter(parts))) return std::nullopt;
+  auto parts = receive_parts(socket, timeout);
+  if (!parts) return std::nullopt;
   Wire wire;
-  wire.reserve(parts.size());
-  for (auto& p : parts) wire.emplace_back(p.to_string());
+  wire.reserve(parts->size());
+  for (auto& p : *parts) wire.emplace_back(p.to_string());
   return wire;
 }
 
@@ -35,9 +50,18 @@ void send_wire(zmq::socket_ref socket, const Wire& wire) {
 
 std::optional<RoutedRequest> receive_request(zmq::socket_ref router,
                                              std::chrono::milliseconds timeout) {
-  auto wire = receive_wire(router, timeout);
-  if (!wire) return std::nullopt;
+  auto parts = receive_parts(router, timeout);
+  if (!parts) return std::nullopt;
   RoutedRequest req;
+  // The ROUTER makes the identity frame itself, without metadata; the frames
+  // that came over the connection carry it.
+  if (!parts->empty()) {
+    req.user_id = property(parts->back(), "User-Id");
+    req.client_name = property(parts->back(), kClientNameProperty);
+  }
+  auto wire = std::optional<Wire>(std::in_place);
+  wire->reserve(parts->size());
+  for (auto& p : *parts) wire->emplace_back(p.to_string());
   // Identities are never empty, and neither is a JSON header, so the first
   // empty frame is the delimiter.
   std::size_t i = 0;

@@ -24,9 +24,17 @@ using Wire = std::vector<std::string>;
 struct Envelope {
   std::vector<std::string> routing;
 };
+// Connection properties libzmq attaches to every message of a CURVE peer,
+// set by the server's ZAP handler (PROTOCOL.md section 13): the role is the
+// ZAP User-Id, the allow-list name travels as this metadata property.
+inline constexpr const char* kClientNameProperty = "X-Client-Name";
+
 struct RoutedRequest {
   Envelope envelope;
   Wire wire;  // [header][frames...], ready for decode()
+  // From the connection, never from the header: absent without CURVE/ZAP.
+  std::optional<std::string> user_id;
+  std::optional<std::string> client_name;
 };
 
 // Waits until the socket has a message to read; false on timeout.

@@ -13,6 +13,7 @@
 #include "protocol/events.h"
 #include "protocol/transport.h"
 #include "server/case_store.h"
+#include "server/curve_auth.h"
 #include "server/server_core.h"
 
 namespace brainshift::server {
@@ -59,16 +60,27 @@ void publish_all(zmq::socket_t& pub, EventOutbox& outbox) {
 
 // Answers requests and publishes events until `running` is cleared. Never
 // waits for the engine: ServerCore's handlers only take short locks.
+// With CURVE the role is the ZAP User-Id libzmq attached to the message;
+// without it the peer is an unauthenticated loopback client.
 void socket_loop(zmq::socket_t& router, zmq::socket_t& pub, ServerCore& core, EventOutbox& outbox,
-                 const std::atomic<bool>& running) {
+                 const std::atomic<bool>& running, bool curve) {
+  // Monitors are read by this thread, the one that owns the sockets.
+  std::vector<std::unique_ptr<HandshakeFailureLog>> handshake_logs;
+  if (curve) {
+    handshake_logs.push_back(std::make_unique<HandshakeFailureLog>(router, "requests"));
+    handshake_logs.push_back(std::make_unique<HandshakeFailureLog>(pub, "events"));
+  }
   while (running) {
+    for (auto& log : handshake_logs) log->poll();
     try {
       auto request = protocol::transport::receive_request(router, 10ms);
       if (request) {
         if (request->wire.empty()) {
           spdlog::warn("dropped a message without an envelope delimiter (cannot be answered)");
         } else {
-          const protocol::Message reply = core.handle_wire(std::move(request->wire));
+          const Peer peer = curve ? Peer::from_zap(request->user_id, request->client_name)
+                                  : Peer::unauthenticated_local();
+          const protocol::Message reply = core.handle_wire(std::move(request->wire), peer);
           protocol::transport::send_reply(router, request->envelope, reply);
         }
       }
@@ -86,12 +98,30 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
   const ServerSettings& s = options.settings;
   std::unique_ptr<CaseStore> store;
   zmq::context_t context(1);
+  // Declared before the sockets so that it outlives them: a CURVE socket
+  // without a ZAP handler would admit every key.
+  std::unique_ptr<ZapHandler> zap;
   zmq::socket_t router(context, zmq::socket_type::router);
   zmq::socket_t pub(context, zmq::socket_type::pub);
   protocol::Limits limits = protocol::Limits::server_inbound();
   limits.max_frame_bytes = s.max_frame_bytes;
   try {
     store = std::make_unique<CaseStore>(s.store);
+    if (s.security.curve) {
+      const ServerCurve keys = load_server_curve(s.security);
+      zap = std::make_unique<ZapHandler>(context, keys.clients_by_key);
+      protocol::curve::set_server_options(router, keys.server.secret_z85, kRequestsZapDomain);
+      protocol::curve::set_server_options(pub, keys.server.secret_z85, kEventsZapDomain);
+      spdlog::info("CURVE on: server key {}..., {} allowed client key(s)",
+                   protocol::curve::fingerprint(keys.server.public_z85), keys.clients_by_key.size());
+    } else {
+      spdlog::info("CURVE off: every client is an unauthenticated local one (shutdown {})",
+                   s.security.allow_unauthenticated_shutdown ? "allowed" : "refused");
+      for (const auto& ep : {s.endpoint, s.events})
+        if (!is_local_endpoint(ep))
+          spdlog::warn("plain TCP on the non-loopback endpoint {} (allow_plain_tcp_non_loopback): anyone on that "
+                       "network can send any request and read every event", ep);
+    }
     // Refuse oversized frames at the socket before they are allocated.
     protocol::transport::apply_hard_frame_cap(router, limits);
     router.set(zmq::sockopt::linger, 0);
@@ -119,7 +149,7 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
                     {{"brainshiftd", "0.1.0"}});
     std::atomic<bool> sockets_running{true};
     std::thread socket_thread(socket_loop, std::ref(router), std::ref(pub), std::ref(core), std::ref(outbox),
-                              std::cref(sockets_running));
+                              std::cref(sockets_running), s.security.curve);
     try {
       core.start();
       if (!options.ready_file.empty()) write_ready_file(options.ready_file, endpoint, events);

@@ -141,9 +141,9 @@ ServerCore::~ServerCore() = default;
 
 // ---------------------------------------------------------------- socket side
 
-Message ServerCore::handle_wire(std::vector<std::string> wire) {
+Message ServerCore::handle_wire(std::vector<std::string> wire, const Peer& peer) {
   try {
-    return handle(decode(std::move(wire), limits_));
+    return handle(decode(std::move(wire), limits_), peer);
   } catch (const ProtocolError& e) {
     spdlog::warn("refused a request: {} ({})", e.what(), to_string(e.code()));
     return make_error_reply(e);
@@ -153,9 +153,13 @@ Message ServerCore::handle_wire(std::vector<std::string> wire) {
   }
 }
 
-Message ServerCore::handle(const Message& m) {
+Message ServerCore::handle(const Message& m, const Peer& peer) {
   const std::string rid = m.request_id();
   try {
+    if (auto why = refusal(peer, m.type(), settings_.security.allow_unauthenticated_shutdown)) {
+      spdlog::warn("refused {} {} from {}: {}", to_string(m.type()), rid, peer.describe(), *why);
+      return make_error_reply(rid, ErrorCode::kUnauthorised, *why);
+    }
     switch (m.type()) {
       case MessageType::kStatus: return on_status(m);
       case MessageType::kPreopLoad: return on_preop_load(m);
@@ -355,8 +359,8 @@ Message ServerCore::on_scan_list(const Message& m) {
 }
 
 Message ServerCore::on_shutdown(const Message& m) {
-  // No authentication yet (CURVE roles come with the security issue): every
-  // client that can reach the loopback endpoint may stop the daemon.
+  // The role was checked in handle(): an admin key, or no CURVE with
+  // allow_unauthenticated_shutdown.
   ShutdownRequest req = parse_shutdown_request(m);
   spdlog::info("shutdown requested{}{}", req.reason.empty() ? "" : ": ", req.reason);
   shutdown_ = true;

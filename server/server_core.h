@@ -22,6 +22,7 @@
 #include "protocol/timing_log.h"
 #include "server/case_store.h"
 #include "server/engine_port.h"
+#include "server/roles.h"
 #include "server/scan_queue.h"
 #include "server/server_settings.h"
 
@@ -37,10 +38,15 @@ class ServerCore {
   ~ServerCore();
 
   // ---- socket thread -------------------------------------------------------
-  // Decodes and answers one request; never throws: every failure is a typed
-  // error reply. Returns nullopt only when nothing can be answered.
-  protocol::Message handle_wire(std::vector<std::string> wire);
-  protocol::Message handle(const protocol::Message& request);
+  // Decodes and answers one request from `peer`; never throws: every failure
+  // is a typed error reply. The peer's role is checked right after the common
+  // header is decoded, before any request field or frame is interpreted.
+  protocol::Message handle_wire(std::vector<std::string> wire, const Peer& peer);
+  protocol::Message handle(const protocol::Message& request, const Peer& peer);
+  // As above for an unauthenticated local client (a server without CURVE).
+  protocol::Message handle_wire(std::vector<std::string> wire) {
+    return handle_wire(std::move(wire), Peer::unauthenticated_local());
+  }
   protocol::StatusReply status() const;
   bool shutdown_requested() const { return shutdown_.load(); }
   const protocol::Limits& inbound_limits() const { return limits_; }

@@ -7,12 +7,18 @@
 #include <toml++/toml.h>
 
 #include "core/errors.h"
+#include "protocol/curve_keys.h"
 
 namespace brainshift::server {
 namespace {
 
+namespace fs = std::filesystem;
+
 [[noreturn]] void fail(const std::string& source, const std::string& key, const std::string& what) {
   throw InputError(source + ": [server] " + key + ": " + what);
+}
+[[noreturn]] void fail_security(const std::string& source, const std::string& key, const std::string& what) {
+  throw InputError(source + ": [security] " + key + ": " + what);
 }
 
 std::string get_string(const toml::table& t, const char* key, const std::string& fallback,
@@ -68,7 +74,102 @@ DefaultPreop read_preop(const toml::table& t, const std::string& source) {
   return p;
 }
 
+toml::table parse_toml(const std::string& text, const std::string& source) {
+  try {
+    return toml::parse(text, source);
+  } catch (const toml::parse_error& e) {
+    std::ostringstream os;
+    os << source << ": TOML parse error at line " << e.source().begin.line << ": " << e.description();
+    throw InputError(os.str());
+  }
+}
+
+// One allow-list entry {name, role, public_key}; `where` names it in messages.
+AllowedClient read_allowed_client(const toml::node& node, const std::string& where) {
+  const toml::table* t = node.as_table();
+  if (!t) throw InputError(where + ": must be a table {name, role, public_key}");
+  for (const auto& [k, v] : *t) {
+    const std::string key(k.str());
+    if (key != "name" && key != "role" && key != "public_key") throw InputError(where + "." + key + ": unknown key");
+  }
+  auto text = [&](const char* key) {
+    const toml::node* n = t->get(key);
+    if (!n || !n->is_string()) throw InputError(where + "." + key + ": required, a string");
+    return n->as_string()->get();
+  };
+  AllowedClient c;
+  c.name = text("name");
+  if (c.name.empty() || c.name.size() > 64) throw InputError(where + ".name: 1..64 characters");
+  const auto role = role_from_string(text("role"));
+  if (!role) throw InputError(where + ".role: must be \"scanner\", \"viewer\" or \"admin\"");
+  c.role = *role;
+  c.public_z85 = text("public_key");
+  if (!protocol::curve::is_z85_key(c.public_z85))
+    throw InputError(where + ".public_key: not a CURVE public key (40 Z85 characters, as in the .key file of "
+                             "brainshift keygen)");
+  return c;
+}
+
+std::vector<AllowedClient> read_allowed_clients(const toml::node* n, const std::string& where) {
+  std::vector<AllowedClient> out;
+  if (!n) return out;
+  const toml::array* a = n->as_array();
+  if (!a) throw InputError(where + ": must be an array of tables [[...]]");
+  for (std::size_t i = 0; i < a->size(); ++i)
+    out.push_back(read_allowed_client(*a->get(i), where + "[" + std::to_string(i) + "]"));
+  return out;
+}
+
+fs::path resolve(const fs::path& p, const fs::path& base_dir) {
+  return p.empty() || p.is_absolute() || base_dir.empty() ? p : base_dir / p;
+}
+
+SecuritySettings read_security(const toml::node* section, const std::string& source, const fs::path& base_dir) {
+  SecuritySettings s;
+  if (!section) return s;
+  if (!section->is_table()) throw InputError(source + ": [security] must be a table");
+  const toml::table& t = *section->as_table();
+  static const std::set<std::string> known = {"curve", "server_secret_key_file", "server_public_key_file",
+                                              "clients_file", "clients", "allow_unauthenticated_shutdown"};
+  for (const auto& [k, v] : t)
+    if (!known.count(std::string(k.str()))) fail_security(source, std::string(k.str()), "unknown key");
+  auto flag = [&](const char* key, bool fallback) {
+    const toml::node* n = t.get(key);
+    if (!n) return fallback;
+    if (!n->is_boolean()) fail_security(source, key, "must be true or false");
+    return n->as_boolean()->get();
+  };
+  auto path = [&](const char* key) {
+    const toml::node* n = t.get(key);
+    if (!n) return fs::path();
+    if (!n->is_string()) fail_security(source, key, "must be a string (a file path)");
+    return resolve(n->as_string()->get(), base_dir);
+  };
+  s.curve = flag("curve", false);
+  s.allow_unauthenticated_shutdown = flag("allow_unauthenticated_shutdown", false);
+  s.server_secret_key_file = path("server_secret_key_file");
+  s.server_public_key_file = path("server_public_key_file");
+  s.clients_file = path("clients_file");
+  s.clients = read_allowed_clients(t.get("clients"), source + ": [[security.clients]]");
+  return s;
+}
+
 }  // namespace
+
+std::vector<AllowedClient> allowed_clients_from_text(const std::string& toml_text, const std::string& source) {
+  const toml::table root = parse_toml(toml_text, source);
+  for (const auto& [k, v] : root)
+    if (k.str() != "clients") throw InputError(source + ": unknown key \"" + std::string(k.str()) + "\" (only [[clients]])");
+  return read_allowed_clients(root.get("clients"), source + ": [[clients]]");
+}
+
+std::vector<AllowedClient> allowed_clients_from_file(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError(path.string() + ": cannot open the client allow-list");
+  std::ostringstream text;
+  text << in.rdbuf();
+  return allowed_clients_from_text(text.str(), path.string());
+}
 
 std::filesystem::path ServerSettings::timing_log_path() const {
   // Relative paths live inside the store, with the case they describe.
@@ -79,16 +180,11 @@ std::filesystem::path ServerSettings::atlas_cache_path() const {
   return atlas_cache.empty() ? store / "atlas-cache" : atlas_cache;
 }
 
-ServerSettings server_settings_from_text(const std::string& toml_text, const std::string& source) {
-  toml::table root;
-  try {
-    root = toml::parse(toml_text, source);
-  } catch (const toml::parse_error& e) {
-    std::ostringstream os;
-    os << source << ": TOML parse error at line " << e.source().begin.line << ": " << e.description();
-    throw InputError(os.str());
-  }
+ServerSettings server_settings_from_text(const std::string& toml_text, const std::string& source,
+                                         const fs::path& base_dir) {
+  const toml::table root = parse_toml(toml_text, source);
   ServerSettings s;
+  s.security = read_security(root.get("security"), source, base_dir);
   const toml::node* section = root.get("server");
   if (!section) return s;
   if (!section->is_table()) throw InputError(source + ": [server] must be a table");
@@ -122,7 +218,7 @@ ServerSettings server_settings_from_file(const std::filesystem::path& path) {
   if (!in) throw InputError(path.string() + ": cannot open the configuration file");
   std::ostringstream text;
   text << in.rdbuf();
-  return server_settings_from_text(text.str(), path.string());
+  return server_settings_from_text(text.str(), path.string(), path.parent_path());
 }
 
 bool is_local_endpoint(const std::string& endpoint) {
@@ -141,10 +237,21 @@ void validate_endpoints(const ServerSettings& s) {
     if (!known_scheme || ep.find("://") + 3 >= ep.size())
       throw InputError(std::string("server.") + key + " \"" + ep +
                        "\": expected tcp://HOST:PORT, ipc://PATH or inproc://NAME");
-    if (!is_local_endpoint(ep) && !s.allow_plain_tcp_non_loopback)
+    if (!is_local_endpoint(ep) && !s.security.curve && !s.allow_plain_tcp_non_loopback)
       throw InputError(std::string("server.") + key + " \"" + ep +
-                       "\" is not a loopback address: plain TCP is refused there (set "
-                       "allow_plain_tcp_non_loopback = true only on an isolated network)");
+                       "\" is not a loopback address: it requires CURVE ([security] curve = true with the "
+                       "server's key and the client allow-list); plain TCP there only with "
+                       "[server] allow_plain_tcp_non_loopback = true, on an isolated network");
+    if (s.security.curve && ep.rfind("inproc://", 0) == 0)
+      throw InputError(std::string("server.") + key + " \"" + ep +
+                       "\": CURVE needs a tcp:// or ipc:// endpoint (inproc has no handshake)");
+  }
+  if (s.security.curve) {
+    if (s.security.server_secret_key_file.empty())
+      throw InputError("[security] curve = true needs server_secret_key_file (make one with brainshift keygen)");
+    if (s.security.clients.empty() && s.security.clients_file.empty())
+      throw InputError("[security] curve = true needs an allow-list ([[security.clients]] or clients_file): "
+                       "without one no client could connect");
   }
   // "tcp://127.0.0.1:*" twice is fine: the system picks two free ports.
   const bool wildcard = s.endpoint.find('*') != std::string::npos;

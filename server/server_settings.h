@@ -7,6 +7,9 @@
 #include <filesystem>
 #include <optional>
 #include <string>
+#include <vector>
+
+#include "server/roles.h"
 
 namespace brainshift::server {
 
@@ -17,6 +20,26 @@ struct DefaultPreop {
   std::filesystem::path t1;           // files only
   std::filesystem::path labels;       // files only
   std::filesystem::path label_table;  // files only, optional (protocol JSON)
+};
+
+// One allowed client key (PROTOCOL.md section 13).
+struct AllowedClient {
+  std::string name;        // for the log, e.g. "or1-scanner"
+  Role role = Role::viewer;
+  std::string public_z85;  // the client's CURVE public key, 40 Z85 characters
+};
+
+// [security]: CURVE on both sockets, the server's key pair and the allow-list.
+// Key file paths are relative to the configuration file's folder.
+struct SecuritySettings {
+  bool curve = false;
+  std::filesystem::path server_secret_key_file;  // required with curve; mode 0600
+  std::filesystem::path server_public_key_file;  // optional: checked against the secret key
+  std::filesystem::path clients_file;            // optional TOML file of [[clients]] entries
+  std::vector<AllowedClient> clients;            // inline [[security.clients]]
+  // Without CURVE (loopback only) every client acts as admin except for
+  // shutdown, unless this is set.
+  bool allow_unauthenticated_shutdown = false;
 };
 
 struct ServerSettings {
@@ -31,23 +54,33 @@ struct ServerSettings {
   // Plain (unauthenticated, unencrypted) TCP is allowed on loopback only,
   // unless this is set: a hospital network is not a trusted one.
   bool allow_plain_tcp_non_loopback = false;
+  SecuritySettings security;
 
   std::filesystem::path timing_log_path() const;
   std::filesystem::path atlas_cache_path() const;
 };
 
-// Reads [server] from TOML text (missing section or keys: defaults). Throws
-// InputError naming source_name and the key for a parse error, an unknown key,
-// a wrong type or an out-of-range value.
+// Reads [server] and [security] from TOML text (missing section or keys:
+// defaults). Throws InputError naming source_name and the key for a parse
+// error, an unknown key, a wrong type or an out-of-range value. Relative key
+// file paths are resolved against base_dir (the configuration file's folder).
 ServerSettings server_settings_from_text(const std::string& toml_text,
-                                         const std::string& source_name);
+                                         const std::string& source_name,
+                                         const std::filesystem::path& base_dir = {});
 ServerSettings server_settings_from_file(const std::filesystem::path& path);
 
-// Throws InputError when an endpoint is malformed or is plain TCP on a
-// non-loopback address while that is not allowed.
+// Throws InputError when an endpoint is malformed, or is not loopback while
+// CURVE is off and allow_plain_tcp_non_loopback is not set, or when CURVE is
+// on without a server key or an allow-list. Reads no file (see
+// load_server_curve for the keys themselves).
 void validate_endpoints(const ServerSettings& settings);
 
 // tcp://127.0.0.1:..., tcp://localhost:..., tcp://[::1]:..., ipc://, inproc://.
 bool is_local_endpoint(const std::string& endpoint);
+
+// An allow-list file: [[clients]] tables {name, role, public_key}, nothing
+// else. Throws InputError for a missing or malformed field.
+std::vector<AllowedClient> allowed_clients_from_text(const std::string& toml_text, const std::string& source_name);
+std::vector<AllowedClient> allowed_clients_from_file(const std::filesystem::path& path);
 
 }  // namespace brainshift::server

@@ -35,7 +35,8 @@ mkdir -p "$WORK"
 # takes a while) and a store of its own for this demo.
 cp "$SRC/config/brainshiftd.toml" "$SRC/config/labels.toml" "$WORK/"
 sed -i -e "s|^atlas_cache = .*|atlas_cache = \"$ATLAS_CACHE\"|" \
-       -e "s|^store = .*|store = \"$STORE\"|" "$WORK/brainshiftd.toml"
+       -e "s|^store = .*|store = \"$STORE\"|" \
+       -e "s|^allow_unauthenticated_shutdown = .*|allow_unauthenticated_shutdown = true|" "$WORK/brainshiftd.toml"
 
 "$DAEMON" --config "$WORK/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \
   --ready-file "$WORK/ready.json" >"$WORK/daemon.out" 2>"$WORK/daemon.log" &

@@ -224,9 +224,15 @@ RawNifti decode(std::string_view bytes, std::string_view name, std::size_t max_b
                    " decompressed bytes, more than the limit of " + std::to_string(max_bytes));
   raw.voxel_count = nvox;
 
-  std::string skip(offset - kHeaderBytes, '\0');
-  if (stream.read(skip.data(), skip.size()) < skip.size())
-    fail(name, "truncated: file ends before the voxel data (vox_offset " + std::to_string(offset) + ")");
+  // Skipped in small pieces: a tiny file claiming a huge vox_offset must not
+  // make us allocate the claim.
+  std::string skip(std::min<std::size_t>(offset - kHeaderBytes, 64 * 1024), '\0');
+  for (std::size_t left = offset - kHeaderBytes; left > 0;) {
+    const std::size_t n = std::min(left, skip.size());
+    if (stream.read(skip.data(), n) < n)
+      fail(name, "truncated: file ends before the voxel data (vox_offset " + std::to_string(offset) + ")");
+    left -= n;
+  }
   // Grow the buffer as data actually arrive, so that a file whose header claims
   // far more than it holds fails as truncated instead of allocating the claim.
   const std::size_t want = nvox * bpv;

@@ -47,7 +47,8 @@ for np in "${NPS[@]}"; do
   cp "$SRC/config/brainshiftd.toml" "$SRC/config/labels.toml" "$run/"
   # No preop at start-up: the benchmark times preop.load itself.
   sed -i -e "s|^atlas_cache = .*|atlas_cache = \"$ATLAS_CACHE\"|" -e "s|^store = .*|store = \"$run/store\"|" \
-         -e "s|^preop = .*|preop = \"none\"|" "$run/brainshiftd.toml"
+         -e "s|^preop = .*|preop = \"none\"|" \
+         -e "s|^allow_unauthenticated_shutdown = .*|allow_unauthenticated_shutdown = true|" "$run/brainshiftd.toml"
   launch=("$DAEMON")
   [[ $np -gt 1 ]] && launch=(mpirun -np "$np" --oversubscribe "$DAEMON")
   "${launch[@]}" --config "$run/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \

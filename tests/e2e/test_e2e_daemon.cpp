@@ -42,6 +42,9 @@ std::string config_text() {
 preop = "none"
 queue_depth = 3
 
+[security]
+allow_unauthenticated_shutdown = true  # loopback without CURVE; the tests stop the daemon by request
+
 [mesh]
 cell_size_mm = 7.0
 facet_size_mm = 4.0

@@ -381,6 +381,9 @@ TEST(ServerCore, RestartRestoresPreopMeshQueueAndResults) {
 
 TEST(ServerCore, ShutdownRequestStopsTheEngineLoop) {
   Harness h;
+  // Without CURVE a shutdown needs this (tests/server/test_security_settings.cpp).
+  h.settings.security.allow_unauthenticated_shutdown = true;
+  h.open();
   EXPECT_EQ(h.call(make_shutdown_request("bye")).type(), MessageType::kShutdownReply);
   EXPECT_TRUE(h.core->shutdown_requested());
   EXPECT_FALSE(h.core->step(10ms));
