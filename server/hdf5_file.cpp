@@ -59,7 +59,9 @@ Handle create_in_memory() {
   static std::atomic<unsigned long> counter{0};
   const std::string name = "brainshift-store-" + std::to_string(counter++) + ".h5";
   Handle fapl(check(H5Pcreate(H5P_FILE_ACCESS), "plist"), Handle::Kind::plist);
-  H5Pset_fapl_core(fapl.get(), std::size_t{1} << 22, /*backing_store=*/0);
+  // Grown in 1 MiB steps: the buffer exists beside its copy (file_image) for a
+  // moment, so rounding up to 4 MiB would add to the daemon's peak memory.
+  H5Pset_fapl_core(fapl.get(), std::size_t{1} << 20, /*backing_store=*/0);
   return Handle(check(H5Fcreate(name.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, fapl.get()), "cannot create " + name),
                 Handle::Kind::file);
 }
