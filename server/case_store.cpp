@@ -4,7 +4,9 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <stdexcept>
 
 #include <nlohmann/json.hpp>
@@ -46,20 +48,70 @@ Grid3 read_grid(hid_t file, const std::string& name) {
   return g;
 }
 
-// Writes path via path.tmp + fsync + rename + fsync(dir). fill gets the open file.
+// Runs a store write; on failure removes what it left (`leftover`, so a full
+// disk is not kept full by half a file) and throws StoreWriteError naming the
+// system's reason (errno of the failing call: ENOSPC, EFBIG, EROFS, EACCES).
+template <class Write>
+void guarded_write(const fs::path& leftover, const std::string& what, Write&& write) {
+  errno = 0;
+  try {
+    write();
+  } catch (const std::exception& e) {
+    const int saved = errno;
+    std::error_code ec;
+    fs::remove_all(leftover, ec);
+    std::string reason = e.what();
+    if (saved != 0) reason += std::string(" (") + std::strerror(saved) + ")";
+    throw StoreWriteError("cannot write " + what + ": " + reason);
+  }
+}
+
+// Writes bytes to path and fsyncs it. Throws std::runtime_error (errno set)
+// when the system refuses.
+void write_and_sync(const fs::path& path, const std::string& bytes) {
+  const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) throw std::runtime_error("cannot create " + path.string());
+  std::size_t done = 0;
+  while (done < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
+    if (n <= 0) {
+      const int saved = errno;
+      ::close(fd);
+      errno = saved;
+      throw std::runtime_error("cannot write " + path.string());
+    }
+    done += static_cast<std::size_t>(n);
+  }
+  const bool synced = ::fsync(fd) == 0;
+  const int saved = errno;
+  ::close(fd);
+  errno = saved;
+  if (!synced) throw std::runtime_error("cannot fsync " + path.string());
+}
+
+// Writes path via path.tmp + fsync + rename + fsync(dir).
+void write_plain_file_atomically(const fs::path& path, const std::string& bytes) {
+  const fs::path tmp = path.string() + ".tmp";
+  guarded_write(tmp, path.string(), [&] {
+    write_and_sync(tmp, bytes);
+    fs::rename(tmp, path);
+  });
+  h5::fsync_path(path.parent_path());
+}
+
+// An HDF5 file built in memory by fill (which gets the open file), then
+// written like any other file: HDF5 itself never meets a failing disk.
+template <class Fill>
+std::string hdf5_image(Fill&& fill) {
+  std::lock_guard lock(h5::hdf5_mutex());
+  h5::Handle file = h5::create_in_memory();
+  fill(file.get());
+  return h5::file_image(file.get());
+}
+
 template <class Fill>
 void write_atomically(const fs::path& path, Fill&& fill) {
-  const fs::path tmp = path.string() + ".tmp";
-  {
-    std::lock_guard lock(h5::hdf5_mutex());
-    h5::Handle file = h5::create_file(tmp);
-    fill(file.get());
-    if (H5Fflush(file.get(), H5F_SCOPE_GLOBAL) < 0)
-      throw std::runtime_error("HDF5: cannot flush " + tmp.string());
-  }
-  h5::fsync_path(tmp);
-  fs::rename(tmp, path);
-  h5::fsync_path(path.parent_path());
+  write_plain_file_atomically(path, hdf5_image(fill));
 }
 
 json record_to_json(const ScanRecord& r) {
@@ -80,25 +132,6 @@ bool is_temporary_name(const std::string& n) {
   return n.rfind(".tmp-", 0) == 0 || (n.size() > 4 && n.compare(n.size() - 4, 4, ".tmp") == 0);
 }
 
-void write_plain_file_atomically(const fs::path& path, const std::string& bytes) {
-  const fs::path tmp = path.string() + ".tmp";
-  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) throw std::runtime_error("store: cannot create " + tmp.string());
-  std::size_t done = 0;
-  while (done < bytes.size()) {
-    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
-    if (n <= 0) {
-      ::close(fd);
-      throw std::runtime_error("store: cannot write " + tmp.string());
-    }
-    done += static_cast<std::size_t>(n);
-  }
-  const bool synced = ::fsync(fd) == 0;
-  ::close(fd);
-  if (!synced) throw std::runtime_error("store: cannot fsync " + tmp.string());
-  fs::rename(tmp, path);
-  h5::fsync_path(path.parent_path());
-}
 
 }  // namespace
 
@@ -329,26 +362,19 @@ ScanRecord CaseStore::add_scan(const ScanInput& input, const std::optional<std::
   r.preop_id = preop_id;
   r.has_image = input.image_bytes.has_value();
 
+  const std::string image = hdf5_image([&](hid_t f) {
+    h5::write_bytes(f, "labels", input.labels_bytes);
+    if (input.image_bytes) h5::write_bytes(f, "image", *input.image_bytes);
+    h5::write_string_attribute(f, kMetaAttr, record_to_json(r).dump());
+  });
   const fs::path tmp_dir = dir_ / "scans" / (".tmp-" + r.scan_id);
-  fs::create_directories(tmp_dir);
-  try {
-    {
-      std::lock_guard lock(h5::hdf5_mutex());
-      h5::Handle f = h5::create_file(tmp_dir / "scan.h5");
-      h5::write_bytes(f.get(), "labels", input.labels_bytes);
-      if (input.image_bytes) h5::write_bytes(f.get(), "image", *input.image_bytes);
-      h5::write_string_attribute(f.get(), kMetaAttr, record_to_json(r).dump());
-      if (H5Fflush(f.get(), H5F_SCOPE_GLOBAL) < 0) throw std::runtime_error("HDF5: flush failed");
-    }
-    h5::fsync_path(tmp_dir / "scan.h5");
+  guarded_write(tmp_dir, "the pushed scan", [&] {
+    fs::create_directories(tmp_dir);
+    write_and_sync(tmp_dir / "scan.h5", image);
     h5::fsync_path(tmp_dir);
     fs::rename(tmp_dir, scan_dir(r.scan_id));
-    h5::fsync_path(dir_ / "scans");
-  } catch (...) {
-    std::error_code ec;
-    fs::remove_all(tmp_dir, ec);
-    throw;
-  }
+  });
+  h5::fsync_path(dir_ / "scans");
   std::lock_guard lock(index_mutex_);
   if (r.client_scan_id) by_client_id_[*r.client_scan_id] = r.scan_id;
   scans_[r.scan_id] = Entry{r, {}};
@@ -436,6 +462,31 @@ void CaseStore::save_failure(const std::string& scan_id, const std::string& erro
   r.error_code = error_code;
   r.error_message = message;
   r.error_stage = stage;
+}
+
+void CaseStore::mark_failed_unstored(const std::string& scan_id, const std::string& error_code,
+                                     const std::string& message, const std::string& stage) {
+  std::lock_guard lock(index_mutex_);
+  auto it = scans_.find(scan_id);
+  if (it == scans_.end()) return;
+  ScanRecord& r = it->second.record;
+  r.state = StoredScanState::failed;
+  r.finished_at = protocol::utc_now();
+  r.error_code = error_code;
+  r.error_message = message;
+  r.error_stage = stage;
+}
+
+void CaseStore::mark_queued(const std::string& scan_id) {
+  std::lock_guard lock(index_mutex_);
+  auto it = scans_.find(scan_id);
+  if (it == scans_.end()) return;
+  ScanRecord& r = it->second.record;
+  r.state = StoredScanState::queued;
+  r.finished_at.reset();
+  r.error_code.clear();
+  r.error_message.clear();
+  r.error_stage.clear();
 }
 
 void CaseStore::add_result_file(const std::string& scan_id, const std::string& name, const std::string& bytes) {

@@ -12,7 +12,9 @@
 //   <dir>/scans/<scan_id>/<name>     result files added after the result
 //                                    (report.png, rendered off the latency path)
 // A scan directory is created as scans/.tmp-<id> and renamed once scan.h5 is
-// durable: a scan exists exactly when it was acknowledged.
+// durable: a scan exists exactly when it was acknowledged. HDF5 files are
+// built in memory and written with plain write()/fsync(), so a full disk is
+// an ordinary write error (StoreWriteError) that leaves nothing behind.
 //
 // Thread safety: all methods may be called from any thread. HDF5 calls run
 // under h5::hdf5_mutex(); read_result_file() uses pread() at offsets recorded
@@ -22,6 +24,7 @@
 #include <map>
 #include <mutex>
 #include <optional>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -29,6 +32,14 @@
 #include "core/tet_mesh.h"
 
 namespace brainshift::server {
+
+// A write to the store failed (disk full, file-size limit, unwritable or
+// vanished directory). Nothing of the failed write is left behind: its
+// temporary file is removed, so the store's state is what it was before.
+class StoreWriteError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
 
 struct PreopRecord {
   std::string preop_id;
@@ -82,6 +93,7 @@ class CaseStore {
   std::optional<TetMesh> load_mesh(const std::string& preop_id) const;
 
   // ---- scans ---------------------------------------------------------------
+  // Every write below throws StoreWriteError when the store cannot take it.
   // Durably stores a scan and returns its record (new id, state queued).
   ScanRecord add_scan(const ScanInput& input, const std::optional<std::string>& client_scan_id,
                       const std::string& digest, const std::string& preop_id);
@@ -97,6 +109,13 @@ class CaseStore {
                    const std::string& kind, const std::string& fallback_reason);
   void save_failure(const std::string& scan_id, const std::string& error_code,
                     const std::string& message, const std::string& stage);
+  // A result or failure that could not be written: the index shows the scan
+  // failed, the store still holds it as acknowledged without a result, so a
+  // restart (or mark_queued) processes it again. Never persisted.
+  void mark_failed_unstored(const std::string& scan_id, const std::string& error_code,
+                            const std::string& message, const std::string& stage);
+  // Undoes mark_failed_unstored before the scan is processed again.
+  void mark_queued(const std::string& scan_id);
   // Adds one file to a done scan's result (e.g. report.png rendered after the
   // scan was announced) as a plain, fsynced file beside result.h5. name is a
   // plain file name ("report.png"), not one of the store's own files.

@@ -68,24 +68,30 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
   return output;
 }
 
+namespace {
+
+std::string itk_field_bytes(const VectorImage3& field) {
+  // float32 like field.nii, so nothing is lost against it. HDF5 is not
+  // thread-safe in this build: the store's lock keeps the socket thread out.
+  ItkTransformWriteOptions itk;
+  itk.single_precision = true;
+  std::lock_guard lock(h5::hdf5_mutex());
+  return itk_displacement_transform_bytes(field, itk);
+}
+
+}  // namespace
+
+std::optional<std::string> EngineAdapter::itk_field_from_nifti(const std::string& field_nii) {
+  return itk_field_bytes(vector_image_from_bytes(field_nii, "field.nii", field_nii.size() + (1u << 20)));
+}
+
 void EngineAdapter::render_deferred(const DeferredOutputFn& add) {
   if (!deferred_) return;
   const std::unique_ptr<Deferred> d = std::move(deferred_);
   ScanResult& r = d->result;
   session_.add_quality_metrics(d->input, r, nullptr);
   add("metrics.json", r.metrics.dump(2) + "\n");
-  {
-    // float32 like field.nii, so nothing is lost against it. HDF5 is not
-    // thread-safe in this build: the store's lock keeps the socket thread out.
-    ItkTransformWriteOptions itk;
-    itk.single_precision = true;
-    std::string h5;
-    {
-      std::lock_guard lock(h5::hdf5_mutex());
-      h5 = itk_displacement_transform_bytes(r.pullback_field_mm, itk);
-    }
-    add("field.h5", h5);
-  }
+  add("field.h5", itk_field_bytes(r.pullback_field_mm));
   // The picture needs an intraop image to draw on (as in register).
   if (!d->input.t1) return;
   ReportInputs in;

@@ -70,6 +70,12 @@ class EnginePort {
   // Frees what it kept for them.
   using DeferredOutputFn = std::function<void(const std::string& name, const std::string& bytes)>;
   virtual void render_deferred(const DeferredOutputFn& add) = 0;
+  // field.h5 made from a stored field.nii (the same field in ITK's
+  // encoding), for a result whose field.h5 was lost to a crash; nullopt when
+  // the engine cannot make it.
+  virtual std::optional<std::string> itk_field_from_nifti(const std::string& /*field_nii*/) {
+    return std::nullopt;
+  }
   virtual int ranks() const = 0;
   // Bound on decompressed image bytes received from clients.
   virtual std::size_t max_image_bytes() const = 0;

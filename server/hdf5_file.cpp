@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <stdexcept>
 
 namespace brainshift::server::h5 {
@@ -51,6 +52,27 @@ Handle create_file(const std::filesystem::path& path) {
   return Handle(check(H5Fcreate(path.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT),
                       "cannot create " + path.string()),
                 Handle::Kind::file);
+}
+
+Handle create_in_memory() {
+  H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr);
+  static std::atomic<unsigned long> counter{0};
+  const std::string name = "brainshift-store-" + std::to_string(counter++) + ".h5";
+  Handle fapl(check(H5Pcreate(H5P_FILE_ACCESS), "plist"), Handle::Kind::plist);
+  // Grown in 1 MiB steps: the buffer exists beside its copy (file_image) for a
+  // moment, so rounding up to 4 MiB would add to the daemon's peak memory.
+  H5Pset_fapl_core(fapl.get(), std::size_t{1} << 20, /*backing_store=*/0);
+  return Handle(check(H5Fcreate(name.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, fapl.get()), "cannot create " + name),
+                Handle::Kind::file);
+}
+
+std::string file_image(hid_t file) {
+  if (H5Fflush(file, H5F_SCOPE_GLOBAL) < 0) fail("cannot flush an in-memory file");
+  const ssize_t size = H5Fget_file_image(file, nullptr, 0);
+  if (size <= 0) fail("cannot size an in-memory file");
+  std::string bytes(static_cast<std::size_t>(size), '\0');
+  if (H5Fget_file_image(file, bytes.data(), bytes.size()) != size) fail("cannot copy an in-memory file");
+  return bytes;
 }
 
 Handle open_file_read(const std::filesystem::path& path) {

@@ -40,6 +40,13 @@ class Handle {
 // Throws std::runtime_error naming the file when HDF5 refuses.
 Handle create_file(const std::filesystem::path& path);  // truncates
 Handle open_file_read(const std::filesystem::path& path);
+// A file that lives in memory only (core driver, no backing store). The store
+// builds every file this way and writes the image itself: a full disk then
+// fails a plain write() the store handles, never an HDF5 close, which left a
+// half-closed file that crashed HDF5 at exit (measured with RLIMIT_FSIZE).
+Handle create_in_memory();
+// Flushes an in-memory file and returns its bytes.
+std::string file_image(hid_t file);
 
 // A contiguous 1-D/N-D dataset. dims outermost first (C order).
 void write_dataset(hid_t loc, const std::string& name, hid_t mem_type,

@@ -3,6 +3,7 @@
 // One process, or every rank of `mpirun -np N`: rank 0 owns the sockets, the
 // store and the protocol; ranks > 0 only serve the engine's collective steps
 // (run_worker_loop) and never touch sockets.
+#include <malloc.h>
 #include <mpi.h>
 
 #include <atomic>
@@ -38,6 +39,9 @@ void install_signal_handlers() {
   sigaction(SIGTERM, &sa, nullptr);
   // A client vanishing mid-write must not kill the daemon.
   signal(SIGPIPE, SIG_IGN);
+  // A file-size limit (RLIMIT_FSIZE) must fail the write with EFBIG, which the
+  // store reports, not kill the daemon.
+  signal(SIGXFSZ, SIG_IGN);
 }
 
 struct Configuration {
@@ -97,6 +101,12 @@ int export_result(const std::string& config_path, const std::string& store_overr
 }  // namespace
 
 int main(int argc, char** argv) {
+  // Two malloc arenas, set before any thread exists. The engine's short-lived
+  // helper threads each got an arena of their own, and with trimming off (see
+  // engine_session.cpp) freed scan buffers stayed scattered over them: the
+  // 200-scan soak measured ~132 MB resident; with two arenas ~115 MB, at the
+  // same throughput.
+  mallopt(M_ARENA_MAX, 2);
   int provided = 0;
   MPI_Init_thread(&argc, &argv, MPI_THREAD_FUNNELED, &provided);
   int rank = 0;

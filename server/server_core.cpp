@@ -1,6 +1,7 @@
 #include "server/server_core.h"
 
 #include <algorithm>
+#include <limits>
 #include <chrono>
 #include <thread>
 #include <cstdio>
@@ -282,13 +283,26 @@ Message ServerCore::on_scan_push(const Message& m) {
   ScanRecord record;
   try {
     record = store_.add_scan(input, req.client_scan_id, digest, preop_id);
+  } catch (const StoreWriteError& e) {
+    spdlog::error("could not store a pushed scan: {}", e.what());
+    return make_error_reply(rid, ErrorCode::kInternal,
+                            std::string("the scan was NOT stored and is not queued (the store refused the write: ") +
+                                e.what() + "); push it again once the store has space");
   } catch (const std::exception& e) {
     spdlog::error("could not store a pushed scan: {}", e.what());
     return make_error_reply(rid, ErrorCode::kInternal, std::string("the scan could not be stored: ") + e.what());
   }
+  std::vector<std::string> retry;
   {
     std::lock_guard lock(mutex_);
     decoded_[record.scan_id] = decoded;
+    retry.swap(unstored_results_);
+  }
+  // The store takes writes again: results it refused earlier are computed again first.
+  for (const auto& id : retry) {
+    spdlog::info("scan {}: the store takes writes again; processing it again", id);
+    store_.mark_queued(id);
+    queue_.restore(id);
   }
   if (!queue_.offer(record.scan_id)) queue_.restore(record.scan_id);  // stored: it must run
   spdlog::info("scan {} stored and queued (client id {})", record.scan_id,
@@ -403,6 +417,7 @@ void ServerCore::start() {
     spdlog::info("re-queueing acknowledged scan {} (no result yet)", r.scan_id);
     queue_.restore(r.scan_id);
   }
+  find_incomplete_results();
   std::lock_guard lock(mutex_);
   if (job) {
     loading_preop_id_ = job->preop_id;
@@ -410,6 +425,67 @@ void ServerCore::start() {
     progress_ = Progress{"queued", 0.0};
     pending_preop_ = std::move(job);
   }
+}
+
+// The deferred outputs (metrics.json, field.h5, report.png) are stored after
+// the result; a daemon killed in between leaves a done scan without some of
+// them. field.h5 is the stored field.nii re-encoded, so it is made again here,
+// exactly. metrics.json and report.png need the registration's images: the
+// scan is registered again from its stored input (repair_scan) and only the
+// missing files are added; result.h5 is never touched.
+void ServerCore::find_incomplete_results() {
+  for (const auto& r : store_.list_newest_first(std::numeric_limits<std::size_t>::max())) {
+    if (r.state != StoredScanState::done) continue;
+    const auto names = store_.result_file_names(r.scan_id);
+    auto has = [&](const char* n) { return std::find(names.begin(), names.end(), n) != names.end(); };
+    if (!has("field.h5") && has("field.nii")) {
+      try {
+        const auto h5 = engine_.itk_field_from_nifti(store_.read_result_file(r.scan_id, "field.nii").value());
+        if (h5) {
+          store_.add_result_file(r.scan_id, "field.h5", *h5);
+          spdlog::warn("scan {}: field.h5 was missing (stopped before it was stored); made again from field.nii",
+                       r.scan_id);
+        }
+      } catch (const std::exception& e) {
+        spdlog::error("scan {}: field.h5 missing and could not be made again: {}", r.scan_id, e.what());
+      }
+    }
+    if (!has("metrics.json") || (r.has_image && !has("report.png"))) {
+      repairs_.push_back(r.scan_id);
+      std::lock_guard lock(mutex_);
+      deferred_pending_.insert(r.scan_id);  // pulls answer "pending" until the repair ends
+    }
+  }
+}
+
+void ServerCore::repair_scan(const std::string& scan_id) {
+  const fs::path scratch = store_.dir() / "scans" / scan_id / "repair.tmp";
+  try {
+    const auto record = store_.find(scan_id);
+    std::string preop_id;
+    {
+      std::lock_guard lock(mutex_);
+      preop_id = ready_preop_id_;
+    }
+    if (!record || record->preop_id != preop_id)
+      throw InputError("it was registered against another preop than the one loaded");
+    const auto names = store_.result_file_names(scan_id);
+    const DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
+    fs::create_directories(scratch);
+    engine_.register_scan(d.labels, d.image, d.read_seconds, scratch, [](const std::string&, double, double) {});
+    engine_.render_deferred([&](const std::string& name, const std::string& bytes) {
+      if (std::find(names.begin(), names.end(), name) != names.end()) return;
+      store_.add_result_file(scan_id, name, bytes);
+      spdlog::warn("scan {}: {} was missing (stopped before it was stored); made again by registering the stored "
+                   "scan again", scan_id, name);
+    });
+  } catch (const std::exception& e) {
+    spdlog::error("scan {}: missing deferred outputs could not be made again: {}", scan_id, e.what());
+  }
+  std::error_code ec;
+  fs::remove_all(scratch, ec);
+  std::lock_guard lock(mutex_);
+  deferred_pending_.erase(scan_id);
 }
 
 void ServerCore::request_stop() {
@@ -436,6 +512,12 @@ bool ServerCore::step(std::chrono::milliseconds wait) {
   if (!engine_.ready()) {
     std::this_thread::sleep_for(wait);
     return false;
+  }
+  if (!repairs_.empty()) {
+    const std::string id = repairs_.back();
+    repairs_.pop_back();
+    repair_scan(id);
+    return true;
   }
   auto scan_id = queue_.take(wait);
   if (!scan_id) return false;
@@ -519,9 +601,27 @@ void ServerCore::fail_scan(const ScanRecord& record, ErrorCode code, const std::
   try {
     store_.save_failure(record.scan_id, std::string(to_string(code)), message, stage);
   } catch (const std::exception& e) {
+    // Shown now; the store still holds the scan without a result, so a
+    // restart processes it again.
     spdlog::error("scan {}: the failure could not be stored: {}", record.scan_id, e.what());
+    store_.mark_failed_unstored(record.scan_id, std::string(to_string(code)), message, stage);
   }
   emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, stage, ErrorInfo{code, message}}));
+}
+
+// The result was computed but the store refused it (disk full, file-size
+// limit): the scan is reported failed for now and computed again after the
+// next successful write to the store (a push) or at the next start.
+void ServerCore::result_not_stored(const ScanRecord& record, const std::string& why) {
+  const std::string message = "the result could not be stored (" + why +
+                              "); the scan is kept and processed again once the store takes writes";
+  spdlog::error("scan {}: {}", record.scan_id, message);
+  store_.mark_failed_unstored(record.scan_id, std::string(to_string(ErrorCode::kInternal)), message, "store");
+  {
+    std::lock_guard lock(mutex_);
+    unstored_results_.push_back(record.scan_id);
+  }
+  emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, "store", ErrorInfo{ErrorCode::kInternal, message}}));
 }
 
 // metrics.json (label overlap figures that judge the result), field.h5
@@ -543,7 +643,7 @@ void ServerCore::add_deferred_outputs(const std::string& scan_id, const std::str
       t0 = Clock::now();
     });
   } catch (const std::exception& e) {
-    spdlog::error("scan {}: deferred outputs (field.h5, report.png) incomplete: {}", scan_id, e.what());
+    spdlog::error("scan {}: deferred outputs (metrics.json, field.h5, report.png) incomplete: {}", scan_id, e.what());
   }
   std::lock_guard lock(mutex_);
   deferred_pending_.erase(scan_id);
@@ -588,17 +688,28 @@ void ServerCore::run_scan(const std::string& scan_id) {
     EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, scratch, progress);
     const auto t_store = Clock::now();
     stage = "store";
-    store_.save_result(scan_id, out.files, out.kind, out.fallback_reason);
+    {
+      // Marked before the result becomes visible: a pull in between must see
+      // the deferred parts as pending, not as missing for good (the soak
+      // caught one such pull at np 2).
+      std::lock_guard lock(mutex_);
+      deferred_pending_.insert(scan_id);
+    }
+    try {
+      store_.save_result(scan_id, out.files, out.kind, out.fallback_reason);
+    } catch (...) {
+      std::lock_guard lock(mutex_);
+      deferred_pending_.erase(scan_id);
+      throw;
+    }
     progress("store", 1.0, seconds_since(t_store));
     fs::remove_all(scratch);
     const double seconds = seconds_since(t0);
     spdlog::info("scan {} done ({}) in {:.3f} s", scan_id, out.kind, seconds);
-    {
-      std::lock_guard lock(mutex_);
-      deferred_pending_.insert(scan_id);
-    }
     emit(make_event(ScanDoneEvent{scan_id, record->client_scan_id, seconds}));
     add_deferred_outputs(scan_id, preop_id);
+  } catch (const StoreWriteError& e) {
+    result_not_stored(*record, e.what());
   } catch (const InputError& e) {
     fail_scan(*record, ErrorCode::kInvalidRequest, e.what(), stage);
   } catch (const ComputeError& e) {

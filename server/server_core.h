@@ -77,6 +77,9 @@ class ServerCore {
   void add_deferred_outputs(const std::string& scan_id, const std::string& preop_id);
   void fail_scan(const ScanRecord& record, protocol::ErrorCode code, const std::string& message,
                  const std::string& stage);
+  void result_not_stored(const ScanRecord& record, const std::string& why);
+  void find_incomplete_results();
+  void repair_scan(const std::string& scan_id);
   void emit(protocol::Message event);
   void log_stage(protocol::StageTiming timing);
   DecodedScan decode_scan(const ScanInput& input) const;
@@ -105,6 +108,8 @@ class ServerCore {
   std::unique_ptr<PreopJob> pending_preop_;
   std::map<std::string, std::shared_ptr<DecodedScan>> decoded_;  // pushed, not yet run
   std::set<std::string> deferred_pending_;  // done; field.h5/report.png still being made
+  std::vector<std::string> unstored_results_;  // computed, refused by the store; retried
+  std::vector<std::string> repairs_;  // engine thread: done scans missing deferred outputs
   int ranks_ = 1;
 };
 

@@ -3,6 +3,7 @@
 #include <malloc.h>
 
 #include "core/errors.h"
+#include "pipeline/fault_injection.h"
 #include "pipeline/mpi_commands.h"
 #include "pipeline/warm_state.h"
 
@@ -28,6 +29,7 @@ void keep_scan_buffers_on_the_heap() {
 EngineSession::EngineSession(MPI_Comm comm, PipelineParameters params)
     : comm_(comm), params_(std::move(params)) {
   params_.label_table.validate();
+  (void)injected_fault();  // a malformed BRAINSHIFT_INJECT_FAULT fails here, at start-up
   keep_scan_buffers_on_the_heap();
 }
 

@@ -7,6 +7,11 @@ namespace brainshift {
 
 using mpi_channel::Command;
 
+FemCluster::FemCluster(MPI_Comm comm) : comm_(comm) {
+  MPI_Comm_rank(comm_, &rank_);
+  (void)injected_fault();
+}
+
 void FemCluster::drive_load(TetMesh mesh, std::vector<int> fixed_nodes, const ElasticOptions& options) {
   mpi_channel::broadcast_command(comm_, Command::load);
   std::string options_json = mpi_channel::elastic_options_to_json(options);
@@ -69,17 +74,23 @@ void FemCluster::serve_solve() {
 
 SolveReport FemCluster::solve(const std::vector<Eigen::Vector3d>& values,
                               std::vector<Eigen::Vector3d>& out) {
+  // Two agreements: a rank that cannot take part must say so before the
+  // collective KSPSolve, or the other ranks would wait in it for ever; and a
+  // rank whose part of the solve failed says so after it.
   std::string message;
   bool ok = state_ != nullptr;
-  if (!ok) message = "elastic model is not loaded on every rank";
+  if (!ok) message = "elastic model is not loaded on rank " + std::to_string(rank_);
+  if (ok && solve_fault_.fires(rank_)) {
+    ok = false;
+    message = "injected fault (BRAINSHIFT_INJECT_FAULT) on rank " + std::to_string(rank_);
+  }
+  if (!mpi_channel::agree(comm_, ok, &message)) throw ComputeError("elastic solve failed: " + message);
   SolveReport report;
-  if (ok) {
-    try {
-      report = state_->model->solve(values, out);
-    } catch (const std::exception& e) {
-      ok = false;
-      message = e.what();
-    }
+  try {
+    report = state_->model->solve(values, out);
+  } catch (const std::exception& e) {
+    ok = false;
+    message = "rank " + std::to_string(rank_) + ": " + e.what();
   }
   if (!mpi_channel::agree(comm_, ok, &message)) throw ComputeError("elastic solve failed: " + message);
   return report;

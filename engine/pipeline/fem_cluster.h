@@ -11,12 +11,14 @@
 
 #include "core/tet_mesh.h"
 #include "fem/elastic_model.h"
+#include "pipeline/fault_injection.h"
 
 namespace brainshift {
 
 class FemCluster {
  public:
-  explicit FemCluster(MPI_Comm comm) : comm_(comm) {}
+  // Reads the fault-injection switch now, so a malformed one fails at start-up.
+  explicit FemCluster(MPI_Comm comm);
 
   // Rank 0: broadcasts the load command and the data, then takes part.
   void drive_load(TetMesh mesh, std::vector<int> fixed_nodes, const ElasticOptions& options);
@@ -42,6 +44,8 @@ class FemCluster {
     std::unique_ptr<ElasticModel> model;
   };
   MPI_Comm comm_;
+  int rank_ = 0;
+  FaultPoint solve_fault_{"solve"};  // BRAINSHIFT_INJECT_FAULT, see fault_injection.h
   // Replaced only when a new load succeeded on every rank, so a failed
   // preop.load leaves the previous warm model serving.
   std::unique_ptr<Loaded> state_;

@@ -48,10 +48,12 @@ void write_synthetic_preop(const std::filesystem::path& dir) {
   write_label_image(dir / "preop_labels.nii.gz", h.labels);
 }
 
-void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm) {
+void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
+                          double voxel_scale) {
   const Head h = synthetic_head();
   // iMRI-like: thick slices, its own field of view.
-  const Grid3 g = grid({96, 110, 44}, {1.4, 1.4, 2.8}, {-68, -77, -62});
+  auto n = [voxel_scale](int dim) { return static_cast<int>(dim / voxel_scale + 0.5); };
+  const Grid3 g = grid({n(96), n(110), n(44)}, Eigen::Vector3d(1.4, 1.4, 2.8) * voxel_scale, {-68, -77, -62});
   Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
   preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
   LabelImage labels = resample_nearest(h.labels, g, preop_from_intraop);

@@ -11,6 +11,9 @@ namespace brainshift::e2e {
 // Writes preop_t1.nii.gz and preop_labels.nii.gz into dir.
 void write_synthetic_preop(const std::filesystem::path& dir);
 // Writes <prefix>_labels.nii.gz and <prefix>_t1.nii.gz: the preop moved by shift_mm.
-void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm);
+// voxel_scale > 1 makes the intraop voxels that much larger (fewer of them,
+// same field of view): smaller results, for the soak test.
+void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
+                          double voxel_scale = 1.0);
 
 }  // namespace brainshift::e2e

@@ -28,6 +28,26 @@ ErrorCode error_of(Fn fn) {
 
 bp::Frame labels_frame() { return bp::media::nifti_frame("labels", bp::testing::fake_nifti(5, 4, 3)); }
 
+TEST(ScanList, AFullListingFitsTheClientsHeaderLimit) {
+  // kMaxScanListLimit scans with the longest client ids and failure messages
+  // like the store's: the reply must be readable by a client.
+  bp::ScanListReply r;
+  for (std::uint64_t i = 0; i < bp::kMaxScanListLimit; ++i) {
+    bp::ScanSummary s;
+    s.scan_id = "scan-" + std::to_string(100000 + i);
+    s.client_scan_id = std::string(120, 'c') + std::to_string(10000 + i);
+    s.state = bp::ScanState::kFailed;
+    s.received_at = "2026-11-22T06:55:05.123Z";
+    s.finished_at = s.received_at;
+    s.error = bp::ErrorInfo{ErrorCode::kInternal, std::string(300, 'm')};
+    r.scans.push_back(s);
+  }
+  const auto wire = bp::encode(bp::make_scan_list_reply("list", r));
+  EXPECT_GT(wire[0].size(), bp::Limits{}.max_header_bytes) << "the case this limit exists for";
+  const auto decoded = bp::parse_scan_list_reply(bp::decode(wire, bp::Limits::client_inbound()));
+  EXPECT_EQ(decoded.scans.size(), bp::kMaxScanListLimit);
+}
+
 }  // namespace
 
 TEST(Status, RequestAndReplyRoundTrip) {
