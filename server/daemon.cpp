@@ -1,5 +1,6 @@
 #include "server/daemon.h"
 
+#include <malloc.h>
 #include <unistd.h>
 
 #include <deque>
@@ -92,6 +93,23 @@ void socket_loop(zmq::socket_t& router, zmq::socket_t& pub, ServerCore& core, Ev
   }
 }
 
+// Runs jobs until stopped; after idle_release of no job (if > 0), returns
+// the free heap pages to the system once (see ServerSettings::idle_release_ms).
+void run_jobs(ServerCore& core, const std::atomic<bool>& stop, std::chrono::milliseconds idle_release) {
+  auto last_job = std::chrono::steady_clock::now();
+  bool released = true;
+  while (!stop && !core.shutdown_requested()) {
+    if (core.step(50ms)) {
+      last_job = std::chrono::steady_clock::now();
+      released = false;
+    } else if (!released && idle_release.count() > 0 &&
+               std::chrono::steady_clock::now() - last_job >= idle_release) {
+      malloc_trim(0);
+      released = true;
+    }
+  }
+}
+
 }  // namespace
 
 int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atomic<bool>& stop) {
@@ -155,7 +173,7 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
       if (!options.ready_file.empty()) write_ready_file(options.ready_file, endpoint, events);
       spdlog::info("brainshiftd listening on {} (events {}), store {}, {} MPI rank(s)", endpoint, events,
                    s.store.string(), engine.ranks());
-      while (!stop && !core.shutdown_requested()) core.step(50ms);
+      run_jobs(core, stop, std::chrono::milliseconds(s.idle_release_ms));
     } catch (const std::exception& e) {
       spdlog::critical("engine loop: {}", e.what());
       exit_code = 1;

@@ -191,7 +191,7 @@ ServerSettings server_settings_from_text(const std::string& toml_text, const std
   const toml::table& t = *section->as_table();
   static const std::set<std::string> known = {
       "endpoint", "events", "store", "queue_depth", "max_frame_bytes", "timing_log",
-      "preop", "atlas_cache", "allow_plain_tcp_non_loopback"};
+      "preop", "atlas_cache", "allow_plain_tcp_non_loopback", "idle_release_ms"};
   for (const auto& [k, v] : t)
     if (!known.count(std::string(k.str()))) fail(source, std::string(k.str()), "unknown key");
 
@@ -210,6 +210,8 @@ ServerSettings server_settings_from_text(const std::string& toml_text, const std
   s.preop = read_preop(t, source);
   s.allow_plain_tcp_non_loopback =
       get_bool(t, "allow_plain_tcp_non_loopback", s.allow_plain_tcp_non_loopback, source);
+  s.idle_release_ms = static_cast<std::int64_t>(
+      get_int(t, "idle_release_ms", s.idle_release_ms, 0, std::int64_t{24} * 3600 * 1000, source));
   return s;
 }
 

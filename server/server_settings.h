@@ -47,6 +47,11 @@ struct ServerSettings {
   std::string events = "tcp://127.0.0.1:5556";    // PUB, events and timings
   std::filesystem::path store = "brainshift-store";
   std::size_t queue_depth = 4;  // scans waiting beyond the running one
+  // After this long without a job, free heap pages go back to the system
+  // (malloc_trim). During a burst of scans the engine keeps its buffers warm
+  // (no page zeroing per scan); between scans, minutes apart in the operating
+  // room, the daemon holds only what it uses. 0: never.
+  std::int64_t idle_release_ms = 30000;
   std::size_t max_frame_bytes = std::size_t{256} << 20;
   std::filesystem::path timing_log;  // relative: inside the store; empty: <store>/timing.jsonl
   DefaultPreop preop;

@@ -59,7 +59,7 @@ class Daemon {
     fs::remove(ready);
     std::vector<std::string> argv;
     if (mpi) argv = {MPIEXEC_BIN, "--allow-run-as-root", "--oversubscribe", "-np", "2"};
-    for (const std::string a : {std::string(BRAINSHIFTD_BIN), std::string("--config"), g_case->config.string(),
+    for (const std::string& a : {std::string(BRAINSHIFTD_BIN), std::string("--config"), g_case->config.string(),
                                 std::string("--store"), store.string(), std::string("--endpoint"),
                                 std::string("tcp://127.0.0.1:*"), std::string("--events"),
                                 std::string("tcp://127.0.0.1:*"), std::string("--ready-file"), ready.string()})
