@@ -84,6 +84,12 @@ void write_and_sync(const fs::path& path, const std::string& bytes) {
   }
   const bool synced = ::fsync(fd) == 0;
   const int saved = errno;
+  // The store is an archive: written once, read back rarely (a pull). Handing
+  // its pages back once they are on disk keeps the page cache from growing
+  // by ~100 MB per scan, and the next scan's write reuses those pages: on the
+  // OR VMs a write into fresh page-cache pages ran at ~300 MB/s (0.34 s for a
+  // 93 MB result) against 0.03 s into recycled ones.
+  if (synced) ::posix_fadvise(fd, 0, 0, POSIX_FADV_DONTNEED);
   ::close(fd);
   errno = saved;
   if (!synced) throw std::runtime_error("cannot fsync " + path.string());
@@ -102,16 +108,16 @@ void write_plain_file_atomically(const fs::path& path, const std::string& bytes)
 // An HDF5 file built in memory by fill (which gets the open file), then
 // written like any other file: HDF5 itself never meets a failing disk.
 template <class Fill>
-std::string hdf5_image(Fill&& fill) {
+std::string hdf5_image(Fill&& fill, std::size_t expected_bytes = 0) {
   std::lock_guard lock(h5::hdf5_mutex());
-  h5::Handle file = h5::create_in_memory();
+  h5::Handle file = h5::create_in_memory(expected_bytes);
   fill(file.get());
   return h5::file_image(file.get());
 }
 
 template <class Fill>
-void write_atomically(const fs::path& path, Fill&& fill) {
-  write_plain_file_atomically(path, hdf5_image(fill));
+void write_atomically(const fs::path& path, Fill&& fill, std::size_t expected_bytes = 0) {
+  write_plain_file_atomically(path, hdf5_image(fill, expected_bytes));
 }
 
 json record_to_json(const ScanRecord& r) {
@@ -362,11 +368,13 @@ ScanRecord CaseStore::add_scan(const ScanInput& input, const std::optional<std::
   r.preop_id = preop_id;
   r.has_image = input.image_bytes.has_value();
 
-  const std::string image = hdf5_image([&](hid_t f) {
-    h5::write_bytes(f, "labels", input.labels_bytes);
-    if (input.image_bytes) h5::write_bytes(f, "image", *input.image_bytes);
-    h5::write_string_attribute(f, kMetaAttr, record_to_json(r).dump());
-  });
+  const std::string image = hdf5_image(
+      [&](hid_t f) {
+        h5::write_bytes(f, "labels", input.labels_bytes);
+        if (input.image_bytes) h5::write_bytes(f, "image", *input.image_bytes);
+        h5::write_string_attribute(f, kMetaAttr, record_to_json(r).dump());
+      },
+      input.labels_bytes.size() + (input.image_bytes ? input.image_bytes->size() : 0));
   const fs::path tmp_dir = dir_ / "scans" / (".tmp-" + r.scan_id);
   guarded_write(tmp_dir, "the pushed scan", [&] {
     fs::create_directories(tmp_dir);
@@ -424,11 +432,16 @@ ScanInput CaseStore::load_scan_input(const std::string& scan_id) const {
 
 void CaseStore::write_result_file(const std::string& scan_id, const std::string& meta_json,
                                   const std::map<std::string, std::string>& files) {
-  write_atomically(scan_dir(scan_id) / "result.h5", [&](hid_t f) {
-    h5::write_string_attribute(f, kMetaAttr, meta_json);
-    std::size_t i = 0;
-    for (const auto& [name, bytes] : files) h5::write_bytes(f, "files/" + std::to_string(i++), bytes);
-  });
+  std::size_t payload = meta_json.size();
+  for (const auto& [name, bytes] : files) payload += bytes.size();
+  write_atomically(
+      scan_dir(scan_id) / "result.h5",
+      [&](hid_t f) {
+        h5::write_string_attribute(f, kMetaAttr, meta_json);
+        std::size_t i = 0;
+        for (const auto& [name, bytes] : files) h5::write_bytes(f, "files/" + std::to_string(i++), bytes);
+      },
+      payload);
 }
 
 void CaseStore::save_result(const std::string& scan_id, const std::map<std::string, std::string>& files,

@@ -54,14 +54,17 @@ Handle create_file(const std::filesystem::path& path) {
                 Handle::Kind::file);
 }
 
-Handle create_in_memory() {
+Handle create_in_memory(std::size_t expected_bytes) {
   H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr);
   static std::atomic<unsigned long> counter{0};
   const std::string name = "brainshift-store-" + std::to_string(counter++) + ".h5";
   Handle fapl(check(H5Pcreate(H5P_FILE_ACCESS), "plist"), Handle::Kind::plist);
-  // Grown in 1 MiB steps: the buffer exists beside its copy (file_image) for a
-  // moment, so rounding up to 4 MiB would add to the daemon's peak memory.
-  H5Pset_fapl_core(fapl.get(), std::size_t{1} << 20, /*backing_store=*/0);
+  // Grown in steps of the expected size plus 1 MiB for HDF5's own metadata:
+  // one allocation for a result file (growing a 66 MB result in 1 MiB steps
+  // copied the buffer over and over: ~0.1 s of a scan's latency), and no
+  // rounding up that would add to the daemon's peak memory (the buffer exists
+  // beside its copy, file_image, for a moment).
+  H5Pset_fapl_core(fapl.get(), expected_bytes + (std::size_t{1} << 20), /*backing_store=*/0);
   return Handle(check(H5Fcreate(name.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, fapl.get()), "cannot create " + name),
                 Handle::Kind::file);
 }

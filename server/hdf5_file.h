@@ -9,6 +9,7 @@
 // offsets, so pulls never take this lock.
 #include <hdf5.h>
 
+#include <cstddef>
 #include <cstdint>
 #include <filesystem>
 #include <mutex>
@@ -44,7 +45,8 @@ Handle open_file_read(const std::filesystem::path& path);
 // builds every file this way and writes the image itself: a full disk then
 // fails a plain write() the store handles, never an HDF5 close, which left a
 // half-closed file that crashed HDF5 at exit (measured with RLIMIT_FSIZE).
-Handle create_in_memory();
+// expected_bytes: the payload about to be written, so the buffer is allocated once.
+Handle create_in_memory(std::size_t expected_bytes = 0);
 // Flushes an in-memory file and returns its bytes.
 std::string file_image(hid_t file);
 
