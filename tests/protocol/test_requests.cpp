@@ -15,16 +15,7 @@ namespace {
 // What a peer gets: the message after a trip through the wire format.
 bp::Message wire_trip(const bp::Message& m) { return bp::decode(bp::encode(m)); }
 
-template <class Fn>
-ErrorCode error_of(Fn fn) {
-  try {
-    fn();
-  } catch (const bp::ProtocolError& e) {
-    return e.code();
-  }
-  ADD_FAILURE() << "no ProtocolError thrown";
-  return ErrorCode::kInternal;
-}
+using bp::testing::error_of;
 
 bp::Frame labels_frame() { return bp::media::nifti_frame("labels", bp::testing::fake_nifti(5, 4, 3)); }
 

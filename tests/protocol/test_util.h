@@ -6,6 +6,8 @@
 #include <cstring>
 #include <string>
 
+#include "protocol/error_codes.h"
+
 namespace brainshift::protocol::testing {
 
 inline std::string fake_nifti(int nx, int ny, int nz) {
@@ -43,6 +45,18 @@ inline std::string fake_h5() {
   std::string bytes("\x89HDF\r\n\x1a\n", 8);
   bytes.append(64, '\0');
   return bytes;
+}
+
+// The code of the ProtocolError that fn throws; kInternal when it throws
+// nothing (no check here expects kInternal, so it stands for "accepted").
+template <class Fn>
+ErrorCode error_of(Fn fn) {
+  try {
+    fn();
+  } catch (const ProtocolError& e) {
+    return e.code();
+  }
+  return ErrorCode::kInternal;
 }
 
 }  // namespace brainshift::protocol::testing

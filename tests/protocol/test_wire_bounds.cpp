@@ -13,15 +13,7 @@ using nlohmann::json;
 
 namespace {
 
-template <class Fn>
-ErrorCode error_of(Fn fn) {
-  try {
-    fn();
-  } catch (const bp::ProtocolError& e) {
-    return e.code();
-  }
-  return ErrorCode::kInternal;  // "nothing thrown" for the checks below
-}
+using bp::testing::error_of;
 
 std::vector<std::string> status_wire_with_manifest(std::size_t entries) {
   json header = {{"v", 1}, {"type", "status"}, {"request_id", "m"}, {"frames", json::array()}};

@@ -206,14 +206,8 @@ TEST(Roles, TableOfProtocolSection13) {
 }
 
 TEST(Roles, ServerCoreRefusesBeforeReadingTheRequest) {
-  test::TempDir dir;
-  ServerSettings settings;
-  settings.store = dir.path() / "store";
-  settings.preop.kind = DefaultPreop::Kind::none;
-  CaseStore store(settings.store);
-  test::FakeEngine engine;
-  ServerCore core(settings, store, engine, [](Message) {});
-  core.start();
+  test::IdleServer server;
+  ServerCore& core = *server.core;
   const Peer viewer = Peer::from_zap("viewer", "wall");
   // A scan.push without its labels frame: invalid for a scanner, unauthorised for a viewer.
   const Message bare_push = make_message(MessageType::kScanPush, "v1");
@@ -238,20 +232,14 @@ namespace {
 // ignored, ids are only looked up in the store's index, and store paths are
 // made of server-assigned ids.
 TEST(ClientPaths, AreNeverOpened) {
-  test::TempDir dir;
-  ServerSettings settings;
-  settings.store = dir.path() / "store";
-  settings.preop.kind = DefaultPreop::Kind::none;
-  CaseStore store(settings.store);
-  test::FakeEngine engine;
-  ServerCore core(settings, store, engine, [](Message) {});
-  core.start();
+  test::IdleServer server;
+  ServerCore& core = *server.core;
   auto code = [](const Message& reply) {
     return reply.type() == MessageType::kError ? parse_error_reply(reply).code : ErrorCode::kInternal;
   };
   // A preop.load naming files instead of sending frames is refused; nothing loads.
   Message named = make_message(MessageType::kPreopLoad, "p");
-  named.header["t1"] = (settings.store / "preop.h5").string();
+  named.header["t1"] = (server.settings.store / "preop.h5").string();
   named.header["labels"] = "/etc/passwd";
   named.header["path"] = "/etc/shadow";
   EXPECT_EQ(code(core.handle_wire(encode(named))), ErrorCode::kInvalidRequest);
@@ -269,9 +257,9 @@ TEST(ClientPaths, AreNeverOpened) {
   const Message pushed = core.handle_wire(encode(make_scan_push_request("s", push)));
   ASSERT_EQ(pushed.type(), MessageType::kScanPushReply) << pushed.header.dump();
   ASSERT_TRUE(core.step(std::chrono::milliseconds(10)));
-  for (const auto& e : fs::directory_iterator(settings.store / "scans"))
+  for (const auto& e : fs::directory_iterator(server.settings.store / "scans"))
     EXPECT_EQ(e.path().filename().string().rfind("scan-", 0), 0u) << e.path();
-  EXPECT_FALSE(fs::exists(dir.path() / "escape"));
+  EXPECT_FALSE(fs::exists(server.dir.path() / "escape"));
   for (const char* id : {"../preop.h5", "../../store/scans/scan-000001", "scans/scan-000001", "/etc/passwd"}) {
     const Message r = core.handle_wire(encode(make_scan_result_request("r", {id, {ResultPart::kDisplacement}, {}})));
     EXPECT_EQ(code(r), ErrorCode::kNotFound) << id;

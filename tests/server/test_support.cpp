@@ -119,4 +119,12 @@ void FakeEngine::render_deferred(const DeferredOutputFn& add) {
   add("report.png", kReportPng);
 }
 
+IdleServer::IdleServer() {
+  settings.store = dir.path() / "store";
+  settings.preop.kind = server::DefaultPreop::Kind::none;
+  store = std::make_unique<server::CaseStore>(settings.store);
+  core = std::make_unique<server::ServerCore>(settings, *store, engine, [](protocol::Message) {});
+  core->start();
+}
+
 }  // namespace brainshift::test

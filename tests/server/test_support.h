@@ -3,12 +3,16 @@
 // a test double of the engine (tests only; the shipped daemon uses the real one).
 #include <filesystem>
 #include <functional>
+#include <memory>
 #include <optional>
 #include <string>
 
 #include "core/image.h"
 #include "core/tet_mesh.h"
+#include "server/case_store.h"
 #include "server/engine_port.h"
+#include "server/server_core.h"
+#include "server/server_settings.h"
 
 namespace brainshift::test {
 
@@ -68,6 +72,17 @@ class FakeEngine : public server::EnginePort {
   bool ready_ = false;
   bool report_due_ = false;
   TetMesh mesh_;
+};
+
+// A started ServerCore over an empty store and the engine double, with no
+// preop to warm up: for tests that only send it requests.
+struct IdleServer {
+  IdleServer();
+  TempDir dir;
+  server::ServerSettings settings;
+  std::unique_ptr<server::CaseStore> store;
+  FakeEngine engine;
+  std::unique_ptr<server::ServerCore> core;
 };
 
 }  // namespace brainshift::test
