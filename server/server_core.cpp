@@ -1,6 +1,7 @@
 #include "server/server_core.h"
 
 #include <algorithm>
+#include <future>
 #include <limits>
 #include <chrono>
 #include <thread>
@@ -242,9 +243,15 @@ ServerCore::DecodedScan ServerCore::decode_scan(const ScanInput& input) const {
   const auto t0 = Clock::now();
   DecodedScan d;
   const std::size_t max_bytes = engine_.max_image_bytes();
+  // The two frames inflate side by side: the push is acknowledged only after
+  // both decoded, and the scan waits for the acknowledgement.
+  std::future<ImageF> image;
+  if (input.image_bytes)
+    image = std::async(std::launch::async,
+                       [&] { return scalar_image_from_bytes(*input.image_bytes, "image", max_bytes); });
   d.labels = label_image_from_bytes(input.labels_bytes, "labels", max_bytes);
-  if (input.image_bytes) {
-    d.image = scalar_image_from_bytes(*input.image_bytes, "image", max_bytes);
+  if (image.valid()) {
+    d.image = image.get();
     if (!d.image->grid.same_geometry(d.labels.grid))
       throw InputError("image: grid differs from the labels' grid (dims or world_from_voxel)");
   }

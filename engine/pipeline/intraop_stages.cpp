@@ -242,8 +242,12 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.done("field");
 
   clock.start("warp");
+  // The two warps are independent: the labels on the second core.
+  auto warped_labels = std::async(std::launch::async, [&] {
+    return warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
+  });
   result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
-  result.warped_labels = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
+  result.warped_labels = warped_labels.get();
   clock.done("warp");
 
   clock.start("models");
