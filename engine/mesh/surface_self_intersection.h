@@ -11,7 +11,9 @@ namespace brainshift {
 
 // Number of pairs of triangles that intersect other than along the edge or
 // vertex they share (CGAL exact predicates). 0 for an embedded surface.
-// Throws InputError if the triangles do not form a valid polygon mesh.
+// Non-manifold vertices and edges (a labeled mesh's boundary may have them)
+// are accepted. Throws InputError for an index out of range or a degenerate
+// triangle (one vertex used twice).
 std::size_t count_self_intersections(const TriSurface& surface);
 
 }  // namespace brainshift

@@ -59,10 +59,24 @@ TEST(SurfaceSelfIntersection, AFoldThatDoesNotCrossIsNotAnIntersection) {
   EXPECT_EQ(count_self_intersections(s), 0u);
 }
 
-TEST(SurfaceSelfIntersection, TrianglesThatAreNotAPolygonMeshAreAnInputError) {
+// A labeled mesh's boundary may be non-manifold (parts touching at a vertex
+// or an edge): it is still checked, and touching is not crossing.
+TEST(SurfaceSelfIntersection, NonManifoldSurfacesAreChecked) {
   TriSurface s = sphere(50, {0, 0, 0}, 1);
-  s.triangles.push_back(s.triangles.front());  // the same face twice: not manifold
+  s.triangles.push_back(s.triangles.front());  // an edge used by three faces
+  EXPECT_EQ(count_self_intersections(s), 0u);
+  // Two spheres through each other, one of them with the non-manifold face.
+  const TriSurface other = sphere(50, {60, 0, 0}, 1);
+  const int offset = static_cast<int>(s.vertices_mm.size());
+  s.vertices_mm.insert(s.vertices_mm.end(), other.vertices_mm.begin(), other.vertices_mm.end());
+  for (const auto& t : other.triangles) s.triangles.push_back({t[0] + offset, t[1] + offset, t[2] + offset});
+  EXPECT_GT(count_self_intersections(s), 0u);
+}
+
+TEST(SurfaceSelfIntersection, InvalidTrianglesAreAnInputError) {
+  TriSurface s = sphere(50, {0, 0, 0}, 1);
+  s.triangles.push_back({0, 1, 999});
   EXPECT_THROW(count_self_intersections(s), InputError);
-  s.triangles.back() = {0, 1, 999};
+  s.triangles.back() = {0, 0, 1};
   EXPECT_THROW(count_self_intersections(s), InputError);
 }
