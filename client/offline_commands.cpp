@@ -152,7 +152,17 @@ int run_phantom(const PhantomOptions& o) {
     if (!chosen) throw InputError("unknown phantom preset \"" + o.preset + "\" (see --list)");
     PhantomSpec spec = *chosen;
     spec.seed = o.seed;
-    const PreopInput preop = read_preop(o.preop);
+    PreopInput preop = read_preop(o.preop);
+    if (spec.preop_tumor) {
+      // The case resects a tumor the preop must have: register against the
+      // preop written next to it.
+      implant_tumor(preop.t1, preop.labels, *spec.preop_tumor);
+      fs::create_directories(o.out);
+      write_scalar_image(fs::path(o.out) / "preop_t1.nii.gz", preop.t1);
+      write_label_image(fs::path(o.out) / "preop_labels.nii.gz", preop.labels);
+      std::cout << "this case has a tumor in its preop: register with --preop-image " << o.out
+                << "/preop_t1.nii.gz --preop-labels " << o.out << "/preop_labels.nii.gz\n";
+    }
     const PhantomCase c = make_phantom(preop.t1, preop.labels, spec);
     write_phantom_case(c, o.out);
     std::cout << "wrote " << o.out << '\n';

@@ -139,8 +139,9 @@ void read_affine(const toml::table& root, const std::string& src, AffineRegistra
 }
 
 void read_surface(const toml::table& root, const char* which, const std::string& src,
-                  ActiveSurfaceParameters& p) {
+                  ActiveSurfaceParameters& p, double* min_cavity_ml = nullptr) {
   Section s(sub(root, "surface", which), std::string("surface.") + which, src);
+  if (min_cavity_ml) s.read("min_cavity_ml", *min_cavity_ml);
   s.read("max_iterations", p.max_iterations);
   s.read("step", p.step);
   s.read("membrane_stiffness", p.membrane_stiffness);
@@ -192,6 +193,7 @@ LabelTable label_table_from(const toml::table& root, const std::string& src) {
     s.read("youngs_modulus_pa", e.youngs_modulus_pa);
     s.read("poisson_ratio", e.poisson_ratio);
     s.read("model", e.make_model);
+    s.read("resectable", e.resectable);
     s.finish();
     if (value < 1 || value > 65535) throw InputError(src + ": label value must be in 1..65535");
     e.value = static_cast<std::uint16_t>(value);
@@ -227,6 +229,9 @@ PipelineParameters parameters_from(const toml::table& root, const std::string& s
   read_affine(root, src, p.affine);
   read_surface(root, "outer", src, p.outer_surface);
   read_surface(root, "ventricles", src, p.ventricle_surface);
+  read_surface(root, "resection", src, p.resection_surface, &p.min_resection_cavity_ml);
+  if (!(p.min_resection_cavity_ml > 0))
+    throw InputError(src + ": [surface.resection] min_cavity_ml must be > 0");
   read_rest(root, src, p);
   return p;
 }

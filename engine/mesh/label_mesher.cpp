@@ -34,7 +34,9 @@ using Criteria = CGAL::Mesh_criteria_3<Tr>;
 using Point = Tr::Bare_point;
 
 constexpr int kPad = 1;            // zero voxels around the image so every surface closes
-constexpr unsigned char kTissue = 1;  // CGAL subdomain of all tissue; cavity i -> 2 + i
+// CGAL subdomains: 1 all tissue; cavity i -> 2 + i; interface label j ->
+// 2 + (number of cavities) + j.
+constexpr unsigned char kTissue = 1;
 
 void validate(const LabelImage& labels, const MeshingParameters& p) {
   const auto& d = labels.grid.dims;
@@ -53,17 +55,33 @@ void validate(const LabelImage& labels, const MeshingParameters& p) {
   positive(p.cell_radius_edge_ratio, "cell_radius_edge_ratio");
   if (p.facet_angle_deg > 30)
     throw InputError("mesh_label_image: facet_angle_deg > 30 may not terminate (CGAL bound)");
-  if (p.cavity_labels.size() > 250)
-    throw InputError("mesh_label_image: too many cavity labels (max 250)");
+  if (p.cavity_labels.size() + p.interface_labels.size() > 250)
+    throw InputError("mesh_label_image: too many cavity and interface labels (max 250)");
   for (auto c : p.cavity_labels)
     if (c == 0 || c == p.default_tissue_label)
       throw InputError("mesh_label_image: cavity label must differ from 0 and the tissue label");
+  for (auto c : p.interface_labels)
+    if (c == 0 || c == p.default_tissue_label ||
+        std::find(p.cavity_labels.begin(), p.cavity_labels.end(), c) != p.cavity_labels.end())
+      throw InputError("mesh_label_image: interface label must differ from 0, the tissue label and the cavities");
 }
 
-// Padded subdomain image: 0 outside, 1 tissue, 2+i cavity i. Voxel (i,j,k) of
-// the input sits at (i*sx, j*sy, k*sz) in CGAL space.
-CGAL::Image_3 make_subdomain_image(const LabelImage& labels, const std::vector<std::uint16_t>& cavities,
+// Subdomain value of each label (see kTissue).
+std::vector<unsigned char> subdomain_of_label(const MeshingParameters& p) {
+  std::vector<unsigned char> s(65536, kTissue);
+  s[0] = 0;
+  for (std::size_t i = 0; i < p.cavity_labels.size(); ++i) s[p.cavity_labels[i]] = static_cast<unsigned char>(2 + i);
+  for (std::size_t j = 0; j < p.interface_labels.size(); ++j)
+    s[p.interface_labels[j]] = static_cast<unsigned char>(2 + p.cavity_labels.size() + j);
+  return s;
+}
+
+// Padded subdomain image (values: subdomain_of_label). Voxel (i,j,k) of the
+// input sits at (i*sx, j*sy, k*sz) in CGAL space.
+CGAL::Image_3 make_subdomain_image(const LabelImage& labels, const MeshingParameters& p,
                                    const Eigen::Vector3d& spacing, bool* has_tissue) {
+  const std::vector<unsigned char> subdomain = subdomain_of_label(p);
+  const std::size_t cavity_count = p.cavity_labels.size();
   const auto& d = labels.grid.dims;
   const std::size_t nx = d[0] + 2 * kPad, ny = d[1] + 2 * kPad, nz = d[2] + 2 * kPad;
   _image* im = ::_createImage(nx, ny, nz, 1, spacing.x(), spacing.y(), spacing.z(), 1,
@@ -80,10 +98,8 @@ CGAL::Image_3 make_subdomain_image(const LabelImage& labels, const std::vector<s
       for (int i = 0; i < d[0]; ++i) {
         const std::uint16_t l = labels.at(i, j, k);
         if (l == 0) continue;
-        unsigned char s = kTissue;
-        const auto it = std::find(cavities.begin(), cavities.end(), l);
-        if (it != cavities.end()) s = static_cast<unsigned char>(2 + (it - cavities.begin()));
-        *has_tissue |= (s == kTissue);
+        const unsigned char s = subdomain[l];
+        *has_tissue |= (s == kTissue || s >= 2 + cavity_count);
         data[(i + kPad) + nx * ((j + kPad) + ny * static_cast<std::size_t>(k + kPad))] = s;
       }
   return CGAL::Image_3(im);
@@ -186,7 +202,11 @@ std::size_t seed_every_component(C3t3& c3t3, const Domain& domain, const CGAL::I
 }
 
 RawTetMesh extract_tissue(const C3t3& c3t3, const LabelImage& labels, const Eigen::Vector3d& spacing,
-                          const std::vector<std::uint16_t>& cavities) {
+                          const MeshingParameters& p) {
+  const auto& cavities = p.cavity_labels;
+  const int first_interface = 2 + static_cast<int>(cavities.size());
+  // Tissue and interface subdomains are kept; the rest is outside or cavity.
+  auto kept = [&](int s) { return s == kTissue || s >= first_interface; };
   RawTetMesh raw;
   std::map<Tr::Vertex_handle, int> node_of;
   // world = world_from_voxel * (p / spacing): CGAL space is index * spacing.
@@ -202,13 +222,15 @@ RawTetMesh extract_tissue(const C3t3& c3t3, const LabelImage& labels, const Eige
     return c3t3.is_in_complex(c) ? static_cast<int>(c3t3.subdomain_index(c)) : 0;
   };
   for (auto c = c3t3.cells_in_complex_begin(); c != c3t3.cells_in_complex_end(); ++c) {
-    if (subdomain(c) != kTissue) continue;
+    const int own = subdomain(c);
+    if (!kept(own)) continue;
     const int tet = static_cast<int>(raw.tets.size());
     raw.tets.push_back({node_of.at(c->vertex(0)), node_of.at(c->vertex(1)),
                         node_of.at(c->vertex(2)), node_of.at(c->vertex(3))});
+    raw.forced_labels.push_back(own >= first_interface ? p.interface_labels.at(own - first_interface) : -1);
     for (int f = 0; f < 4; ++f) {
       const int other = subdomain(c->neighbor(f));
-      if (other == kTissue) continue;
+      if (kept(other)) continue;
       const int label = other == 0 ? 0 : cavities.at(other - 2);
       raw.boundary.push_back({tet, f, label});
     }
@@ -223,7 +245,7 @@ TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& para
   Stopwatch total, stage;
   const Eigen::Vector3d spacing = labels.grid.spacing_mm();
   bool has_tissue = false;
-  CGAL::Image_3 image = make_subdomain_image(labels, params.cavity_labels, spacing, &has_tissue);
+  CGAL::Image_3 image = make_subdomain_image(labels, params, spacing, &has_tissue);
   if (!has_tissue) throw InputError("mesh_label_image: label image has no tissue voxels");
 
   CGAL::Random rng(params.random_seed);
@@ -244,10 +266,11 @@ TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& para
   }
   const double t_optimise = stage.lap();
 
-  RawTetMesh raw = extract_tissue(c3t3, labels, spacing, params.cavity_labels);
+  RawTetMesh raw = extract_tissue(c3t3, labels, spacing, params);
   if (raw.tets.empty()) throw ComputeError("mesh_label_image: CGAL produced no tissue tetrahedra");
   AssemblyOptions options;
   options.cavity_labels = params.cavity_labels;
+  options.interface_labels = params.interface_labels;
   options.default_tissue_label = params.default_tissue_label;
   options.keep_largest_component = params.keep_largest_component;
   AssemblyReport report;

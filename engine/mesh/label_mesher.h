@@ -2,8 +2,10 @@
 // Labeled tetrahedral meshing of a label image (CGAL Mesh_3 behind the scenes).
 //
 // All non-zero labels that are not cavities form ONE tissue subdomain: thin
-// structures (corticospinal tract, tumour) must not force interfaces into the
-// mesh; they are recovered per tet afterwards (tet_labels) for the materials.
+// structures (corticospinal tract) must not force interfaces into the mesh;
+// they are recovered per tet afterwards (tet_labels) for the materials. The
+// exception is interface_labels (a tumor that may be resected): each is its
+// own subdomain so that its wall is made of mesh faces.
 // Each cavity label (lateral ventricles) is meshed as its own subdomain so its
 // wall is resolved, then its tets are dropped: the cavity becomes a hole whose
 // wall is a boundary surface (neighbour_label = the cavity label).
@@ -41,6 +43,11 @@ struct MeshingParameters {
   // Seeds CGAL's domain random generator (initial points, ray shooting).
   unsigned random_seed = 0;
   std::vector<std::uint16_t> cavity_labels{2};
+  // Tissue labels meshed as their own subdomain and kept: mesh faces then
+  // follow their interface with the surrounding tissue. For structures that
+  // may be resected (the tumor): their wall becomes a surface of mesh nodes
+  // that can be matched to a resection cavity. Their tets carry the label.
+  std::vector<std::uint16_t> interface_labels;
   // Tet label used where the voxel nearest a tet centroid is 0 or a cavity.
   std::uint16_t default_tissue_label = 1;
 };

@@ -39,7 +39,9 @@ int material_label(const Eigen::Vector3d& centroid_mm, const LabelImage& labels,
   if (!labels.grid.contains(i, j, k)) return o.default_tissue_label;
   const std::uint16_t l = labels.at(i, j, k);
   const bool cavity = std::find(o.cavity_labels.begin(), o.cavity_labels.end(), l) != o.cavity_labels.end();
-  return (l == 0 || cavity) ? o.default_tissue_label : l;
+  const bool interface =
+      std::find(o.interface_labels.begin(), o.interface_labels.end(), l) != o.interface_labels.end();
+  return (l == 0 || cavity || interface) ? o.default_tissue_label : l;
 }
 
 // Node order: `(b - a) x (c - a)` must point away from the tet's fourth node.
@@ -155,7 +157,8 @@ TetMesh assemble_tet_mesh(RawTetMesh raw, const LabelImage& labels, const Assemb
     if (signed_volume(mesh.nodes_mm, tet.nodes) < 0) std::swap(tet.nodes[2], tet.nodes[3]);
     Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
     for (int n : tet.nodes) centroid += mesh.nodes_mm[n] / 4.0;
-    tet.label = material_label(centroid, labels, options);
+    const bool forced = t < raw.forced_labels.size() && raw.forced_labels[t] >= 0;
+    tet.label = forced ? raw.forced_labels[t] : material_label(centroid, labels, options);
     tets.push_back(tet);
   }
   // Sorted by smallest node (then the rest) so each rank's tets are contiguous

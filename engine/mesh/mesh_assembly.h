@@ -22,10 +22,16 @@ struct RawTetMesh {
   std::vector<Eigen::Vector3d> nodes_mm;  // world RAS+ mm, may include unused nodes
   std::vector<std::array<int, 4>> tets;   // any orientation
   std::vector<RawBoundaryFacet> boundary;
+  // Per tet: the label of its interface subdomain, or -1 (material from the
+  // voxel nearest the centroid). Empty = all -1.
+  std::vector<int> forced_labels;
 };
 
 struct AssemblyOptions {
   std::vector<std::uint16_t> cavity_labels;
+  // Labels meshed as their own subdomain: only tets of that subdomain carry
+  // them (forced_labels); elsewhere they read as the default tissue label.
+  std::vector<std::uint16_t> interface_labels;
   std::uint16_t default_tissue_label = 1;
   // A tet is degenerate when |volume| < this * (longest edge)^3 (a regular
   // tet has 0.118): such tets carry no stiffness and break the FEM.

@@ -16,6 +16,13 @@ inline constexpr int kAnyBoundary = -1;
 // orientation of the boundary faces.
 TriSurface extract_boundary_surface(const TetMesh& mesh, int neighbour_label);
 
+// The wall of the region of tets labelled `label` inside the tissue: faces
+// between such a tet and a tet of another label, oriented out of the region
+// (mesh-boundary faces are not included). Vertices in node order; mesh_node
+// set as above. Sharp only where the mesher made `label` its own subdomain
+// (MeshingParameters::interface_labels); otherwise it steps along tets.
+TriSurface extract_interface_surface(const TetMesh& mesh, int label);
+
 // Components connected through shared vertices.
 std::size_t count_connected_components(const TriSurface& surface);
 

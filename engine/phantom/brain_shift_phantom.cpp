@@ -218,13 +218,21 @@ Eigen::Vector3d PhantomDeformation::swell(const Eigen::Vector3d& p) const {
   return scale_ * s.amplitude_mm / s.radius_mm * std::exp(0.5 - 0.5 * q) * r;
 }
 
-// Inward radial collapse: the cavity shrinks uniformly by collapse_mm at its
-// wall, the tissue around it follows with a Gaussian decay (C1 at the wall).
+// Inward radial collapse: the cavity wall moves in by collapse_mm and the
+// tissue around it follows, less the farther it is (Gaussian decay with the
+// distance from the wall): the wall, which lost its support, moves most.
+// Inside the cavity (no tissue, only its image) the contraction is uniform.
+// (An earlier form scaled the decay by r/R, so tissue 7 mm out moved 30 %
+// more than the wall itself: a compression toward the cavity no loss of
+// support produces.)
 Eigen::Vector3d PhantomDeformation::collapse(const Eigen::Vector3d& p) const {
   if (!spec_.resection.enabled) return Eigen::Vector3d::Zero();
   const Eigen::Vector3d r = p - resection_centre_;
-  const double beyond = std::max(0.0, r.norm() - resection_radius_) / spec_.resection.collapse_decay_mm;
-  return -scale_ * spec_.resection.collapse_mm / resection_radius_ * std::exp(-beyond * beyond) * r;
+  const double n = r.norm();
+  const double amplitude = scale_ * spec_.resection.collapse_mm;
+  if (n <= resection_radius_) return -amplitude / resection_radius_ * r;
+  const double beyond = (n - resection_radius_) / spec_.resection.collapse_decay_mm;
+  return -amplitude * std::exp(-beyond * beyond) / n * r;
 }
 
 template <class F>
@@ -631,14 +639,19 @@ std::vector<PhantomSpec> standard_phantom_suite() {
     s.oblique_deg = {12, 0, 8};
     suite.push_back(s);
   }
-  {  // Resection under a right frontal craniotomy; the cavity collapses.
-    PhantomSpec s = base("right_frontal_resection_collapse", 15);
+  {  // A right frontal tumor (12 mm, lobulated) resected under the
+     // craniotomy; the cavity collapses.
+    PhantomSpec s = base("right_frontal_tumor_resection", 15);
     s.sinking.craniotomy_direction = {0.55, 0.7, 0.45};
     s.sinking.cortex_mm = 8;
     s.sinking.deep_mm = 2;
+    TumorImplantSpec tumor;
+    tumor.direction = s.sinking.craniotomy_direction;
+    tumor.depth_mm = 18;
+    tumor.radius_mm = 12;
+    tumor.seed = 15;
+    s.preop_tumor = tumor;
     s.resection.enabled = true;
-    s.resection.ball_radius_mm = 12;
-    s.resection.ball_depth_mm = 18;
     s.resection.collapse_mm = 5;
     suite.push_back(s);
   }

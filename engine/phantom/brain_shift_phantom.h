@@ -37,6 +37,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/image.h"
+#include "phantom/tumor_implant.h"
 
 namespace brainshift {
 
@@ -104,6 +105,10 @@ struct PhantomSpec {
   std::uint16_t ventricle_label = 2;
   // Landmarks are weighted toward this label too (corticospinal tract).
   std::uint16_t tract_label = 3;
+  // A tumor put into the preop before the case is made (implant_tumor): the
+  // case must then be registered against that preop, not the plain atlas.
+  // A resection case resects the tumor label when the preop has one.
+  std::optional<TumorImplantSpec> preop_tumor;
 };
 
 struct PhantomCase {

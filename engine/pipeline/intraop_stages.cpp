@@ -15,6 +15,7 @@
 #include "image/morphology.h"
 #include "image/resample.h"
 #include "mesh/surface_self_intersection.h"
+#include "pipeline/resection_stage.h"
 #include "pipeline/warm_state.h"
 #include "registration/active_surface.h"
 #include "registration/affine_registration.h"
@@ -158,6 +159,28 @@ nlohmann::json label_metrics(const LabelImage& warped, const LabelImage& intraop
   return out;
 }
 
+// When a resectable structure was removed, solves again in the system where
+// its wall is fixed too (resection_stage.h). The second solve failing leaves
+// the first result standing: it is valid, only blind to the cavity.
+void solve_with_resection(WarmState& warm, const IntraopInput& input, const Mask& brain_region,
+                          const Eigen::Matrix4d& A, const std::vector<Eigen::Vector3d>& fixed_values,
+                          const PipelineParameters& params, MeshDeformation& deformation, nlohmann::json& metrics) {
+  if (warm.resectables.empty()) return;
+  ResectionMatch resection =
+      match_resection(warm, input, brain_region, A, deformation.nonrigid_mm, fixed_values, params);
+  if (resection.system > 0) {
+    std::vector<Eigen::Vector3d> nonrigid;
+    try {
+      warm.fem.drive_solve(resection.fixed_values_mm, nonrigid, resection.system);
+      deformation.nonrigid_mm = std::move(nonrigid);
+      resection.metrics["system"] = resection.system;
+    } catch (const ComputeError& e) {
+      resection.metrics["error"] = std::string("second solve failed, cavity ignored: ") + e.what();
+    }
+  }
+  metrics["resection"] = std::move(resection.metrics);
+}
+
 }  // namespace
 
 ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
@@ -210,6 +233,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
       const SolveReport solve = warm.fem.drive_solve(fixed_values, deformation.nonrigid_mm);
       metrics["solve"] = {{"iterations", solve.iterations}, {"relative_residual", solve.relative_residual},
                           {"solver", solve.solver_description}};
+      solve_with_resection(warm, input, brain_region, A, fixed_values, params, deformation, metrics);
     } catch (const ComputeError& e) {
       failure = e.what();
       deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());

@@ -15,7 +15,7 @@ LabelTable LabelTable::defaults() {
       {labels::brain, "brain", LabelRole::parenchyma, 3000.0, 0.35, true},
       {labels::ventricles, "ventricles", LabelRole::cavity, 3000.0, 0.35, true},
       {labels::corticospinal_tract, "corticospinal_tract", LabelRole::structure, 3000.0, 0.35, true},
-      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.35, true},
+      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.35, true, true},
   };
   return table;
 }
@@ -45,6 +45,13 @@ std::vector<std::uint16_t> LabelTable::cavity_labels() const {
   return out;
 }
 
+std::vector<std::uint16_t> LabelTable::resectable_labels() const {
+  std::vector<std::uint16_t> out;
+  for (const auto& e : entries)
+    if (e.resectable) out.push_back(e.value);
+  return out;
+}
+
 void LabelTable::validate() const {
   std::set<std::uint16_t> values;
   std::set<std::string> names;
@@ -58,6 +65,8 @@ void LabelTable::validate() const {
     if (!(e.youngs_modulus_pa > 0.0)) throw InputError(where + ": youngs_modulus_pa must be > 0");
     if (!(e.poisson_ratio > 0.0 && e.poisson_ratio < 0.5))
       throw InputError(where + ": poisson_ratio must lie in (0, 0.5)");
+    if (e.resectable && e.role != LabelRole::structure)
+      throw InputError(where + ": only a \"structure\" label can be resectable");
     if (e.role == LabelRole::parenchyma) ++parenchyma;
   }
   if (parenchyma != 1)

@@ -21,6 +21,10 @@ struct LabelEntry {
   double youngs_modulus_pa = 3000.0;
   double poisson_ratio = 0.35;
   bool make_model = true;  // write a surface model of this label
+  // May be removed during surgery (the tumor). Meshed as its own subdomain and
+  // given a second warm system in which its wall is fixed, so that a
+  // resection cavity in an intraop scan can pull the wall (structure role only).
+  bool resectable = false;
 };
 
 struct LabelTable {
@@ -33,6 +37,7 @@ struct LabelTable {
   // The parenchyma label (exactly one) and the cavity labels.
   std::uint16_t brain_label() const;
   std::vector<std::uint16_t> cavity_labels() const;
+  std::vector<std::uint16_t> resectable_labels() const;
   // Throws InputError: duplicate values or names, value 0, no or several
   // parenchyma labels, nu outside (0, 0.5), E <= 0.
   void validate() const;

@@ -36,6 +36,10 @@ struct PipelineParameters {
   AffineRegistrationParameters affine;
   ActiveSurfaceParameters outer_surface;      // outer brain surface
   ActiveSurfaceParameters ventricle_surface;  // lateral-ventricle wall
+  ActiveSurfaceParameters resection_surface;  // wall of a resected structure -> cavity
+  // An intraop cavity of at least this volume (ml) next to a resectable
+  // structure means it was resected (smaller holes are segmentation noise).
+  double min_resection_cavity_ml = 0.1;
   FieldParameters field;
   UnfoldParameters unfold;  // local repair tried before the fold gate refuses a field
   ModelParameters models;

@@ -1,6 +1,8 @@
 // The preop phase: mesh, boundary surfaces, FEM set-up on all ranks, affine
 // samples, surface models bound to the mesh. Minutes are allowed here; every
 // per-scan cost that can move here does.
+#include <algorithm>
+
 #include "core/errors.h"
 #include "core/timer.h"
 #include "image/image_stats.h"
@@ -42,6 +44,49 @@ std::vector<MatchedSurface> matched_surfaces(const TetMesh& mesh, const LabelTab
   return out;
 }
 
+std::vector<int> index_of_nodes(std::size_t node_count, const std::vector<int>& nodes) {
+  std::vector<int> index(node_count, -1);
+  for (std::size_t i = 0; i < nodes.size(); ++i) index[nodes[i]] = static_cast<int>(i);
+  return index;
+}
+
+// Resectable labels present in the preop labels (a few voxels are noise, not
+// a structure whose removal moves the brain).
+std::vector<std::uint16_t> present_resectables(const LabelImage& labels, const LabelTable& table) {
+  std::vector<std::uint16_t> out;
+  for (const auto l : table.resectable_labels())
+    if (volume_ml(mask_of_labels(labels, {l})) >= 0.1) out.push_back(l);
+  return out;
+}
+
+// For each resectable structure with a wall in the mesh: the wall surface and
+// a fixed-node set (the boundary plus the wall) for a system of its own.
+std::vector<ResectableWall> resectable_walls(const TetMesh& mesh, const LabelImage& labels, const LabelTable& table,
+                                             const std::vector<std::uint16_t>& present,
+                                             const std::vector<int>& boundary,
+                                             std::vector<std::vector<int>>& fixed_sets) {
+  std::vector<ResectableWall> out;
+  for (const auto l : present) {
+    TriSurface wall = extract_interface_surface(mesh, l);
+    if (wall.triangles.empty()) continue;  // the structure touches no other tissue
+    std::vector<int> fixed = boundary;
+    fixed.insert(fixed.end(), wall.mesh_node.begin(), wall.mesh_node.end());
+    std::sort(fixed.begin(), fixed.end());
+    fixed.erase(std::unique(fixed.begin(), fixed.end()), fixed.end());
+    if (fixed.size() == boundary.size()) continue;  // wall entirely on the boundary
+    ResectableWall r;
+    r.name = table.find(l)->name;
+    r.label = l;
+    r.wall = std::move(wall);
+    r.system = static_cast<int>(fixed_sets.size());
+    r.fixed_index_of_node = index_of_nodes(mesh.node_count(), fixed);
+    r.volume_ml = volume_ml(mask_of_labels(labels, {l}));
+    fixed_sets.push_back(std::move(fixed));
+    out.push_back(std::move(r));
+  }
+  return out;
+}
+
 std::vector<StructureDefinition> structures_for(const LabelTable& table) {
   StructureDefinition brain{"brain", {}};
   std::vector<StructureDefinition> out;
@@ -69,6 +114,8 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   MeshingParameters meshing = params.meshing;
   meshing.cavity_labels = table.cavity_labels();
   meshing.default_tissue_label = table.brain_label();
+  const std::vector<std::uint16_t> resectable = present_resectables(input.labels, table);
+  meshing.interface_labels = resectable;
   TetMesh mesh = stored_mesh ? std::move(*stored_mesh) : mesh_label_image(input.labels, meshing);
   const double mesh_seconds = stage.lap();
   report(progress, "mesh", 1.0, mesh_seconds);
@@ -81,13 +128,22 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
     throw InputError("preop labels: the brain is too small to mesh (" + std::to_string(mesh.node_count()) +
                      " mesh nodes, none inside); check the brain label");
   warm->surfaces = matched_surfaces(mesh, table);
-  warm->fixed_index_of_node.assign(mesh.node_count(), -1);
-  for (std::size_t i = 0; i < fixed_nodes.size(); ++i) warm->fixed_index_of_node[fixed_nodes[i]] = static_cast<int>(i);
+  warm->fixed_index_of_node = index_of_nodes(mesh.node_count(), fixed_nodes);
+  std::vector<std::vector<int>> fixed_sets;
+  fixed_sets.push_back(fixed_nodes);
+  warm->resectables = resectable_walls(mesh, input.labels, table, resectable, fixed_nodes, fixed_sets);
 
   report(progress, "factorise", 0.0, 0.0);
-  warm->fem.drive_load(std::move(mesh), std::move(fixed_nodes), elastic_options_for(params));
+  warm->fem.drive_load(std::move(mesh), std::move(fixed_sets), elastic_options_for(params));
   const double fem_seconds = stage.lap();
-  const auto& times = warm->fem.model().times();
+  // Every system (one per resectable wall beyond the first) costs its own
+  // assembly and factorisation.
+  double assemble_seconds = 0, factorise_seconds = 0;
+  for (int i = 0; i < warm->fem.system_count(); ++i) {
+    const auto& times = warm->fem.model(i).times();
+    assemble_seconds += times.create + times.assemble;
+    factorise_seconds += times.setup;
+  }
   report(progress, "factorise", 1.0, fem_seconds);
 
   report(progress, "models", 0.0, 0.0);
@@ -104,8 +160,8 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   report(progress, "models", 1.0, models_seconds);
 
   warm->timings = {{"mesh", mesh_seconds},
-                   {"assemble", times.create + times.assemble},
-                   {"factorise", times.setup},
+                   {"assemble", assemble_seconds},
+                   {"factorise", factorise_seconds},
                    {"surfaces_and_models", models_seconds},
                    {"total", total.seconds()}};
   warm->preop = std::move(input);

@@ -22,6 +22,17 @@ struct MatchedSurface {
   TriSurface surface;                    // preop, vertices tied to mesh nodes
 };
 
+// A structure that may be resected (the tumor): its wall, and the FEM system
+// in which that wall is fixed as well as the brain surface and cavity walls.
+struct ResectableWall {
+  std::string name;
+  std::uint16_t label = 0;
+  TriSurface wall;                        // preop, normals out of the structure
+  int system = 0;                         // FemCluster system index
+  std::vector<int> fixed_index_of_node;   // node -> index into fixed_nodes(system), or -1
+  double volume_ml = 0;                   // preop volume of the structure
+};
+
 struct PreopModel {
   TriSurface surface;     // preop frame
   ModelBinding binding;   // where each vertex sits in the mesh
@@ -33,7 +44,8 @@ struct WarmState {
   PreopInput preop;
   FemCluster fem;                          // owns the mesh every rank shares
   std::vector<MatchedSurface> surfaces;    // outer first, then cavity walls
-  std::vector<int> fixed_index_of_node;    // node -> index into fixed_nodes, or -1
+  std::vector<int> fixed_index_of_node;    // node -> index into fixed_nodes(0), or -1
+  std::vector<ResectableWall> resectables; // each with its own system (1, 2, ...)
   PreopBoundarySamples affine_samples;     // boundary points for the affine stage
   std::map<std::string, PreopModel> models;
   double brain_volume_ml = 0;

@@ -7,6 +7,7 @@
 
 #include <CLI/CLI.hpp>
 #include <cstdio>
+#include <memory>
 
 #include "atlas/default_atlas.h"
 #include "config_file.h"
@@ -44,11 +45,19 @@ int main(int argc, char** argv) {
       ? config::pipeline_parameters_from_text(config::default_config_text(), "built-in")
       : config::pipeline_parameters_from_file(config_path);
   DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache);
-  auto warm = build_warm_state(MPI_COMM_WORLD, PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, params,
-                               nullptr, std::nullopt);
+  std::unique_ptr<WarmState> plain, with_tumor;
   nlohmann::json out = nlohmann::json::array();
   for (const auto& spec : standard_phantom_suite()) {
     if (!only.empty() && spec.name != only) continue;
+    // A case that resects a tumor gets the atlas with that tumor in it.
+    std::unique_ptr<WarmState>& slot = spec.preop_tumor ? with_tumor : plain;
+    PreopInput preop{atlas.t1, atlas.labels};
+    if (spec.preop_tumor) implant_tumor(preop.t1, preop.labels, *spec.preop_tumor);
+    if (!slot || spec.preop_tumor) {
+      slot.reset();
+      slot = build_warm_state(MPI_COMM_WORLD, std::move(preop), params, nullptr, std::nullopt);
+    }
+    auto& warm = slot;
     const PhantomCase c = make_phantom(warm->preop.t1, warm->preop.labels, spec);
     const ScanResult r = run_intraop(*warm, IntraopInput{c.intraop_labels, c.intraop_t1}, params, nullptr);
     // Oracle: the true displacement at every boundary node, same affine, same
@@ -59,11 +68,13 @@ int main(int argc, char** argv) {
     oracle.intraop_from_preop = r.intraop_from_preop;
     std::vector<Eigen::Vector3d> values;
     double boundary_error = 0;
-    for (int n : warm->fem.fixed_nodes()) {
+    // With a resected structure, the system where its wall is fixed too.
+    const int system = r.metrics.contains("resection") ? r.metrics["resection"].value("system", 0) : 0;
+    for (int n : warm->fem.fixed_nodes(system)) {
       const Eigen::Vector3d p = mesh.nodes_mm[n];
       values.push_back(truth.forward(p) - oracle.apply_affine(p));
     }
-    warm->fem.drive_solve(values, oracle.nonrigid_mm);
+    warm->fem.drive_solve(values, oracle.nonrigid_mm, system);
     const VectorImage3 oracle_field = pullback_field(mesh, oracle, c.intraop_labels.grid, params.field);
     std::vector<Eigen::Vector3d> xs, ps;
     for (const auto& [x, p] : c.landmarks_intraop_preop_mm) {
@@ -72,6 +83,13 @@ int main(int argc, char** argv) {
     }
     const TreStats oracle_tre = target_registration_error(oracle_field, xs, ps);
     const TreStats tre = target_registration_error(r.pullback_field_mm, xs, ps);
+    // Landmark errors by distance (preop) from the resected region's centre.
+    Bin near_resection, far_from_resection;
+    if (spec.resection.enabled)
+      for (std::size_t i = 0; i < xs.size(); ++i)
+        ((ps[i] - truth.resection_centre_mm()).norm() < truth.resection_radius_mm() + 15 ? near_resection
+                                                                                         : far_from_resection)
+            .add(tre.errors_mm[i]);
     (void)boundary_error;
     const Mask brain = mask_of_labels(c.intraop_labels, {1, 2});
     const Mask ventricles = mask_of_labels(c.intraop_labels, {2});
@@ -95,6 +113,8 @@ int main(int argc, char** argv) {
                    {"deep", deep.json()}, {"all", all.json()},
                    {"mean_error_vector_mm", {mean_error.x(), mean_error.y(), mean_error.z()}},
                    {"tre_mean_mm", tre.mean_mm},
+                   {"tre_within_15mm_of_resection", near_resection.json()},
+                   {"tre_beyond_15mm_of_resection", far_from_resection.json()},
                    {"tre_mean_with_true_boundary_mm", oracle_tre.mean_mm},
                    {"tre_p95_with_true_boundary_mm", oracle_tre.p95_mm},
                    {"metrics", r.metrics}});

@@ -1,0 +1,140 @@
+#include "pipeline/resection_stage.h"
+
+#include <cmath>
+#include <limits>
+
+#include "core/errors.h"
+#include "core/timer.h"
+#include "image/distance_map.h"
+#include "image/image_stats.h"
+#include "mesh/surface_self_intersection.h"
+#include "registration/active_surface.h"
+
+namespace brainshift {
+namespace {
+
+// Non-tissue voxels enclosed by the intraop brain: resection cavity candidates.
+// An internal cavity is filled in the outline (brain_region) but carries no
+// label; sulcal CSF open to the outside is not in the outline.
+Mask enclosed_non_tissue(const LabelImage& labels, const Mask& brain_region) {
+  Mask m(brain_region.grid, 0);
+  for (std::size_t v = 0; v < m.voxels.size(); ++v) m.voxels[v] = brain_region.voxels[v] && labels.voxels[v] == 0;
+  return m;
+}
+
+// Voxel box of the grid holding every point, grown by margin_mm.
+VoxelBox box_around(const std::vector<Eigen::Vector3d>& points_mm, const Grid3& grid, double margin_mm) {
+  VoxelBox box;
+  const Eigen::Matrix4d voxel_from_world = grid.voxel_from_world();
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::max()), hi = -lo;
+  for (const auto& p : points_mm) {
+    const Eigen::Vector3d v = (voxel_from_world * p.homogeneous()).head<3>();
+    lo = lo.cwiseMin(v);
+    hi = hi.cwiseMax(v);
+  }
+  for (int a = 0; a < 3; ++a) {
+    box.lo[a] = std::max(0, static_cast<int>(std::floor(lo[a])));
+    box.hi[a] = std::min(grid.dims[a] - 1, static_cast<int>(std::ceil(hi[a])));
+    if (box.hi[a] < box.lo[a]) return VoxelBox{};
+  }
+  box.empty = points_mm.empty();
+  return box.empty ? box : grow_box(box, grid, margin_mm);
+}
+
+// The wall where the affine and the system-0 solve put it.
+TriSurface wall_after_first_solve(const ResectableWall& r, const Eigen::Matrix4d& A,
+                                  const std::vector<Eigen::Vector3d>& nonrigid_mm) {
+  TriSurface s = r.wall;
+  for (std::size_t v = 0; v < s.vertices_mm.size(); ++v)
+    s.vertices_mm[v] = (A * s.vertices_mm[v].homogeneous()).head<3>() + nonrigid_mm[s.mesh_node[v]];
+  return s;
+}
+
+struct Candidate {
+  const ResectableWall* wall = nullptr;
+  TriSurface start;
+  Mask cavity;  // cropped around the wall
+  double cavity_ml = 0;
+};
+
+// Boundary values of the wall's system: system-0 values where a node is fixed
+// there already (the brain surface and ventricle walls win), the matched wall
+// elsewhere; wall vertices the match left far from the cavity (an unresected
+// part of the structure) keep their system-0 displacement.
+std::vector<Eigen::Vector3d> values_for(const WarmState& warm, const ResectableWall& r,
+                                        const SurfaceMatchResult& m, const std::vector<Eigen::Vector3d>& nonrigid_mm,
+                                        const std::vector<Eigen::Vector3d>& fixed_values_mm, double max_residual_mm,
+                                        std::size_t* unmatched) {
+  const auto& fixed = warm.fem.fixed_nodes(r.system);
+  std::vector<Eigen::Vector3d> values(fixed.size(), Eigen::Vector3d::Zero());
+  *unmatched = 0;
+  for (std::size_t v = 0; v < r.wall.mesh_node.size(); ++v) {
+    const int node = r.wall.mesh_node[v];
+    const double residual = m.residual_distance_mm[v];
+    const bool reached = std::isfinite(residual) && residual <= max_residual_mm;
+    if (!reached) ++*unmatched;
+    values[r.fixed_index_of_node[node]] = nonrigid_mm[node] + (reached ? m.displacement_mm[v] : Eigen::Vector3d::Zero());
+  }
+  for (std::size_t i = 0; i < fixed.size(); ++i) {
+    const int first = warm.fixed_index_of_node[fixed[i]];
+    if (first >= 0) values[i] = fixed_values_mm[first];
+  }
+  return values;
+}
+
+}  // namespace
+
+ResectionMatch match_resection(const WarmState& warm, const IntraopInput& input, const Mask& brain_region,
+                               const Eigen::Matrix4d& A, const std::vector<Eigen::Vector3d>& nonrigid_mm,
+                               const std::vector<Eigen::Vector3d>& fixed_values_mm,
+                               const PipelineParameters& params) {
+  ResectionMatch out;
+  if (warm.resectables.empty()) return out;
+  Stopwatch watch;
+  const Mask holes = enclosed_non_tissue(input.labels, brain_region);
+  // The structure whose neighbourhood holds the largest cavity.
+  Candidate best;
+  for (const auto& r : warm.resectables) {
+    Candidate c{&r, wall_after_first_solve(r, A, nonrigid_mm), {}, 0};
+    const VoxelBox box = box_around(c.start.vertices_mm, holes.grid, 10.0);
+    nlohmann::json& m = out.metrics["structures"][r.name];
+    m = {{"preop_volume_ml", r.volume_ml}, {"cavity_ml", 0.0}, {"resected", false}};
+    if (box.empty) continue;
+    c.cavity = crop_to_box(holes, box);
+    c.cavity_ml = volume_ml(c.cavity);
+    m["cavity_ml"] = c.cavity_ml;
+    if (c.cavity_ml >= params.min_resection_cavity_ml && c.cavity_ml > best.cavity_ml) best = std::move(c);
+  }
+  if (!best.wall) return out;
+  const ResectableWall& r = *best.wall;
+  nlohmann::json& m = out.metrics["structures"][r.name];
+  const ImageF target = signed_distance_mm(best.cavity);
+  const SurfaceMatchResult match =
+      match_surface(best.start, target, params.resection_surface, input.t1 ? &*input.t1 : nullptr);
+  TriSurface matched = best.start;
+  for (std::size_t v = 0; v < matched.vertices_mm.size(); ++v) matched.vertices_mm[v] += match.displacement_mm[v];
+  std::size_t crossings = 0;
+  try {
+    crossings = count_self_intersections(matched);
+  } catch (const InputError&) {
+    // Not a polygon mesh: the flipped-triangle check below still applies.
+  }
+  std::size_t unmatched = 0;
+  m.update({{"wall_vertices", r.wall.vertices_mm.size()}, {"iterations", match.iterations},
+            {"mean_residual_mm", match.mean_residual_mm}, {"max_residual_mm", match.max_residual_mm},
+            {"flipped_triangles", match.flipped_triangles}, {"self_intersections", crossings}});
+  if (match.flipped_triangles > 0 || crossings > 0 ||
+      match.mean_residual_mm > params.gates.max_mean_surface_residual_mm) {
+    m["resected"] = "cavity found but the wall match was refused (folded, self-intersecting or diverged)";
+  } else {
+    out.fixed_values_mm = values_for(warm, r, match, nonrigid_mm, fixed_values_mm,
+                                     params.gates.max_mean_surface_residual_mm, &unmatched);
+    out.system = r.system;
+    m["resected"] = true;
+    m["wall_vertices_without_cavity"] = unmatched;
+  }
+  out.metrics["seconds"] = watch.seconds();
+  return out;
+}
+
+}  // namespace brainshift
