@@ -97,6 +97,35 @@ TEST_F(EllipsoidPhantom, Label4TetsCoverTheLabel4Region) {
   for (int l : mesh_->tet_labels) EXPECT_TRUE(l == 1 || l == 4) << l;
 }
 
+TEST(LabelMesher, InterfaceLabelGetsItsOwnSharpClosedWall) {
+  // The same phantom with label 4 (a tumor that may be resected) meshed as its
+  // own subdomain: its tets carry label 4 exactly, its wall is made of mesh
+  // faces (closed, one component, out of the ball) and encloses its volume.
+  const LabelImage labels = ellipsoid_phantom();
+  MeshingParameters p = test_parameters();
+  p.interface_labels = {4};
+  const TetMesh mesh = mesh_label_image(labels, p);
+  const double ball = test::count_voxels(labels, 4) * test::voxel_volume_mm3(labels.grid);
+  double label4 = 0;
+  for (std::size_t t = 0; t < mesh.tet_count(); ++t)
+    if (mesh.tet_labels[t] == 4) label4 += tet_volume_mm3(mesh, t);
+  EXPECT_NEAR(label4, ball, 0.05 * ball) << "tets no longer straddle the interface";
+  const TriSurface wall = extract_interface_surface(mesh, 4);
+  ASSERT_GT(wall.triangles.size(), 50u);
+  EXPECT_EQ(count_connected_components(wall), 1u);
+  EXPECT_NEAR(enclosed_volume_mm3(wall), label4, 1e-6 * label4) << "closed and oriented out of the ball";
+  for (std::size_t v = 0; v < wall.vertices_mm.size(); ++v)
+    EXPECT_EQ(wall.vertices_mm[v], mesh.nodes_mm[wall.mesh_node[v]]);
+  // Outer surface and cavity are what they were: the interface is inside.
+  for (const auto& f : mesh.boundary_faces) EXPECT_TRUE(f.neighbour_label == 0 || f.neighbour_label == 2);
+  EXPECT_THROW(mesh_label_image(labels, [] {
+                 MeshingParameters bad = test_parameters();
+                 bad.interface_labels = {2};  // a cavity cannot also be kept as tissue
+                 return bad;
+               }()),
+               InputError);
+}
+
 // Fraction of tets whose nodes fall in more than one of `parts` contiguous,
 // equal node ranges: what the FEM's contiguous MPI partition communicates.
 double cut_fraction(const TetMesh& m, int parts) {

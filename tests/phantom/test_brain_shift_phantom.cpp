@@ -262,3 +262,61 @@ TEST(Phantom, RejectsBadSpecs) {
 
 }  // namespace
 }  // namespace brainshift
+
+namespace brainshift {
+namespace {
+
+TEST(TumorImplant, ALobulatedTumorOfAboutTheAskedSizeInTissueOnly) {
+  Preop p = synthetic_preop();
+  TumorImplantSpec spec;
+  spec.direction = {0.6, 0.5, 0.6};
+  spec.depth_mm = 20;
+  spec.radius_mm = 10;
+  const auto before = p.labels.voxels;
+  const TumorImplantResult r = implant_tumor(p.t1, p.labels, spec);
+  const double ball_ml = 4.0 / 3.0 * 3.14159265358979 * 1000 / 1000;
+  EXPECT_NEAR(r.volume_ml, ball_ml, 0.35 * ball_ml) << "lobulation changes the radius by at most 15 %";
+  std::size_t taken = 0, dark = 0;
+  for (std::size_t v = 0; v < before.size(); ++v) {
+    if (p.labels.voxels[v] != 4) continue;
+    ++taken;
+    EXPECT_TRUE(before[v] == 1 || before[v] == 3) << "took a voxel of label " << before[v];
+    if (p.t1.voxels[v] < 80) ++dark;
+  }
+  EXPECT_GT(taken, 0u);
+  EXPECT_GT(dark, taken * 9 / 10) << "hypointense on the T1";
+  // The centre lies depth_mm below the cortex along the direction.
+  const Eigen::Vector3d v = (p.labels.grid.voxel_from_world() * r.centre_mm.homogeneous()).head<3>();
+  EXPECT_EQ(p.labels.at(std::lround(v.x()), std::lround(v.y()), std::lround(v.z())), 4);
+  // A resection phantom on it resects the tumor label (not the default ball).
+  PhantomSpec resect;
+  resect.sinking.enabled = false;
+  resect.resection.enabled = true;
+  resect.resection.collapse_mm = 3;
+  const PhantomDeformation truth(p.labels, resect);
+  EXPECT_TRUE(truth.resection_uses_tumor_label());
+  EXPECT_LT((truth.resection_centre_mm() - r.centre_mm).norm(), 2.0);
+  // The wall moves in by collapse_mm and moves most: tissue farther out less.
+  const Eigen::Vector3d out_dir(1, 0, 0);
+  const double R = truth.resection_radius_mm();
+  const auto shift = [&](double d) {
+    const Eigen::Vector3d q = truth.resection_centre_mm() + d * out_dir;
+    return (truth.forward(q) - q).norm();
+  };
+  EXPECT_NEAR(shift(R), 3.0, 1e-6);
+  EXPECT_LT(shift(R + 5), shift(R));
+  EXPECT_LT(shift(R + 15), shift(R + 5));
+}
+
+TEST(TumorImplant, BadSpecsAreClearErrors) {
+  Preop p = synthetic_preop();
+  TumorImplantSpec spec;
+  spec.radius_mm = 0;
+  EXPECT_THROW(implant_tumor(p.t1, p.labels, spec), InputError);
+  spec = TumorImplantSpec{};
+  spec.depth_mm = 500;  // deeper than the brain
+  EXPECT_THROW(implant_tumor(p.t1, p.labels, spec), InputError);
+}
+
+}  // namespace
+}  // namespace brainshift

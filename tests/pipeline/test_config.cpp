@@ -60,4 +60,16 @@ TEST(Config, LabelTableValidation) {
   const auto t = config::label_table_from_text(custom, "t");
   EXPECT_EQ(t.brain_label(), 7);
   EXPECT_EQ(t.cavity_labels(), std::vector<std::uint16_t>{9});
+  EXPECT_TRUE(t.resectable_labels().empty());
+  const char* resectable = "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\n"
+                           "[[label]]\nvalue = 5\nname = \"glioma\"\nrole = \"structure\"\nresectable = true\n";
+  EXPECT_EQ(config::label_table_from_text(resectable, "t").resectable_labels(), std::vector<std::uint16_t>{5});
+  const char* resectable_cavity = "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\n"
+                                  "[[label]]\nvalue = 2\nname = \"v\"\nrole = \"cavity\"\nresectable = true\n";
+  EXPECT_THROW(config::label_table_from_text(resectable_cavity, "t"), InputError);
+  // The default table: the tumor may be resected, nothing else.
+  EXPECT_EQ(LabelTable::defaults().resectable_labels(), std::vector<std::uint16_t>{4});
+  EXPECT_EQ(config::pipeline_parameters_from_text(config::default_config_text(), "built-in")
+                .label_table.resectable_labels(),
+            std::vector<std::uint16_t>{4});
 }

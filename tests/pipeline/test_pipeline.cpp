@@ -12,7 +12,9 @@
 
 #include "config_file.h"
 #include "core/errors.h"
+#include "field/metrics.h"
 #include "image/resample.h"
+#include "phantom/brain_shift_phantom.h"
 #include "pipeline/engine_session.h"
 
 using namespace brainshift;
@@ -308,6 +310,66 @@ TEST_F(PipelineTest, ASurfaceMatchThatCrossesItselfIsReportedAndFallsBack) {
   EXPECT_GT(r.metrics["surfaces"]["outer"]["self_intersections"].get<std::size_t>(), 0u);
   // The flipped-triangle gate is checked first and fires on the same match.
   expect_marked_affine_only(r, scan, "surface match of outer");
+}
+
+// ------------------------------------------------------------------ resection
+// The synthetic tumor (a 6 mm ball) resected: the cavity collapses by 3 mm at
+// its wall and the tissue around follows (the phantom's analytic collapse, not
+// our elastic model). Landmarks within 12 mm of the wall.
+struct ResectionScan {
+  PhantomCase c;
+  std::vector<Eigen::Vector3d> x, p;  // landmarks near the cavity (intraop, preop)
+};
+
+ResectionScan resected_tumor_scan(const PreopInput& preop) {
+  PhantomSpec spec;
+  spec.name = "synthetic tumor resection";
+  spec.sinking.enabled = false;
+  spec.resection.enabled = true;
+  spec.resection.collapse_mm = 3;
+  spec.resection.collapse_decay_mm = 10;
+  spec.dims = {100, 110, 44};
+  spec.spacing_mm = {1.4, 1.4, 2.8};
+  spec.label_noise_mm = 0;
+  spec.noise_fraction = 0;
+  spec.bias_amplitude = 0;
+  spec.landmark_count = 3000;
+  ResectionScan out{make_phantom(preop.t1, preop.labels, spec), {}, {}};
+  const PhantomDeformation truth(preop.labels, spec);
+  for (const auto& [x, p] : out.c.landmarks_intraop_preop_mm) {
+    const double from_wall = (p - truth.resection_centre_mm()).norm() - truth.resection_radius_mm();
+    if (from_wall < 12) out.x.push_back(x), out.p.push_back(p);
+  }
+  return out;
+}
+
+TEST_F(PipelineTest, AResectedTumorIsMatchedToItsCavityAndPullsTheTissueAround) {
+  const ResectionScan scan = resected_tumor_scan(*preop_);
+  ASSERT_GT(scan.x.size(), 20u) << "too few landmarks near the cavity";
+  const IntraopInput input{scan.c.intraop_labels, scan.c.intraop_t1};
+  const ScanResult with = session_->register_scan(input, nullptr);
+  ASSERT_EQ(with.kind, ResultKind::nonrigid) << with.fallback_reason;
+  const auto& tumor = with.metrics["resection"]["structures"]["tumor"];
+  EXPECT_EQ(with.metrics["resection"].value("system", 0), 1) << with.metrics["resection"].dump();
+  EXPECT_EQ(tumor["resected"], true) << tumor.dump();
+  EXPECT_LT(tumor["mean_residual_mm"].get<double>(), 1.0);
+  const ScanResult blind = register_with(*preop_, session_->mesh(), input, [](PipelineParameters& p) {
+    p.min_resection_cavity_ml = 1e9;  // the cavity is ignored, as before resection was modelled
+  });
+  ASSERT_EQ(blind.kind, ResultKind::nonrigid) << blind.fallback_reason;
+  EXPECT_EQ(blind.metrics["resection"].value("system", 0), 0);
+  const double tre_with = target_registration_error(with.pullback_field_mm, scan.x, scan.p).mean_mm;
+  const double tre_blind = target_registration_error(blind.pullback_field_mm, scan.x, scan.p).mean_mm;
+  std::printf("TRE within 12 mm of the cavity: %.2f mm with the resection modelled, %.2f mm without (%zu landmarks)\n",
+              tre_with, tre_blind, scan.x.size());
+  EXPECT_LT(tre_with, 0.7 * tre_blind);
+}
+
+TEST_F(PipelineTest, WithoutACavityTheTumorIsNotTakenForResected) {
+  const ScanResult r = session_->register_scan(translated_scan(*preop_, {2, -1, 1}), nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  EXPECT_EQ(r.metrics["resection"]["structures"]["tumor"]["resected"], false);
+  EXPECT_FALSE(r.metrics["resection"].contains("system"));
 }
 
 }  // namespace
