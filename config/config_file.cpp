@@ -62,7 +62,9 @@ toml::table parse(const std::string& text, const std::string& source) {
     return toml::parse(text, source);
   } catch (const toml::parse_error& e) {
     std::ostringstream msg;
-    msg << source << ":" << e.source().begin.line << ": " << e.description();
+    // Same wording as the server's settings (server/server_settings.cpp keeps
+    // its own copy: the server core must not link the engine through here).
+    msg << source << ": TOML parse error at line " << e.source().begin.line << ": " << e.description();
     throw InputError(msg.str());
   }
 }

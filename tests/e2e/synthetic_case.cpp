@@ -1,10 +1,13 @@
 #include "synthetic_case.h"
 
 #include "image/nifti_io.h"
+#include "synthetic_head.h"
 #include "image/resample.h"
 
 namespace brainshift::e2e {
 namespace {
+
+using Head = test::SyntheticHead;
 
 Grid3 grid(std::array<int, 3> dims, Eigen::Vector3d spacing, Eigen::Vector3d origin) {
   Grid3 g;
@@ -14,30 +17,14 @@ Grid3 grid(std::array<int, 3> dims, Eigen::Vector3d spacing, Eigen::Vector3d ori
   return g;
 }
 
-double ellipsoid(const Eigen::Vector3d& p, const Eigen::Vector3d& c, const Eigen::Vector3d& r) {
-  return (p - c).cwiseQuotient(r).squaredNorm();
-}
-
-struct Head {
-  ImageF t1;
-  LabelImage labels;
-};
-
 Head synthetic_head() {
-  const Grid3 g = grid({70, 80, 62}, {2, 2, 2}, {-69, -79, -61});
-  Head h{ImageF(g), LabelImage(g)};
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const Eigen::Vector3d p = g.world_mm(i, j, k);
-        std::uint16_t l = 0;
-        if (ellipsoid(p, {0, 0, 0}, {55, 65, 48}) < 1) l = 1;
-        if (ellipsoid(p, {-12, 5, 8}, {8, 22, 10}) < 1 || ellipsoid(p, {12, 5, 8}, {8, 22, 10}) < 1) l = 2;
-        if (ellipsoid(p, {25, -20, -10}, {7, 7, 7}) < 1) l = 4;
-        h.labels.at(i, j, k) = l;
-        h.t1.at(i, j, k) = l == 0 ? 10.f : l == 2 ? 30.f : l == 4 ? 150.f : 100.f;
-      }
-  return h;
+  test::SyntheticHeadSpec spec;
+  spec.dims = {70, 80, 62};
+  spec.spacing_mm = 2;
+  spec.origin_mm = {-69, -79, -61};
+  spec.ventricle_semi_axes_mm = {8, 22, 10};
+  spec.tumor_radius_mm = 7;
+  return test::synthetic_head(spec);
 }
 
 }  // namespace

@@ -16,6 +16,7 @@
 #include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
 #include "pipeline/engine_session.h"
+#include "synthetic_head.h"
 
 using namespace brainshift;
 namespace fs = std::filesystem;
@@ -31,25 +32,9 @@ Grid3 grid(std::array<int, 3> dims, double spacing, Eigen::Vector3d origin) {
   return g;
 }
 
-double ellipsoid(const Eigen::Vector3d& p, const Eigen::Vector3d& c, const Eigen::Vector3d& r) {
-  return (p - c).cwiseQuotient(r).squaredNorm();
-}
-
 PreopInput synthetic_head() {
-  const Grid3 g = grid({90, 100, 80}, 1.5, {-67.5, -75, -60});
-  PreopInput in{ImageF(g), LabelImage(g)};
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const Eigen::Vector3d p = g.world_mm(i, j, k);
-        std::uint16_t l = 0;
-        if (ellipsoid(p, {0, 0, 0}, {55, 65, 48}) < 1) l = 1;
-        if (ellipsoid(p, {-12, 5, 8}, {7, 22, 9}) < 1 || ellipsoid(p, {12, 5, 8}, {7, 22, 9}) < 1) l = 2;
-        if (ellipsoid(p, {25, -20, -10}, {6, 6, 6}) < 1) l = 4;
-        in.labels.at(i, j, k) = l;
-        in.t1.at(i, j, k) = l == 0 ? 10.f : l == 2 ? 30.f : l == 4 ? 150.f : 100.f;
-      }
-  return in;
+  test::SyntheticHead h = test::synthetic_head();
+  return PreopInput{std::move(h.t1), std::move(h.labels)};
 }
 
 PipelineParameters coarse_parameters() {

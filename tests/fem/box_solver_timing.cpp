@@ -1,5 +1,5 @@
 // Timing driver: assemble + set up + several warm solves on a structured box.
-//   mpirun -np 2 fem_bench <cells> <direct|cg|gmres> <elim|rows> [cholmod|mumps] [nu]
+//   mpirun -np 2 box_solver_timing <cells> <direct|cg|gmres> <elim|rows> [cholmod|mumps] [nu]
 // Prints the slowest rank's time for each phase (the one the user waits for).
 #include <mpi.h>
 
@@ -20,7 +20,7 @@ static double slowest(double t) {
 
 int main(int argc, char** argv) {
   if (argc < 4) {
-    std::fprintf(stderr, "usage: fem_bench <cells> <direct|cg|gmres> <elim|rows> [cholmod|mumps] [nu]\n");
+    std::fprintf(stderr, "usage: box_solver_timing <cells> <direct|cg|gmres> <elim|rows> [cholmod|mumps] [nu]\n");
     return 2;
   }
   MPI_Init(&argc, &argv);

@@ -1,0 +1,35 @@
+#include "synthetic_head.h"
+
+namespace brainshift::test {
+namespace {
+
+double ellipsoid(const Eigen::Vector3d& p, const Eigen::Vector3d& c, const Eigen::Vector3d& r) {
+  return (p - c).cwiseQuotient(r).squaredNorm();
+}
+
+}  // namespace
+
+SyntheticHead synthetic_head(const SyntheticHeadSpec& spec) {
+  Grid3 g;
+  g.dims = spec.dims;
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  g.world_from_voxel.topLeftCorner<3, 3>() *= spec.spacing_mm;
+  g.world_from_voxel.block<3, 1>(0, 3) = spec.origin_mm;
+  SyntheticHead h{ImageF(g), LabelImage(g)};
+  const Eigen::Vector3d& v = spec.ventricle_semi_axes_mm;
+  const Eigen::Vector3d tumor = Eigen::Vector3d::Constant(spec.tumor_radius_mm);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        std::uint16_t l = 0;
+        if (ellipsoid(p, {0, 0, 0}, {55, 65, 48}) < 1) l = 1;
+        if (ellipsoid(p, {-12, 5, 8}, v) < 1 || ellipsoid(p, {12, 5, 8}, v) < 1) l = 2;
+        if (ellipsoid(p, {25, -20, -10}, tumor) < 1) l = 4;
+        h.labels.at(i, j, k) = l;
+        h.t1.at(i, j, k) = l == 0 ? 10.f : l == 2 ? 30.f : l == 4 ? 150.f : 100.f;
+      }
+  return h;
+}
+
+}  // namespace brainshift::test

@@ -1,0 +1,28 @@
+#pragma once
+// The small synthetic head several test suites share: an ellipsoidal brain
+// (label 1, semi-axes 55/65/48 mm) with two lateral ventricles (2) and a
+// spherical tumor (4). Coarse enough to mesh in a second.
+#include <array>
+
+#include <Eigen/Dense>
+
+#include "core/image.h"
+
+namespace brainshift::test {
+
+struct SyntheticHeadSpec {
+  std::array<int, 3> dims{90, 100, 80};
+  double spacing_mm = 1.5;
+  Eigen::Vector3d origin_mm{-67.5, -75, -60};
+  Eigen::Vector3d ventricle_semi_axes_mm{7, 22, 9};
+  double tumor_radius_mm = 6;
+};
+
+struct SyntheticHead {
+  ImageF t1;  // 10 outside, 30 ventricles, 150 tumor, 100 brain
+  LabelImage labels;
+};
+
+SyntheticHead synthetic_head(const SyntheticHeadSpec& spec = {});
+
+}  // namespace brainshift::test
