@@ -12,6 +12,7 @@
 #include "pipeline/label_table.h"
 #include "registration/active_surface.h"
 #include "registration/affine_registration.h"
+#include "registration/intensity_refinement.h"
 
 namespace brainshift {
 
@@ -37,6 +38,8 @@ struct PipelineParameters {
   ActiveSurfaceParameters outer_surface;      // outer brain surface
   ActiveSurfaceParameters ventricle_surface;  // lateral-ventricle wall
   FieldParameters field;
+  // Interior correction from the intraop T1 after the solve (skipped without one).
+  IntensityRefinementParameters intensity;
   UnfoldParameters unfold;  // local repair tried before the fold gate refuses a field
   ModelParameters models;
   QualityGates gates;
