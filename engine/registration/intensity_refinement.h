@@ -16,7 +16,10 @@
 // constant (noise floor, black level). v is trilinear on a coarse control
 // lattice aligned with the intraop voxel axes (isotropic spacing in mm); it is
 // used inside the brain region and fades to 0 outside it, where the field is
-// the FEM's continuation that fades to the affine.
+// the FEM's continuation that fades to the affine. It is composed with the
+// FEM's pull-back, not added to it: u'(x) = v(x) + u(x + v(x)), so the
+// Jacobian determinants multiply and the correction cannot fold an element
+// the FEM compressed strongly (see apply_correction in the .cpp).
 //
 // Cost (Gauss-Newton with iteratively reweighted least squares):
 //   sum_s w_s rho(r_s / sigma)                      image, robust (Geman-McClure)
@@ -42,13 +45,13 @@ namespace brainshift {
 struct IntensityRefinementParameters {
   bool enabled = true;
   // Control lattice spacing (mm). The elastic model's interior error varies
-  // over centimetres (it comes from the boundary data far away); 8 mm
-  // resolves that with ~15 samples per cell and stays far from the image
-  // noise's scale.
+  // over centimetres (it comes from boundary data far away); 8 mm resolves
+  // that with ~10-20 samples per cell and stays far above the scale of the
+  // image noise. (6 and 10 mm give the same accuracy on the phantom suite.)
   double lattice_spacing_mm = 8.0;
-  // Gauss-Newton iterations at most; stops earlier when no node moves by
-  // more than convergence_mm.
-  int iterations = 12;
+  // Gauss-Newton iterations at most (each one pass over the samples); stops
+  // earlier when no node moves by more than convergence_mm.
+  int iterations = 10;
   double convergence_mm = 0.01;
   // Membrane weight (dimensionless; see the cost above). The image alone
   // decides features larger than about sqrt(membrane / typical image
@@ -57,16 +60,19 @@ struct IntensityRefinementParameters {
   // Pull toward v = 0 (1/mm^2). Where the image has no edges v decays back to
   // the FEM's answer over sqrt(membrane / shrink) ~ 30 mm.
   double shrink_weight_per_mm2 = 0.02;
-  // Bounds on the correction (mm): the surfaces already agree with the
-  // segmentation; the image refines the interior, it does not replace the
-  // model. max_step_mm is a trust region per Gauss-Newton step (the trilinear
-  // preop image is only linear within a voxel).
+  // Bounds on the correction v (mm, the move of the intraop point; the change
+  // of u can be somewhat larger where the FEM stretches the tissue): the
+  // surfaces already agree with the segmentation; the image refines the
+  // interior, it does not replace the model. max_step_mm is a trust region
+  // per Gauss-Newton step (the trilinear preop image is only linear within a
+  // voxel).
   double max_correction_mm = 3.0;
   double max_step_mm = 1.0;
   // Sampling: candidates on a grid of about this spacing (mm), at most
-  // max_samples of them kept, strongest preop gradient first.
+  // max_samples of them kept, strongest preop gradient first (about a
+  // quarter of the brain's candidates; the time per iteration is linear in it).
   double sample_spacing_mm = 2.0;
-  std::size_t max_samples = 60000;
+  std::size_t max_samples = 40000;
   // Samples closer than half this to the outer boundary or to a background
   // or cavity voxel are dropped, weight ramps to 1 at this distance (mm):
   // ~2-3x the segmentation's boundary noise.
@@ -80,7 +86,9 @@ struct IntensityRefinementParameters {
   double outside_fade_mm = 8.0;
 };
 
-// InputError naming the parameter when a value is out of range.
+// What is wrong with the parameters, naming the key ("" when they are valid),
+// and the same as an InputError.
+std::string validation_error(const IntensityRefinementParameters& p);
 void validate(const IntensityRefinementParameters& p);
 
 struct IntensityRefinementInput {
@@ -105,9 +113,10 @@ struct IntensityRefinementReport {
   // RMS of the intensity residual over the samples, relative to the median
   // intraop tissue intensity: with v = 0 and after the refinement.
   double rms_residual_before = 0, rms_residual_after = 0;
-  double max_correction_mm = 0, mean_correction_mm = 0;  // |v| inside the brain region
+  double max_correction_mm = 0, mean_correction_mm = 0;  // |u' - u| inside the brain region
   std::string bias_model;
-  double seconds = 0;
+  double seconds = 0;  // whole stage; and its parts:
+  double sampling_seconds = 0, optimise_seconds = 0, apply_seconds = 0;
 };
 
 void to_json(nlohmann::json& j, const IntensityRefinementReport& r);
