@@ -22,6 +22,17 @@ using Vec3 = Eigen::Vector3d;
 using Mat3 = Eigen::Matrix3d;
 using Vec3f = Eigen::Vector3f;
 
+// fn(begin, end, half) on the two halves of [0, n), side by side when there
+// is a second core (core/parallel.h). Always the same two partial results,
+// so sums and the field do not depend on the number of cores.
+template <class Fn>
+void on_two_halves(std::size_t n, Fn&& fn) {
+  const std::size_t mid = n / 2;
+  parallel_halves(2, 1, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t h = begin; h < end; ++h) fn(h == 0 ? 0 : mid, h == 0 ? mid : n, h);
+  });
+}
+
 double smoothstep(double t) {
   t = std::clamp(t, 0.0, 1.0);
   return t * t * (3.0 - 2.0 * t);
@@ -81,8 +92,8 @@ class Lattice {
     return v;
   }
 
-  // v along the voxel row (., j, k) at the lattice's x nodes: blended across
-  // the other two axes once per row; along the row see Row below.
+  // v along the voxel row (., j, k) at the lattice's x nodes, blended across
+  // the other two axes once per row; row_weights interpolates along the row.
   void row(int j, int k, std::vector<Eigen::Vector3f>* line) const {
     const Cell c = locate(origin_[0], j, k);
     const int sy = n_[0], sz = n_[0] * n_[1];
@@ -166,8 +177,8 @@ Boxes find_boxes(const ImageF& sdf_mm, const LabelImage& labels, std::uint16_t b
   auto in_region = [&](std::size_t v) { return sdf[v] < fade; };
   auto foreign = [&](std::size_t v) { return sdf[v] <= 0.f && label[v] == background; };
   Boxes halves[2];
-  parallel_halves(static_cast<std::size_t>(g.dims[2]), 4, [&](std::size_t begin, std::size_t end) {
-    Boxes& b = halves[begin == 0 ? 0 : 1];
+  on_two_halves(static_cast<std::size_t>(g.dims[2]), [&](std::size_t begin, std::size_t end, std::size_t half) {
+    Boxes& b = halves[half];
     for (int k = static_cast<int>(begin); k < static_cast<int>(end); ++k)
       for (int j = 0; j < g.dims[1]; ++j) {
         int first, last;
@@ -185,7 +196,8 @@ Boxes find_boxes(const ImageF& sdf_mm, const LabelImage& labels, std::uint16_t b
 // ---- samples ------------------------------------------------------------------
 struct Sample {
   Vec3 base_mm;            // x + u(x): the preop point before the correction
-  Eigen::Matrix3f jac = Eigen::Matrix3f::Identity();  // d(x + u)/dx at x: how a move of the intraop point moves the preop one
+  // d(x + u)/dx at x: how a move of the intraop point moves the preop one.
+  Eigen::Matrix3f jac = Eigen::Matrix3f::Identity();
   Eigen::Vector3f poly;    // normalised position, argument of the bias
   Lattice::Cell cell;
   float intensity = 0;     // intraop T1 at x
@@ -291,8 +303,8 @@ std::vector<Candidate> collect_candidates(const SamplingContext& ctx) {
   std::vector<int> slices;
   for (int k = ctx.box.lo[2]; k <= ctx.box.hi[2]; k += ctx.stride[2]) slices.push_back(k);
   std::vector<Candidate> halves[2];
-  parallel_halves(slices.size(), 4, [&](std::size_t begin, std::size_t end) {
-    std::vector<Candidate>& out = halves[begin == 0 ? 0 : 1];
+  on_two_halves(slices.size(), [&](std::size_t begin, std::size_t end, std::size_t half) {
+    std::vector<Candidate>& out = halves[half];
     Candidate c;
     for (std::size_t n = begin; n < end; ++n)
       for (int j = ctx.box.lo[1]; j <= ctx.box.hi[1]; j += ctx.stride[1])
@@ -341,6 +353,33 @@ void select_samples(const SamplingContext& ctx, const std::vector<Candidate>& ca
     if (keep[n]) motion->push_back(make_sample(ctx, candidates[n]));
 }
 
+struct Samples {
+  std::vector<Sample> motion, bias;
+  std::size_t candidates = 0;
+  double density_per_mm3 = 0;  // motion samples per mm^3 of usable tissue
+};
+
+Samples prepare_samples(const VectorImage3& u, const IntensityRefinementInput& in,
+                        const IntensityRefinementParameters& p, const Lattice& lattice, const LinearSampler& preop,
+                        const Boxes& boxes) {
+  const Grid3& grid = u.grid;
+  const InternalForeignDistance foreign(in.intraop_labels, in.brain_sdf_mm, in.background_label, boxes.foreign,
+                                        p.boundary_margin_mm);
+  SamplingContext ctx{u, in, p, lattice, preop, foreign, std::vector<std::uint8_t>(65536, 0), {}, boxes.region,
+                      grid.voxel_from_world().topLeftCorner<3, 3>()};
+  for (auto l : in.tissue_labels) ctx.tissue[l] = 1;
+  const Vec3 voxel_mm = grid.spacing_mm();
+  for (int a = 0; a < 3; ++a) ctx.stride[a] = std::max(1, static_cast<int>(std::lround(p.sample_spacing_mm / voxel_mm[a])));
+  const std::vector<Candidate> candidates = collect_candidates(ctx);
+  Samples out;
+  out.candidates = candidates.size();
+  select_samples(ctx, candidates, p.max_samples, &out.motion, &out.bias);
+  const double voxel_mm3 = std::abs(grid.world_from_voxel.topLeftCorner<3, 3>().determinant());
+  const double tissue_mm3 = static_cast<double>(candidates.size()) * ctx.stride[0] * ctx.stride[1] * ctx.stride[2] * voxel_mm3;
+  out.density_per_mm3 = tissue_mm3 > 0 ? static_cast<double>(out.motion.size()) / tissue_mm3 : 0.0;
+  return out;
+}
+
 // ---- robust statistics ----------------------------------------------------------
 double geman_mcclure_weight(double r, double scale) {
   const double t = r / scale;
@@ -348,13 +387,15 @@ double geman_mcclure_weight(double r, double scale) {
   return 1.0 / (d * d);
 }
 
-// 1.4826 * median |r|: the spread of Gaussian noise, unmoved by outliers.
-double robust_sigma(std::vector<double> abs_residuals) {
-  if (abs_residuals.empty()) return 0;
-  const auto mid = abs_residuals.begin() + static_cast<std::ptrdiff_t>(abs_residuals.size() / 2);
-  std::nth_element(abs_residuals.begin(), mid, abs_residuals.end());
-  return 1.4826 * *mid;
+double median(std::vector<double> values) {
+  if (values.empty()) return 0;
+  const auto mid = values.begin() + static_cast<std::ptrdiff_t>(values.size() / 2);
+  std::nth_element(values.begin(), mid, values.end());
+  return *mid;
 }
+
+// 1.4826 * median |r|: the spread of Gaussian noise, unmoved by outliers.
+double robust_sigma(std::vector<double> abs_residuals) { return 1.4826 * median(std::move(abs_residuals)); }
 
 // ---- intensity bias -----------------------------------------------------------------
 int basis_size(int degree) { return (degree + 1) * (degree + 2) * (degree + 3) / 6; }
@@ -522,7 +563,7 @@ struct DataTerm {
 
   NodeSystem evaluate() const {
     NodeSystem halves[2] = {NodeSystem(lattice.size()), NodeSystem(lattice.size())};
-    parallel_halves(samples.size(), 4096, [&](std::size_t b, std::size_t e) { accumulate(b, e, &halves[b == 0 ? 0 : 1]); });
+    on_two_halves(samples.size(), [&](std::size_t b, std::size_t e, std::size_t half) { accumulate(b, e, &halves[half]); });
     halves[0].add(halves[1]);
     return std::move(halves[0]);
   }
@@ -714,14 +755,14 @@ CorrectionStats apply_correction(VectorImage3& u, const Lattice& l, const ImageF
   const std::size_t slice = static_cast<std::size_t>(probe.nx()) * probe.ny();
   std::vector<Vec3f> refined(slice * nz);
   CorrectionStats halves[2];
-  parallel_halves(static_cast<std::size_t>(nz), 4, [&](std::size_t begin, std::size_t end) {
+  on_two_halves(static_cast<std::size_t>(nz), [&](std::size_t begin, std::size_t end, std::size_t half) {
     const Composer composer(u, l, sdf_mm, box, fade_mm);
     for (std::size_t z = begin; z < end; ++z)
       for (int y = 0; y < composer.ny(); ++y)
         composer.row(box.lo[1] + y, box.lo[2] + static_cast<int>(z), &refined[z * slice + y * composer.nx()],
-                     &halves[begin == 0 ? 0 : 1]);
+                     &halves[half]);
   });
-  parallel_halves(static_cast<std::size_t>(nz), 4, [&](std::size_t begin, std::size_t end) {
+  on_two_halves(static_cast<std::size_t>(nz), [&](std::size_t begin, std::size_t end, std::size_t) {
     for (std::size_t z = begin; z < end; ++z)
       for (int y = 0; y < probe.ny(); ++y)
         std::copy_n(&refined[z * slice + y * probe.nx()], probe.nx(),
@@ -751,7 +792,7 @@ double median_intensity(const std::vector<Sample>& s) {
   std::vector<double> v;
   v.reserve(s.size());
   for (const Sample& x : s) v.push_back(x.intensity);
-  return robust_sigma(v) / 1.4826;  // the median of non-negative values
+  return median(std::move(v));
 }
 
 // The Gauss-Newton loop on the motion samples; returns the iterations done.
@@ -836,44 +877,29 @@ IntensityRefinementReport refine_with_intensity(VectorImage3& pullback_mm, const
   validate(p);
   check_inputs(pullback_mm, input);
   IntensityRefinementReport report;
-  const Grid3& grid = pullback_mm.grid;
   const Boxes boxes = find_boxes(input.brain_sdf_mm, input.intraop_labels, input.background_label, p.outside_fade_mm);
-  const VoxelBox& box = boxes.region;
-  if (box.empty) {
+  if (boxes.region.empty) {
     report.skipped_reason = "no brain region in the intraop labels";
     return report;
   }
-  Lattice lattice(box, grid, p.lattice_spacing_mm);
+  Lattice lattice(boxes.region, pullback_mm.grid, p.lattice_spacing_mm);
   const LinearSampler preop(input.preop_t1);
-  const InternalForeignDistance foreign(input.intraop_labels, input.brain_sdf_mm, input.background_label,
-                                        boxes.foreign, p.boundary_margin_mm);
-  SamplingContext ctx{pullback_mm, input, p, lattice, preop, foreign, std::vector<std::uint8_t>(65536, 0), {}, box,
-                      grid.voxel_from_world().topLeftCorner<3, 3>()};
-  for (auto l : input.tissue_labels) ctx.tissue[l] = 1;
-  const Vec3 voxel_mm = grid.spacing_mm();
-  for (int a = 0; a < 3; ++a) ctx.stride[a] = std::max(1, static_cast<int>(std::lround(p.sample_spacing_mm / voxel_mm[a])));
-
-  const std::vector<Candidate> candidates = collect_candidates(ctx);
-  report.candidates = candidates.size();
-  const double voxel_volume_mm3 = std::abs(grid.world_from_voxel.topLeftCorner<3, 3>().determinant());
-  const double tissue_mm3 = static_cast<double>(candidates.size()) * ctx.stride[0] * ctx.stride[1] * ctx.stride[2] *
-                            voxel_volume_mm3;
-  std::vector<Sample> motion, bias_samples;
-  select_samples(ctx, candidates, p.max_samples, &motion, &bias_samples);
-  report.samples = motion.size();
-  report.bias_samples = bias_samples.size();
-  if (motion.size() < 1000) {
-    report.skipped_reason = "too few tissue samples away from the boundary (" + std::to_string(motion.size()) + ")";
+  Samples samples = prepare_samples(pullback_mm, input, p, lattice, preop, boxes);
+  report.candidates = samples.candidates;
+  report.samples = samples.motion.size();
+  report.bias_samples = samples.bias.size();
+  if (samples.motion.size() < 1000) {
+    report.skipped_reason = "too few tissue samples away from the boundary (" + std::to_string(report.samples) + ")";
     return report;
   }
   report.sampling_seconds = clock.seconds();
-  const double median = std::max(median_intensity(bias_samples), 1e-12);
-  const double density = static_cast<double>(motion.size()) / tissue_mm3;
-  report.iterations = optimise(lattice, motion, bias_samples, preop, p, density, 1e-3 * median, &report);
+  const double median = std::max(median_intensity(samples.bias), 1e-12);
+  report.iterations = optimise(lattice, samples.motion, samples.bias, preop, p, samples.density_per_mm3,
+                               1e-3 * median, &report);
   report.optimise_seconds = clock.seconds() - report.sampling_seconds;
   report.rms_residual_before /= median;
   report.rms_residual_after /= median;
-  const CorrectionStats st = apply_correction(pullback_mm, lattice, input.brain_sdf_mm, box, p.outside_fade_mm);
+  const CorrectionStats st = apply_correction(pullback_mm, lattice, input.brain_sdf_mm, boxes.region, p.outside_fade_mm);
   report.applied = true;
   report.max_correction_mm = st.max_mm;
   report.mean_correction_mm = st.voxels ? st.sum_mm / static_cast<double>(st.voxels) : 0.0;

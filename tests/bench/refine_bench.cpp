@@ -3,10 +3,14 @@
 // parameter variant refines a copy of that field. TRE, the refinement's
 // seconds and the Jacobian of the refined field per case and variant.
 //   brainshift_refine_bench [--atlas-cache DIR] [--variant "key=value;key=value"]...
-//                           [--blur-slices] [--repeat N]
+//                           [--blur-slices] [--extra-noise F] [--gamma G] [--shuffle-brain] [--repeat N]
 // A variant holds [intensity] keys of brainshiftd.toml; "" is the defaults.
 // --blur-slices smooths the intraop T1 across slices ([1 2 1]/4): a thicker
 // slice profile than the phantom's point sampling, as a robustness check.
+// The other degradations: --extra-noise adds Gaussian noise of F times the
+// brain's 99th percentile; --gamma maps I -> p99 (I / p99)^G (a contrast the
+// bias model cannot express); --shuffle-brain permutes the intensities of the
+// brain voxels (an image that says nothing: the refinement must not move much).
 // --repeat refines each case N times: the seconds are the fastest and the
 // median run (the VM is shared; the fastest is the least disturbed).
 #include <mpi.h>
@@ -15,6 +19,7 @@
 #include <algorithm>
 #include <cstdio>
 #include <ctime>
+#include <random>
 
 #include "atlas/default_atlas.h"
 #include "config_file.h"
@@ -59,6 +64,32 @@ double process_cpu_seconds() {
   return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
 }
 
+float brain_p99(const PhantomCase& c) {
+  std::vector<float> v;
+  for (std::size_t i = 0; i < c.intraop_t1.voxels.size(); ++i)
+    if (c.intraop_labels.voxels[i]) v.push_back(c.intraop_t1.voxels[i]);
+  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(0.99 * v.size()), v.end());
+  return v[static_cast<std::size_t>(0.99 * v.size())];
+}
+
+void degrade(PhantomCase& c, double noise, double gamma, bool shuffle, std::uint64_t seed) {
+  const float p99 = brain_p99(c);
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> normal(0.0, noise * p99);
+  for (auto& v : c.intraop_t1.voxels) {
+    if (gamma != 1.0) v = static_cast<float>(p99 * std::pow(std::max(0.f, v) / p99, gamma));
+    if (noise > 0) v = static_cast<float>(std::abs(v + normal(rng)));
+  }
+  if (!shuffle) return;
+  std::vector<std::size_t> brain;
+  for (std::size_t i = 0; i < c.intraop_t1.voxels.size(); ++i)
+    if (c.intraop_labels.voxels[i]) brain.push_back(i);
+  std::vector<float> values;
+  for (auto i : brain) values.push_back(c.intraop_t1.voxels[i]);
+  std::shuffle(values.begin(), values.end(), rng);
+  for (std::size_t n = 0; n < brain.size(); ++n) c.intraop_t1.voxels[brain[n]] = values[n];
+}
+
 std::vector<Eigen::Vector3d> column(const PhantomCase& c, bool preop) {
   std::vector<Eigen::Vector3d> out;
   for (const auto& [x, p] : c.landmarks_intraop_preop_mm) out.push_back(preop ? p : x);
@@ -70,13 +101,17 @@ std::vector<Eigen::Vector3d> column(const PhantomCase& c, bool preop) {
 int main(int argc, char** argv) {
   std::string atlas_cache = "brainshift-atlas";
   std::vector<std::string> variants;
-  bool blur = false;
+  bool blur = false, shuffle = false;
+  double noise = 0, gamma = 1;
   int repeat = 1;
   CLI::App app("replays the intensity refinement on the phantom suite");
   app.add_option("--atlas-cache", atlas_cache);
   app.add_option("--variant", variants, "[intensity] keys, ';'-separated");
   app.add_flag("--blur-slices", blur);
   app.add_option("--repeat", repeat);
+  app.add_option("--extra-noise", noise);
+  app.add_option("--gamma", gamma);
+  app.add_flag("--shuffle-brain", shuffle);
   CLI11_PARSE(app, argc, argv);
   if (variants.empty()) variants.push_back("");
 
@@ -103,6 +138,7 @@ int main(int argc, char** argv) {
     c.name = spec.name;
     c.phantom = make_phantom(session.preop().t1, session.preop().labels, spec);
     if (blur) c.phantom.intraop_t1 = blurred_across_slices(c.phantom.intraop_t1);
+    degrade(c.phantom, noise, gamma, shuffle, spec.seed);
     ScanResult r = session.register_scan(IntraopInput{c.phantom.intraop_labels, c.phantom.intraop_t1}, nullptr, true);
     c.fallback = r.kind != ResultKind::nonrigid;
     c.field = std::move(r.pullback_field_mm);
