@@ -156,6 +156,29 @@ void read_surface(const toml::table& root, const char* which, const std::string&
   s.finish();
 }
 
+// Ranges are the engine's (validation_error names the key); checked here too
+// so a bad value is refused when the file is read, not at the first scan.
+void read_intensity(const toml::table& root, const std::string& src, IntensityRefinementParameters& p) {
+  Section s(sub(root, "intensity"), "intensity", src);
+  s.read("enabled", p.enabled);
+  s.read("lattice_spacing_mm", p.lattice_spacing_mm);
+  s.read("iterations", p.iterations);
+  s.read("convergence_mm", p.convergence_mm);
+  s.read("membrane_weight", p.membrane_weight);
+  s.read("shrink_weight_per_mm2", p.shrink_weight_per_mm2);
+  s.read("max_correction_mm", p.max_correction_mm);
+  s.read("max_step_mm", p.max_step_mm);
+  s.read("sample_spacing_mm", p.sample_spacing_mm);
+  s.read("max_samples", p.max_samples);
+  s.read("boundary_margin_mm", p.boundary_margin_mm);
+  s.read("robust_scale", p.robust_scale);
+  s.read("bias_degree", p.bias_degree);
+  s.read("outside_fade_mm", p.outside_fade_mm);
+  s.finish();
+  const std::string error = validation_error(p);
+  if (!error.empty()) throw InputError(src + ": [intensity] " + error);
+}
+
 void read_rest(const toml::table& root, const std::string& src, PipelineParameters& p) {
   Section field(sub(root, "field"), "field", src);
   field.read("blend_distance_mm", p.field.blend_distance_mm);
@@ -209,7 +232,7 @@ LabelTable label_table_from(const toml::table& root, const std::string& src) {
 PipelineParameters parameters_from(const toml::table& root, const std::string& src,
                                    const std::filesystem::path* base_dir) {
   static const std::set<std::string> sections = {"server", "security", "mesh", "elastic", "affine", "surface",
-                                                 "field", "models", "gates", "limits", "label"};
+                                                 "field", "intensity", "models", "gates", "limits", "label"};
   for (const auto& [key, value] : root)
     if (!sections.count(std::string(key.str())) && key.str() != "label_table")
       throw InputError(src + ": unknown top-level key or section \"" + std::string(key.str()) + "\"");
@@ -234,6 +257,7 @@ PipelineParameters parameters_from(const toml::table& root, const std::string& s
   read_surface(root, "resection", src, p.resection_surface, &p.min_resection_cavity_ml);
   if (!(p.min_resection_cavity_ml > 0))
     throw InputError(src + ": [surface.resection] min_cavity_ml must be > 0");
+  read_intensity(root, src, p.intensity);
   read_rest(root, src, p);
   return p;
 }

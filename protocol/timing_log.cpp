@@ -36,8 +36,8 @@ std::string_view to_string(StageScope scope) {
 
 bool is_known_stage(StageScope scope, std::string_view stage) {
   static const std::vector<std::string_view> preop{"atlas", "mesh", "assemble", "factorise", "total"};
-  static const std::vector<std::string_view> intraop{"read",  "affine", "surface", "solve",
-                                                     "field", "warp",   "models",  "total"};
+  static const std::vector<std::string_view> intraop{"read", "affine", "surface", "solve",  "field",
+                                                     "refine", "warp", "models", "total"};
   const auto& names = scope == StageScope::kPreop ? preop : intraop;
   return std::find(names.begin(), names.end(), stage) != names.end();
 }

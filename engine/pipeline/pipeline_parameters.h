@@ -12,6 +12,7 @@
 #include "pipeline/label_table.h"
 #include "registration/active_surface.h"
 #include "registration/affine_registration.h"
+#include "registration/intensity_refinement.h"
 
 namespace brainshift {
 
@@ -41,6 +42,8 @@ struct PipelineParameters {
   // structure means it was resected (smaller holes are segmentation noise).
   double min_resection_cavity_ml = 0.1;
   FieldParameters field;
+  // Interior correction from the intraop T1 after the solve (skipped without one).
+  IntensityRefinementParameters intensity;
   UnfoldParameters unfold;  // local repair tried before the fold gate refuses a field
   ModelParameters models;
   QualityGates gates;

@@ -73,3 +73,51 @@ TEST(Config, LabelTableValidation) {
                 .label_table.resectable_labels(),
             std::vector<std::uint16_t>{4});
 }
+
+TEST(Config, IntensitySectionDefaultsMatchTheEngineAndOverride) {
+  const auto file = config::pipeline_parameters_from_text(config::default_config_text(), "built-in").intensity;
+  const IntensityRefinementParameters code;  // the file documents the engine's defaults, not other values
+  EXPECT_EQ(file.enabled, code.enabled);
+  EXPECT_DOUBLE_EQ(file.lattice_spacing_mm, code.lattice_spacing_mm);
+  EXPECT_EQ(file.iterations, code.iterations);
+  EXPECT_DOUBLE_EQ(file.convergence_mm, code.convergence_mm);
+  EXPECT_DOUBLE_EQ(file.membrane_weight, code.membrane_weight);
+  EXPECT_DOUBLE_EQ(file.shrink_weight_per_mm2, code.shrink_weight_per_mm2);
+  EXPECT_DOUBLE_EQ(file.max_correction_mm, code.max_correction_mm);
+  EXPECT_DOUBLE_EQ(file.max_step_mm, code.max_step_mm);
+  EXPECT_DOUBLE_EQ(file.sample_spacing_mm, code.sample_spacing_mm);
+  EXPECT_EQ(file.max_samples, code.max_samples);
+  EXPECT_DOUBLE_EQ(file.boundary_margin_mm, code.boundary_margin_mm);
+  EXPECT_DOUBLE_EQ(file.robust_scale, code.robust_scale);
+  EXPECT_EQ(file.bias_degree, code.bias_degree);
+  EXPECT_DOUBLE_EQ(file.outside_fade_mm, code.outside_fade_mm);
+
+  const auto p = config::pipeline_parameters_from_text(
+      "[intensity]\nenabled = false\nlattice_spacing_mm = 6.0\niterations = 4\nmax_samples = 20000\nbias_degree = 0\n",
+      "t").intensity;
+  EXPECT_FALSE(p.enabled);
+  EXPECT_DOUBLE_EQ(p.lattice_spacing_mm, 6.0);
+  EXPECT_EQ(p.iterations, 4);
+  EXPECT_EQ(p.max_samples, 20000u);
+  EXPECT_EQ(p.bias_degree, 0);
+}
+
+TEST(Config, BadIntensityValuesAreErrorsNamingSectionAndKey) {
+  auto message_of = [](const std::string& text) {
+    try {
+      config::pipeline_parameters_from_text(text, "bad.toml");
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  const std::string spacing = message_of("[intensity]\nlattice_spacing_mm = 0.5\n");
+  EXPECT_NE(spacing.find("bad.toml"), std::string::npos) << spacing;
+  EXPECT_NE(spacing.find("[intensity]"), std::string::npos) << spacing;
+  EXPECT_NE(spacing.find("lattice_spacing_mm"), std::string::npos) << spacing;
+  EXPECT_NE(message_of("[intensity]\nbias_degree = 5\n").find("bias_degree"), std::string::npos);
+  EXPECT_NE(message_of("[intensity]\nshrink_weight_per_mm2 = 0.0\n").find("shrink_weight_per_mm2"), std::string::npos);
+  EXPECT_NE(message_of("[intensity]\nmax_samples = -3\n").find("max_samples"), std::string::npos);
+  EXPECT_NE(message_of("[intensity]\nlatice_spacing_mm = 8.0\n").find("latice_spacing_mm"), std::string::npos);
+  EXPECT_NE(message_of("[intensity]\nenabled = \"yes\"\n").find("enabled"), std::string::npos);
+}

@@ -3,11 +3,13 @@
 // deformation is analytic (not our elastic model), so the truth is
 // independent of the method under test.
 //
-// The bounds are what the method reaches today, kept as a guard against
-// regressions; the project's targets (issue "Registration pipeline": mean TRE
-// <= 1.0 mm, p95 <= 2.5 mm, >= 80 % of the error removed) are stricter and are
-// tracked in docs/PERFORMANCE.md, not asserted here. Measured on this suite:
-// mean 0.96 mm, worst case p95 4.4 mm (resection collapse), 75 % removed.
+// The bounds are what the method reaches today with a margin, kept as a guard
+// against regressions; the project's targets (issue "Registration pipeline":
+// mean TRE <= 1.0 mm, p95 <= 2.5 mm, >= 80 % of the error removed) are
+// tracked in docs/PERFORMANCE.md. Measured on this suite with the intensity
+// refinement: mean 0.34 mm (worst case 0.54), p95 over all landmarks 1.06 mm,
+// worst case p95 3.2 mm (resection collapse), 91 % removed; without it 0.96,
+// 2.51, 4.4 mm and 75 %.
 #include <gtest/gtest.h>
 #include <mpi.h>
 
@@ -65,16 +67,18 @@ TEST(PhantomAccuracy, StandardSuiteOnColin27) {
                 c.name.c_str(), c.uncorrected_mean_mm, c.affine_mean_mm, c.nonrigid_mean_mm,
                 c.nonrigid_p95_mm, c.nonrigid_max_mm, c.intraop_total_seconds, c.fallback ? " FALLBACK" : "");
     EXPECT_FALSE(c.fallback) << c.name << ": " << c.metrics.dump();
-    EXPECT_LE(c.nonrigid_mean_mm, c.affine_mean_mm + 0.4) << c.name << ": clearly worse than the affine alone";
-    EXPECT_LE(c.nonrigid_mean_mm, 1.5) << c.name;
-    EXPECT_LE(c.nonrigid_p95_mm, 5.5) << c.name;
+    EXPECT_EQ(c.metrics["refine"]["applied"], true) << c.name << ": " << c.metrics["refine"].dump();
+    EXPECT_LE(c.nonrigid_mean_mm, 0.7 * c.affine_mean_mm) << c.name << ": not clearly better than the affine alone";
+    EXPECT_LE(c.nonrigid_mean_mm, 0.8) << c.name;
+    EXPECT_LE(c.nonrigid_p95_mm, 4.0) << c.name;
   }
   const auto s = evaluation::summarise(cases);
   std::printf("suite: mean TRE %.2f mm (affine %.2f, uncorrected %.2f), p95 over all landmarks %.2f mm, worst case p95 %.2f mm, %.0f %% of the error removed\n",
               s.mean_mm, s.affine_mean_mm, s.uncorrected_mean_mm, s.pooled_p95_mm, s.p95_mm, 100 * s.removed_fraction);
-  EXPECT_LE(s.mean_mm, 1.1);
-  EXPECT_LT(s.mean_mm, 0.9 * s.affine_mean_mm) << "the non-rigid step must beat the affine over the suite";
-  EXPECT_GE(s.removed_fraction, 0.7);
+  EXPECT_LE(s.mean_mm, 0.5);
+  EXPECT_LE(s.pooled_p95_mm, 1.5);
+  EXPECT_LT(s.mean_mm, 0.5 * s.affine_mean_mm) << "the non-rigid step must beat the affine over the suite";
+  EXPECT_GE(s.removed_fraction, 0.85);
   if (const char* out = std::getenv("BRAINSHIFT_ACCURACY_JSON")) {
     FILE* f = std::fopen(out, "w");
     if (f) {

@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <functional>
@@ -233,6 +234,33 @@ TEST_F(PipelineTest, TheSunkenScanIsANonRigidResultWithSoundSurfaces) {
     EXPECT_EQ(m["self_intersections"], 0) << name;
   }
   EXPECT_GT(r.metrics["jacobian"]["min"].get<double>(), 0.0);
+}
+
+TEST_F(PipelineTest, WithoutAnIntraopImageTheRefinementIsSkippedAndTheFieldUntouched) {
+  IntraopInput labels_only = sunken_scan(*preop_);
+  labels_only.t1.reset();
+  const ScanResult skipped = register_with(*preop_, session_->mesh(), labels_only, [](PipelineParameters&) {});
+  ASSERT_EQ(skipped.kind, ResultKind::nonrigid) << skipped.fallback_reason;
+  EXPECT_EQ(skipped.metrics["refine"]["applied"], false);
+  EXPECT_EQ(skipped.metrics["refine"]["skipped"], "no intraop image");
+  EXPECT_TRUE(skipped.timings["intraop"].contains("refine"));
+  const ScanResult disabled = register_with(*preop_, session_->mesh(), labels_only,
+                                            [](PipelineParameters& p) { p.intensity.enabled = false; });
+  EXPECT_EQ(disabled.metrics["refine"]["skipped"], "disabled");
+  const auto& a = skipped.pullback_field_mm.vectors;
+  const auto& b = disabled.pullback_field_mm.vectors;
+  ASSERT_EQ(a.size(), b.size());
+  EXPECT_EQ(std::memcmp(a.data(), b.data(), a.size() * sizeof(a[0])), 0) << "the field is not bit-identical";
+  // The same scan with its image: the stage runs and reports what it did.
+  const ScanResult refined = register_with(*preop_, session_->mesh(), sunken_scan(*preop_), [](PipelineParameters&) {});
+  ASSERT_EQ(refined.kind, ResultKind::nonrigid) << refined.fallback_reason;
+  const auto& m = refined.metrics["refine"];
+  EXPECT_EQ(m["applied"], true) << m.dump();
+  EXPECT_GT(m["samples"].get<std::size_t>(), 1000u);
+  EXPECT_GT(m["iterations"].get<int>(), 0);
+  EXPECT_LE(m["rms_residual_after"].get<double>(), m["rms_residual_before"].get<double>());
+  EXPECT_TRUE(m.contains("bias_model"));
+  EXPECT_NE(std::memcmp(refined.pullback_field_mm.vectors.data(), a.data(), a.size() * sizeof(a[0])), 0);
 }
 
 TEST_F(PipelineTest, AnAffineThatDoesNotConvergeIsReportedAndFallsBack) {

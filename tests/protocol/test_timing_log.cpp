@@ -68,6 +68,7 @@ TEST(TimingLog, KnownStages) {
   EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kPreop, "factorise"));
   EXPECT_FALSE(bp::is_known_stage(bp::StageScope::kPreop, "affine"));
   EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kIntraop, "models"));
+  EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kIntraop, "refine"));
 }
 
 TEST(TimingLog, FileGetsOneLinePerStage) {

@@ -1,0 +1,130 @@
+#pragma once
+// Intensity-based refinement of the brain's interior after the elastic solve.
+//
+// Why: the FEM gets boundary data only from the outer brain surface and the
+// ventricle walls; the tissue in between follows the elastic model, which
+// with perfect boundary data still leaves 0.4-1.3 mm (docs/PERFORMANCE.md
+// section 3). The intraop T1 carries the interior's own evidence (grey/white
+// matter edges, deep nuclei, the ventricle walls as the scanner sees them).
+//
+// What: a smooth correction v is added to the pull-back u (x + u(x) is the
+// preop point) so that the preop T1 at x + u + v matches the intraop T1 at x,
+// up to a smooth intensity bias:
+//   I(x) ~ b(x) P(x + u(x) + v(x)) + d
+// I intraop T1, P preop T1 (trilinear), b a low-order polynomial over the
+// brain (receive-coil bias and the scanners' different global scales), d a
+// constant (noise floor, black level). v is trilinear on a coarse control
+// lattice aligned with the intraop voxel axes (isotropic spacing in mm); it is
+// used inside the brain region and fades to 0 outside it, where the field is
+// the FEM's continuation that fades to the affine. It is composed with the
+// FEM's pull-back, not added to it: u'(x) = v(x) + u(x + v(x)), so the
+// Jacobian determinants multiply and the correction cannot fold an element
+// the FEM compressed strongly (see apply_correction in the .cpp).
+//
+// Cost (Gauss-Newton with iteratively reweighted least squares):
+//   sum_s w_s rho(r_s / sigma)                      image, robust (Geman-McClure)
+//   + membrane * density * int |grad v|^2 dV         smoothness
+//   + shrink * density * int |v|^2 dV                trust the FEM where the image is silent
+// density = samples per mm^3, so the balance between the image and the priors
+// does not depend on how many samples are drawn. The samples are intraop
+// tissue voxels (not ventricles, background or a resection cavity), those with
+// the strongest preop gradient first, down-weighted near the outer boundary
+// and near background/cavity voxels: there the intraop intensity (fluid in a
+// gap or cavity, dura, skull) does not follow the brain.
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json_fwd.hpp>
+
+#include "core/image.h"
+
+namespace brainshift {
+
+struct IntensityRefinementParameters {
+  bool enabled = true;
+  // Control lattice spacing (mm). The elastic model's interior error varies
+  // over centimetres (it comes from boundary data far away); 8 mm resolves
+  // that with ~10-20 samples per cell and stays far above the scale of the
+  // image noise. (6 and 10 mm give the same accuracy on the phantom suite.)
+  double lattice_spacing_mm = 8.0;
+  // Gauss-Newton iterations at most (each one pass over the samples); stops
+  // earlier when no node moves by more than convergence_mm.
+  int iterations = 10;
+  double convergence_mm = 0.01;
+  // Membrane weight (dimensionless; see the cost above). The image alone
+  // decides features larger than about sqrt(membrane / typical image
+  // curvature) ~ 3-4 mm; the lattice limits the rest.
+  double membrane_weight = 20.0;
+  // Pull toward v = 0 (1/mm^2). Where the image has no edges v decays back to
+  // the FEM's answer over sqrt(membrane / shrink) ~ 30 mm.
+  double shrink_weight_per_mm2 = 0.02;
+  // Bounds on the correction v (mm, the move of the intraop point; the change
+  // of u can be somewhat larger where the FEM stretches the tissue): the
+  // surfaces already agree with the segmentation; the image refines the
+  // interior, it does not replace the model. max_step_mm is a trust region
+  // per Gauss-Newton step (the trilinear preop image is only linear within a
+  // voxel).
+  double max_correction_mm = 3.0;
+  double max_step_mm = 1.0;
+  // Sampling: candidates on a grid of about this spacing (mm), at most
+  // max_samples of them kept, strongest preop gradient first (about a
+  // quarter of the brain's candidates; the time per iteration is linear in it).
+  double sample_spacing_mm = 2.0;
+  std::size_t max_samples = 40000;
+  // Samples closer than half this to the outer boundary or to a background
+  // or cavity voxel are dropped, weight ramps to 1 at this distance (mm):
+  // ~2-3x the segmentation's boundary noise.
+  double boundary_margin_mm = 4.0;
+  // Geman-McClure scale in units of the robust residual spread (1.4826 MAD):
+  // residuals far beyond it (fluid where tissue was, a lesion) stop pulling.
+  double robust_scale = 3.0;
+  // Degree of the multiplicative bias polynomial b (0 = global scale only).
+  int bias_degree = 2;
+  // Distance (mm) outside the brain region over which v fades to 0.
+  double outside_fade_mm = 8.0;
+};
+
+// What is wrong with the parameters, naming the key ("" when they are valid),
+// and the same as an InputError.
+std::string validation_error(const IntensityRefinementParameters& p);
+void validate(const IntensityRefinementParameters& p);
+
+struct IntensityRefinementInput {
+  const ImageF& intraop_t1;          // on the field's grid
+  const LabelImage& intraop_labels;  // on the field's grid
+  // Signed distance (mm) to the intraop brain region (all labels, enclosed
+  // holes filled), negative inside; on the field's grid.
+  const ImageF& brain_sdf_mm;
+  const ImageF& preop_t1;  // any grid, world RAS+ mm
+  // Labels whose voxels are tissue that moves with the brain and is sampled.
+  std::vector<std::uint16_t> tissue_labels;
+  // Label of voxels whose intensity does not follow the brain (outside, a
+  // resection cavity): samples keep boundary_margin_mm away from them.
+  std::uint16_t background_label = 0;
+};
+
+struct IntensityRefinementReport {
+  bool applied = false;
+  std::string skipped_reason;  // when not applied
+  int iterations = 0;
+  std::size_t candidates = 0, samples = 0, bias_samples = 0;
+  // RMS of the intensity residual over the samples, relative to the median
+  // intraop tissue intensity: with v = 0 and after the refinement.
+  double rms_residual_before = 0, rms_residual_after = 0;
+  double max_correction_mm = 0, mean_correction_mm = 0;  // |u' - u| inside the brain region
+  std::string bias_model;
+  double seconds = 0;  // whole stage; and its parts:
+  double sampling_seconds = 0, optimise_seconds = 0, apply_seconds = 0;
+};
+
+void to_json(nlohmann::json& j, const IntensityRefinementReport& r);
+
+// Adds the correction to pullback_mm in place. The report says why nothing
+// was done when too few samples exist; InputError when the inputs' grids
+// disagree or the parameters are invalid.
+IntensityRefinementReport refine_with_intensity(VectorImage3& pullback_mm, const IntensityRefinementInput& input,
+                                                const IntensityRefinementParameters& p);
+
+}  // namespace brainshift
