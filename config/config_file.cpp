@@ -174,6 +174,7 @@ void read_intensity(const toml::table& root, const std::string& src, IntensityRe
   s.read("robust_scale", p.robust_scale);
   s.read("bias_degree", p.bias_degree);
   s.read("outside_fade_mm", p.outside_fade_mm);
+  s.read("min_explained_variance", p.min_explained_variance);
   s.finish();
   const std::string error = validation_error(p);
   if (!error.empty()) throw InputError(src + ": [intensity] " + error);

@@ -4,6 +4,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <sstream>
 
 #include <nlohmann/json.hpp>
@@ -414,6 +415,7 @@ struct BiasModel {
   int degree = 0;
   Eigen::VectorXd coef = Eigen::VectorXd::Ones(1);  // of b(x)
   double offset = 0;                                 // d
+  double explained = 0;  // share of the intensity variance the fit explains (weighted R^2)
   double at(const Eigen::Vector3f& q) const {
     double basis[20];
     bias_basis(q, degree, basis);
@@ -461,10 +463,27 @@ bool solve_bias(const std::vector<Sample>& s, const std::vector<double>& preop, 
   return true;
 }
 
+// Weighted R^2 of the fit: 1 - sum w r^2 / sum w (I - mean I)^2.
+double explained_variance(const std::vector<Sample>& s, const std::vector<double>& preop,
+                          const std::vector<double>& w, const BiasModel& m) {
+  double sw = 0, swi = 0;
+  for (std::size_t n = 0; n < s.size(); ++n) sw += w[n], swi += w[n] * s[n].intensity;
+  if (!(sw > 0)) return 0;
+  const double mean = swi / sw;
+  double residual = 0, total = 0;
+  for (std::size_t n = 0; n < s.size(); ++n) {
+    const double r = s[n].intensity - (m.at(s[n].poly) * preop[n] + m.offset);
+    residual += w[n] * r * r;
+    total += w[n] * (s[n].intensity - mean) * (s[n].intensity - mean);
+  }
+  return total > 0 ? 1.0 - residual / total : 0.0;
+}
+
 // Robust (reweighted) fit at the current correction; the degree drops when
-// the data cannot support it.
-BiasModel fit_bias(const std::vector<Sample>& s, const Lattice& lattice, const LinearSampler& preop,
-                   int degree, double robust_scale) {
+// the data cannot support it. nullopt when no degree gives a positive bias:
+// the intraop intensities do not follow the preop T1's (another contrast).
+std::optional<BiasModel> fit_bias(const std::vector<Sample>& s, const Lattice& lattice, const LinearSampler& preop,
+                                  int degree, double robust_scale) {
   std::vector<double> p(s.size(), 0.0), w(s.size(), 0.0);
   for (std::size_t n = 0; n < s.size(); ++n) {
     double value;
@@ -485,9 +504,11 @@ BiasModel fit_bias(const std::vector<Sample>& s, const Lattice& lattice, const L
       for (std::size_t n = 0; n < s.size(); ++n) wn[n] = w[n] * geman_mcclure_weight(r[n], scale);
       ok = solve_bias(s, p, wn, d, &m);
     }
-    if (ok) return m;
+    if (!ok) continue;
+    m.explained = explained_variance(s, p, w, m);
+    return m;
   }
-  return BiasModel{};  // b = 1, d = 0: no evidence for anything else
+  return std::nullopt;
 }
 
 std::string describe(const BiasModel& m) {
@@ -796,7 +817,23 @@ double median_intensity(const std::vector<Sample>& s) {
   return median(std::move(v));
 }
 
-// The Gauss-Newton loop on the motion samples; returns the iterations done.
+// Why the image cannot be trusted to move the field, or "" when it can: the
+// intensities must follow the preop T1's up to the bias model, and the model
+// must explain a fair share of their variance (an unrelated image, or one
+// dominated by noise, explains little and would only add noise to the field).
+std::string untrusted_image(const std::optional<BiasModel>& bias, double min_explained) {
+  if (!bias) return "the intraop intensities do not follow the preop T1 (no positive bias fits)";
+  if (bias->explained < min_explained) {
+    std::ostringstream o;
+    o << "the bias model explains only " << bias->explained << " of the intraop intensity variance (minimum "
+      << min_explained << ")";
+    return o.str();
+  }
+  return "";
+}
+
+// The Gauss-Newton loop on the motion samples; returns the iterations done,
+// 0 with report->skipped_reason set when the image is not trusted.
 int optimise(Lattice& lattice, std::vector<Sample>& motion, const std::vector<Sample>& bias_samples,
              const LinearSampler& preop, const IntensityRefinementParameters& p, double density_per_mm3,
              double sigma_floor, IntensityRefinementReport* report) {
@@ -807,15 +844,23 @@ int optimise(Lattice& lattice, std::vector<Sample>& motion, const std::vector<Sa
   int it = 0;
   for (; it < p.iterations; ++it) {
     // The bias is fitted at v = 0 and re-fitted once half way, when the
-    // edges are closer to aligned.
+    // edges are closer to aligned (the first fit stays if the second fails).
     if (it == 0 || it == p.iterations / 2) {
-      const BiasModel bias = fit_bias(bias_samples, lattice, preop, p.bias_degree, p.robust_scale);
-      update_bias(motion, bias);
-      data.offset = bias.offset;
+      const std::optional<BiasModel> bias = fit_bias(bias_samples, lattice, preop, p.bias_degree, p.robust_scale);
+      if (it == 0) {
+        report->explained_variance = bias ? bias->explained : 0.0;
+        report->skipped_reason = untrusted_image(bias, p.min_explained_variance);
+        if (!report->skipped_reason.empty()) return 0;
+      }
+      if (bias) {
+        update_bias(motion, *bias);
+        data.offset = bias->offset;
+        report->bias_model = describe(*bias);
+        report->explained_variance = bias->explained;
+      }
       const auto [spread, rms] = data.residual_spread_and_rms();
       data.sigma = std::max(spread, sigma_floor);
       if (it == 0) report->rms_residual_before = rms;
-      report->bias_model = describe(bias);
     }
     const NodeSystem sys = data.evaluate();
     const double moved = take_step(lattice, gauss_newton_step(sys, lattice, alpha, beta), p);
@@ -845,6 +890,7 @@ std::string validation_error(const IntensityRefinementParameters& p) {
   if (!(p.robust_scale > 0)) return "robust_scale must be > 0";
   if (p.bias_degree < 0 || p.bias_degree > 3) return "bias_degree must be in 0..3";
   if (!(p.outside_fade_mm >= 0)) return "outside_fade_mm must be >= 0";
+  if (!(p.min_explained_variance >= 0 && p.min_explained_variance < 1)) return "min_explained_variance must be in [0, 1)";
   return "";
 }
 
@@ -856,6 +902,7 @@ void validate(const IntensityRefinementParameters& p) {
 void to_json(nlohmann::json& j, const IntensityRefinementReport& r) {
   if (!r.applied) {
     j = {{"applied", false}, {"skipped", r.skipped_reason}};
+    if (r.explained_variance != 0) j["explained_variance"] = r.explained_variance;
     return;
   }
   j = {{"applied", true},
@@ -868,6 +915,7 @@ void to_json(nlohmann::json& j, const IntensityRefinementReport& r) {
        {"max_correction_mm", r.max_correction_mm},
        {"mean_correction_mm", r.mean_correction_mm},
        {"bias_model", r.bias_model},
+       {"explained_variance", r.explained_variance},
        {"seconds", {{"sampling", r.sampling_seconds}, {"optimise", r.optimise_seconds}, {"apply", r.apply_seconds},
                     {"total", r.seconds}}}};
 }
@@ -897,6 +945,7 @@ IntensityRefinementReport refine_with_intensity(VectorImage3& pullback_mm, const
   const double median = std::max(median_intensity(samples.bias), 1e-12);
   report.iterations = optimise(lattice, samples.motion, samples.bias, preop, p, samples.density_per_mm3,
                                1e-3 * median, &report);
+  if (!report.skipped_reason.empty()) return report;
   report.optimise_seconds = clock.seconds() - report.sampling_seconds;
   report.rms_residual_before /= median;
   report.rms_residual_after /= median;

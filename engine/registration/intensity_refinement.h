@@ -84,6 +84,16 @@ struct IntensityRefinementParameters {
   int bias_degree = 2;
   // Distance (mm) outside the brain region over which v fades to 0.
   double outside_fade_mm = 8.0;
+  // The stage is skipped (the FEM's field kept) when the bias model explains
+  // less than this share of the intraop intensity variance at the start: an
+  // image unrelated to the preop T1 carries no trustworthy motion. Measured
+  // (brainshift_refine_bench): the phantom suite 0.84-0.96; with noise of
+  // 10 / 25 / 40 % of the brain's p99 added 0.6 / 0.23 / 0.1, where the
+  // refinement still lowers the TRE (0.56 / 0.78 / 0.89 against 0.96 mm);
+  // the brain's voxels shuffled ~0. Noise alone lowers it; unrelatedness
+  // takes it to 0. (An inverted, T2-like contrast fits no positive bias and
+  // is skipped as well.)
+  double min_explained_variance = 0.1;
 };
 
 // What is wrong with the parameters, naming the key ("" when they are valid),
@@ -115,6 +125,7 @@ struct IntensityRefinementReport {
   double rms_residual_before = 0, rms_residual_after = 0;
   double max_correction_mm = 0, mean_correction_mm = 0;  // |u' - u| inside the brain region
   std::string bias_model;
+  double explained_variance = 0;  // weighted R^2 of the bias model's fit
   double seconds = 0;  // whole stage; and its parts:
   double sampling_seconds = 0, optimise_seconds = 0, apply_seconds = 0;
 };

@@ -3,7 +3,7 @@
 // parameter variant refines a copy of that field. TRE, the refinement's
 // seconds and the Jacobian of the refined field per case and variant.
 //   brainshift_refine_bench [--atlas-cache DIR] [--variant "key=value;key=value"]...
-//                           [--blur-slices] [--extra-noise F] [--gamma G] [--shuffle-brain] [--repeat N]
+//                           [--blur-slices] [--extra-noise F] [--gamma G] [--invert] [--shuffle-brain] [--repeat N]
 // A variant holds [intensity] keys of brainshiftd.toml; "" is the defaults.
 // --blur-slices smooths the intraop T1 across slices ([1 2 1]/4): a thicker
 // slice profile than the phantom's point sampling, as a robustness check.
@@ -72,8 +72,10 @@ float brain_p99(const PhantomCase& c) {
   return v[static_cast<std::size_t>(0.99 * v.size())];
 }
 
-void degrade(PhantomCase& c, double noise, double gamma, bool shuffle, std::uint64_t seed) {
+void degrade(PhantomCase& c, double noise, double gamma, bool invert, bool shuffle, std::uint64_t seed) {
   const float p99 = brain_p99(c);
+  if (invert)
+    for (auto& v : c.intraop_t1.voxels) v = std::max(0.f, p99 - v);
   std::mt19937_64 rng(seed);
   std::normal_distribution<double> normal(0.0, noise * p99);
   for (auto& v : c.intraop_t1.voxels) {
@@ -101,7 +103,7 @@ std::vector<Eigen::Vector3d> column(const PhantomCase& c, bool preop) {
 int main(int argc, char** argv) {
   std::string atlas_cache = "brainshift-atlas";
   std::vector<std::string> variants;
-  bool blur = false, shuffle = false;
+  bool blur = false, shuffle = false, invert = false;
   double noise = 0, gamma = 1;
   int repeat = 1;
   CLI::App app("replays the intensity refinement on the phantom suite");
@@ -112,6 +114,7 @@ int main(int argc, char** argv) {
   app.add_option("--extra-noise", noise);
   app.add_option("--gamma", gamma);
   app.add_flag("--shuffle-brain", shuffle);
+  app.add_flag("--invert", invert);
   CLI11_PARSE(app, argc, argv);
   if (variants.empty()) variants.push_back("");
 
@@ -138,7 +141,7 @@ int main(int argc, char** argv) {
     c.name = spec.name;
     c.phantom = make_phantom(session.preop().t1, session.preop().labels, spec);
     if (blur) c.phantom.intraop_t1 = blurred_across_slices(c.phantom.intraop_t1);
-    degrade(c.phantom, noise, gamma, shuffle, spec.seed);
+    degrade(c.phantom, noise, gamma, invert, shuffle, spec.seed);
     ScanResult r = session.register_scan(IntraopInput{c.phantom.intraop_labels, c.phantom.intraop_t1}, nullptr, true);
     c.fallback = r.kind != ResultKind::nonrigid;
     c.field = std::move(r.pullback_field_mm);
@@ -180,11 +183,12 @@ int main(int argc, char** argv) {
       sum_mean += t.mean_mm;
       pooled.insert(pooled.end(), t.errors_mm.begin(), t.errors_mm.end());
       std::printf("%-34s refine mean %5.2f p95 %5.2f max %5.2f | %.3f s it %d | |v| max %.2f mean %.2f | "
-                  "rms %.3f -> %.3f | det min %.3f -> %.3f folded %zu -> %zu | s %.3f %.3f %.3f | median %.3f cpu %.3f\n",
+                  "rms %.3f -> %.3f | det min %.3f -> %.3f folded %zu -> %zu | s %.3f %.3f %.3f | median %.3f cpu %.3f | R2 %.3f %s\n",
                   c.name.c_str(), t.mean_mm, t.p95_mm, t.max_mm, seconds.back(), rep.iterations,
                   rep.max_correction_mm, rep.mean_correction_mm, rep.rms_residual_before, rep.rms_residual_after,
                   jb.min_det, ja.min_det, jb.folded_voxels, ja.folded_voxels, rep.sampling_seconds,
-                  rep.optimise_seconds, rep.apply_seconds, runs[runs.size() / 2], cpu.front());
+                  rep.optimise_seconds, rep.apply_seconds, runs[runs.size() / 2], cpu.front(), rep.explained_variance,
+                  rep.applied ? "" : ("SKIPPED: " + rep.skipped_reason).c_str());
     }
     std::sort(seconds.begin(), seconds.end());
     std::sort(cpu_seconds.begin(), cpu_seconds.end());

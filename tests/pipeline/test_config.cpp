@@ -91,6 +91,7 @@ TEST(Config, IntensitySectionDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.robust_scale, code.robust_scale);
   EXPECT_EQ(file.bias_degree, code.bias_degree);
   EXPECT_DOUBLE_EQ(file.outside_fade_mm, code.outside_fade_mm);
+  EXPECT_DOUBLE_EQ(file.min_explained_variance, code.min_explained_variance);
 
   const auto p = config::pipeline_parameters_from_text(
       "[intensity]\nenabled = false\nlattice_spacing_mm = 6.0\niterations = 4\nmax_samples = 20000\nbias_degree = 0\n",
@@ -116,6 +117,7 @@ TEST(Config, BadIntensityValuesAreErrorsNamingSectionAndKey) {
   EXPECT_NE(spacing.find("[intensity]"), std::string::npos) << spacing;
   EXPECT_NE(spacing.find("lattice_spacing_mm"), std::string::npos) << spacing;
   EXPECT_NE(message_of("[intensity]\nbias_degree = 5\n").find("bias_degree"), std::string::npos);
+  EXPECT_NE(message_of("[intensity]\nmin_explained_variance = 1.0\n").find("min_explained_variance"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nshrink_weight_per_mm2 = 0.0\n").find("shrink_weight_per_mm2"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nmax_samples = -3\n").find("max_samples"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nlatice_spacing_mm = 8.0\n").find("latice_spacing_mm"), std::string::npos);

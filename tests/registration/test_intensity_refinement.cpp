@@ -170,6 +170,28 @@ TEST_F(IntensityRefinementTest, NoiseAndBiasAloneMoveAnIdenticalPairLittle) {
   EXPECT_LT(r.max_correction_mm, 0.6);
 }
 
+TEST_F(IntensityRefinementTest, AnImageUnrelatedToThePreopIsNotTrusted) {
+  Crop shuffled = make_crop(/*deform=*/true, 0.1, 0.03);
+  std::vector<std::size_t> brain;
+  for (std::size_t v = 0; v < shuffled.labels.voxels.size(); ++v)
+    if (shuffled.labels.voxels[v]) brain.push_back(v);
+  std::vector<float> values;
+  for (auto v : brain) values.push_back(shuffled.intraop_t1.voxels[v]);
+  std::shuffle(values.begin(), values.end(), std::mt19937_64(3));
+  for (std::size_t n = 0; n < brain.size(); ++n) shuffled.intraop_t1.voxels[brain[n]] = values[n];
+  VectorImage3 u(shuffled.labels.grid);
+  const IntensityRefinementReport r = refine(shuffled, &u);
+  EXPECT_FALSE(r.applied);
+  EXPECT_FALSE(r.skipped_reason.empty());
+  for (const auto& v : u.vectors) ASSERT_EQ(v, Eigen::Vector3f::Zero()) << "the field was changed";
+
+  Crop inverted = make_crop(/*deform=*/true, 0.1, 0.03);  // a T2-like contrast: dark tissue, bright fluid
+  for (auto& v : inverted.intraop_t1.voxels) v = std::max(0.f, static_cast<float>(p99_) - v);
+  const IntensityRefinementReport ri = refine(inverted, &u);
+  EXPECT_FALSE(ri.applied);
+  EXPECT_NE(ri.skipped_reason.find("do not follow"), std::string::npos) << ri.skipped_reason;
+}
+
 TEST_F(IntensityRefinementTest, BadInputsAreClearErrors) {
   const Crop c = make_crop(false, 0.0, 0.0);
   VectorImage3 u(c.labels.grid);
