@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <iomanip>
 #include <limits>
 #include <optional>
 #include <sstream>
@@ -425,11 +426,12 @@ struct BiasModel {
   }
 };
 
-// Weighted least squares of I ~ b(x) P + d (linear in b's coefficients and d).
-// False when the system is singular or b is not clearly positive on the samples.
+// Weighted least squares of I ~ b(x) P + d (linear in b's coefficients and
+// d; d = 0 without an offset). False when the system is singular or b is not
+// clearly positive on the samples.
 bool solve_bias(const std::vector<Sample>& s, const std::vector<double>& preop, const std::vector<double>& w,
-                int degree, BiasModel* out) {
-  const int k = basis_size(degree), m1 = k + 1;
+                int degree, bool with_offset, BiasModel* out) {
+  const int k = basis_size(degree), m1 = with_offset ? k + 1 : k;
   Eigen::MatrixXd normal = Eigen::MatrixXd::Zero(m1, m1);
   Eigen::VectorXd rhs = Eigen::VectorXd::Zero(m1);
   double row[21];
@@ -437,7 +439,7 @@ bool solve_bias(const std::vector<Sample>& s, const std::vector<double>& preop, 
     if (w[n] <= 0) continue;
     bias_basis(s[n].poly, degree, row);
     for (int a = 0; a < k; ++a) row[a] *= preop[n];
-    row[k] = 1.0;
+    if (with_offset) row[k] = 1.0;
     for (int a = 0; a < m1; ++a) {  // lower triangle, plain loops: sizes are tiny
       const double wa = w[n] * row[a];
       for (int b = 0; b <= a; ++b) normal(a, b) += wa * row[b];
@@ -451,7 +453,7 @@ bool solve_bias(const std::vector<Sample>& s, const std::vector<double>& preop, 
   BiasModel m;
   m.degree = degree;
   m.coef = x.head(k);
-  m.offset = x[k];
+  m.offset = with_offset ? x[k] : 0.0;
   double b_min = std::numeric_limits<double>::infinity(), b_sum = 0;
   for (const auto& sample : s) {
     const double b = m.at(sample.poly);
@@ -479,9 +481,30 @@ double explained_variance(const std::vector<Sample>& s, const std::vector<double
   return total > 0 ? 1.0 - residual / total : 0.0;
 }
 
-// Robust (reweighted) fit at the current correction; the degree drops when
-// the data cannot support it. nullopt when no degree gives a positive bias:
-// the intraop intensities do not follow the preop T1's (another contrast).
+// One robust (reweighted) fit of a given form; false when it fails.
+bool robust_fit(const std::vector<Sample>& s, const std::vector<double>& p, const std::vector<double>& w, int degree,
+                bool with_offset, double robust_scale, BiasModel* m) {
+  std::vector<double> wn = w;
+  bool ok = solve_bias(s, p, wn, degree, with_offset, m);
+  for (int round = 0; ok && round < 2; ++round) {
+    std::vector<double> r(s.size());
+    std::vector<double> abs_r;
+    for (std::size_t n = 0; n < s.size(); ++n) {
+      r[n] = s[n].intensity - (m->at(s[n].poly) * p[n] + m->offset);
+      if (w[n] > 0) abs_r.push_back(std::abs(r[n]));
+    }
+    const double scale = std::max(robust_scale * robust_sigma(abs_r), 1e-12);
+    for (std::size_t n = 0; n < s.size(); ++n) wn[n] = w[n] * geman_mcclure_weight(r[n], scale);
+    ok = solve_bias(s, p, wn, degree, with_offset, m);
+  }
+  return ok;
+}
+
+// The bias at the current correction: the degree drops when the data cannot
+// support it, and when even a constant b with an offset is not determined (a
+// tissue of nearly one intensity: b P and d cannot be told apart) a global
+// scale alone is fitted. nullopt when no positive bias fits at all: the
+// intraop intensities do not follow the preop T1's (another contrast).
 std::optional<BiasModel> fit_bias(const std::vector<Sample>& s, const Lattice& lattice, const LinearSampler& preop,
                                   int degree, double robust_scale) {
   std::vector<double> p(s.size(), 0.0), w(s.size(), 0.0);
@@ -489,26 +512,13 @@ std::optional<BiasModel> fit_bias(const std::vector<Sample>& s, const Lattice& l
     double value;
     if (preop.sample(s[n].preop_mm(lattice.value(s[n].cell)), &value, nullptr)) p[n] = value, w[n] = s[n].weight;
   }
-  for (int d = degree; d >= 0; --d) {
-    BiasModel m;
-    std::vector<double> wn = w;
-    bool ok = solve_bias(s, p, wn, d, &m);
-    for (int round = 0; ok && round < 2; ++round) {
-      std::vector<double> r(s.size());
-      std::vector<double> abs_r;
-      for (std::size_t n = 0; n < s.size(); ++n) {
-        r[n] = s[n].intensity - (m.at(s[n].poly) * p[n] + m.offset);
-        if (w[n] > 0) abs_r.push_back(std::abs(r[n]));
-      }
-      const double scale = std::max(robust_scale * robust_sigma(abs_r), 1e-12);
-      for (std::size_t n = 0; n < s.size(); ++n) wn[n] = w[n] * geman_mcclure_weight(r[n], scale);
-      ok = solve_bias(s, p, wn, d, &m);
-    }
-    if (!ok) continue;
-    m.explained = explained_variance(s, p, w, m);
-    return m;
-  }
-  return std::nullopt;
+  BiasModel m;
+  bool ok = false;
+  for (int d = degree; d >= 0 && !ok; --d) ok = robust_fit(s, p, w, d, true, robust_scale, &m);
+  if (!ok) ok = robust_fit(s, p, w, 0, false, robust_scale, &m);
+  if (!ok) return std::nullopt;
+  m.explained = explained_variance(s, p, w, m);
+  return m;
 }
 
 std::string describe(const BiasModel& m) {
@@ -825,8 +835,8 @@ std::string untrusted_image(const std::optional<BiasModel>& bias, double min_exp
   if (!bias) return "the intraop intensities do not follow the preop T1 (no positive bias fits)";
   if (bias->explained < min_explained) {
     std::ostringstream o;
-    o << "the bias model explains only " << bias->explained << " of the intraop intensity variance (minimum "
-      << min_explained << ")";
+    o << std::fixed << std::setprecision(2) << "the bias model explains only " << bias->explained
+      << " of the intraop intensity variance (minimum " << min_explained << ")";
     return o.str();
   }
   return "";

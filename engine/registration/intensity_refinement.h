@@ -90,9 +90,8 @@ struct IntensityRefinementParameters {
   // (brainshift_refine_bench): the phantom suite 0.84-0.96; with noise of
   // 10 / 25 / 40 % of the brain's p99 added 0.6 / 0.23 / 0.1, where the
   // refinement still lowers the TRE (0.56 / 0.78 / 0.89 against 0.96 mm);
-  // the brain's voxels shuffled ~0. Noise alone lowers it; unrelatedness
-  // takes it to 0. (An inverted, T2-like contrast fits no positive bias and
-  // is skipped as well.)
+  // the brain's voxels shuffled ~0, an inverted (T2-like) contrast < 0.
+  // Noise alone lowers it; an unrelated image takes it to 0 or below.
   double min_explained_variance = 0.1;
 };
 
