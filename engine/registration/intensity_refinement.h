@@ -7,19 +7,21 @@
 // section 3). The intraop T1 carries the interior's own evidence (grey/white
 // matter edges, deep nuclei, the ventricle walls as the scanner sees them).
 //
-// What: a smooth correction v is added to the pull-back u (x + u(x) is the
-// preop point) so that the preop T1 at x + u + v matches the intraop T1 at x,
-// up to a smooth intensity bias:
-//   I(x) ~ b(x) P(x + u(x) + v(x)) + d
+// What: a smooth correction v moves the intraop point before the FEM's
+// pull-back u maps it (x + u(x) is the preop point): u'(x) = v(x) + u(x + v(x)),
+// with v chosen so that the preop T1 at x + u'(x) matches the intraop T1 at
+// x up to a smooth intensity bias:
+//   I(x) ~ b(x) P(x + u'(x)) + d
 // I intraop T1, P preop T1 (trilinear), b a low-order polynomial over the
 // brain (receive-coil bias and the scanners' different global scales), d a
 // constant (noise floor, black level). v is trilinear on a coarse control
 // lattice aligned with the intraop voxel axes (isotropic spacing in mm); it is
 // used inside the brain region and fades to 0 outside it, where the field is
-// the FEM's continuation that fades to the affine. It is composed with the
-// FEM's pull-back, not added to it: u'(x) = v(x) + u(x + v(x)), so the
-// Jacobian determinants multiply and the correction cannot fold an element
-// the FEM compressed strongly (see apply_correction in the .cpp).
+// the FEM's continuation that fades to the affine. Composed rather than
+// added, the Jacobian determinants multiply and the correction cannot fold
+// an element the FEM compressed strongly (see apply_correction in the .cpp).
+// The optimisation linearises u(x + v) ~ u(x) + grad u(x) v at each sample;
+// the final composition is exact.
 //
 // Cost (Gauss-Newton with iteratively reweighted least squares):
 //   sum_s w_s rho(r_s / sigma)                      image, robust (Geman-McClure)
