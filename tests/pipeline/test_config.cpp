@@ -5,6 +5,20 @@
 
 using namespace brainshift;
 
+namespace {
+
+// The error message of parsing `text` as bad.toml, or "no error".
+std::string message_of(const std::string& text) {
+  try {
+    config::pipeline_parameters_from_text(text, "bad.toml");
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "no error";
+}
+
+}  // namespace
+
 TEST(Config, DefaultsParseAndMatchTheDocumentedTable) {
   const auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
   ASSERT_EQ(p.label_table.entries.size(), 4u);
@@ -28,14 +42,6 @@ TEST(Config, ValuesOverrideDefaults) {
 }
 
 TEST(Config, TyposAndBadValuesAreErrorsNamingTheKey) {
-  auto message_of = [](const std::string& text) {
-    try {
-      config::pipeline_parameters_from_text(text, "bad.toml");
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string("no error");
-  };
   EXPECT_NE(message_of("[mesh]\ncell_sise_mm = 3\n").find("cell_sise_mm"), std::string::npos);
   EXPECT_NE(message_of("[mesh]\ncell_size_mm = \"big\"\n").find("cell_size_mm"), std::string::npos);
   EXPECT_NE(message_of("[elastic]\nsolver = \"magic\"\n").find("magic"), std::string::npos);
@@ -104,14 +110,6 @@ TEST(Config, IntensitySectionDefaultsMatchTheEngineAndOverride) {
 }
 
 TEST(Config, BadIntensityValuesAreErrorsNamingSectionAndKey) {
-  auto message_of = [](const std::string& text) {
-    try {
-      config::pipeline_parameters_from_text(text, "bad.toml");
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string("no error");
-  };
   const std::string spacing = message_of("[intensity]\nlattice_spacing_mm = 0.5\n");
   EXPECT_NE(spacing.find("bad.toml"), std::string::npos) << spacing;
   EXPECT_NE(spacing.find("[intensity]"), std::string::npos) << spacing;
