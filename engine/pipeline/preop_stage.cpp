@@ -2,6 +2,7 @@
 // samples, surface models bound to the mesh. Minutes are allowed here; every
 // per-scan cost that can move here does.
 #include <algorithm>
+#include <map>
 
 #include "core/errors.h"
 #include "core/timer.h"
@@ -52,21 +53,24 @@ std::vector<int> index_of_nodes(std::size_t node_count, const std::vector<int>& 
 
 // Resectable labels present in the preop labels (a few voxels are noise, not
 // a structure whose removal moves the brain).
-std::vector<std::uint16_t> present_resectables(const LabelImage& labels, const LabelTable& table) {
-  std::vector<std::uint16_t> out;
-  for (const auto l : table.resectable_labels())
-    if (volume_ml(mask_of_labels(labels, {l})) >= 0.1) out.push_back(l);
+// label -> its volume (ml).
+std::map<std::uint16_t, double> present_resectables(const LabelImage& labels, const LabelTable& table) {
+  std::map<std::uint16_t, double> out;
+  for (const auto l : table.resectable_labels()) {
+    const double ml = volume_ml(mask_of_labels(labels, {l}));
+    if (ml >= 0.1) out[l] = ml;
+  }
   return out;
 }
 
 // For each resectable structure with a wall in the mesh: the wall surface and
 // a fixed-node set (the boundary plus the wall) for a system of its own.
-std::vector<ResectableWall> resectable_walls(const TetMesh& mesh, const LabelImage& labels, const LabelTable& table,
-                                             const std::vector<std::uint16_t>& present,
+std::vector<ResectableWall> resectable_walls(const TetMesh& mesh, const LabelTable& table,
+                                             const std::map<std::uint16_t, double>& present,
                                              const std::vector<int>& boundary,
                                              std::vector<std::vector<int>>& fixed_sets) {
   std::vector<ResectableWall> out;
-  for (const auto l : present) {
+  for (const auto& [l, ml] : present) {
     TriSurface wall = extract_interface_surface(mesh, l);
     if (wall.triangles.empty()) continue;  // the structure touches no other tissue
     std::vector<int> fixed = boundary;
@@ -80,7 +84,7 @@ std::vector<ResectableWall> resectable_walls(const TetMesh& mesh, const LabelIma
     r.wall = std::move(wall);
     r.system = static_cast<int>(fixed_sets.size());
     r.fixed_index_of_node = index_of_nodes(mesh.node_count(), fixed);
-    r.volume_ml = volume_ml(mask_of_labels(labels, {l}));
+    r.volume_ml = ml;
     fixed_sets.push_back(std::move(fixed));
     out.push_back(std::move(r));
   }
@@ -114,8 +118,8 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   MeshingParameters meshing = params.meshing;
   meshing.cavity_labels = table.cavity_labels();
   meshing.default_tissue_label = table.brain_label();
-  const std::vector<std::uint16_t> resectable = present_resectables(input.labels, table);
-  meshing.interface_labels = resectable;
+  const std::map<std::uint16_t, double> resectable = present_resectables(input.labels, table);
+  for (const auto& [l, ml] : resectable) meshing.interface_labels.push_back(l);
   TetMesh mesh = stored_mesh ? std::move(*stored_mesh) : mesh_label_image(input.labels, meshing);
   const double mesh_seconds = stage.lap();
   report(progress, "mesh", 1.0, mesh_seconds);
@@ -131,7 +135,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   warm->fixed_index_of_node = index_of_nodes(mesh.node_count(), fixed_nodes);
   std::vector<std::vector<int>> fixed_sets;
   fixed_sets.push_back(fixed_nodes);
-  warm->resectables = resectable_walls(mesh, input.labels, table, resectable, fixed_nodes, fixed_sets);
+  warm->resectables = resectable_walls(mesh, table, resectable, fixed_nodes, fixed_sets);
 
   report(progress, "factorise", 0.0, 0.0);
   warm->fem.drive_load(std::move(mesh), std::move(fixed_sets), elastic_options_for(params));

@@ -13,12 +13,17 @@
 namespace brainshift {
 namespace {
 
-// Non-tissue voxels enclosed by the intraop brain: resection cavity candidates.
-// An internal cavity is filled in the outline (brain_region) but carries no
-// label; sulcal CSF open to the outside is not in the outline.
-Mask enclosed_non_tissue(const LabelImage& labels, const Mask& brain_region) {
-  Mask m(brain_region.grid, 0);
-  for (std::size_t v = 0; v < m.voxels.size(); ++v) m.voxels[v] = brain_region.voxels[v] && labels.voxels[v] == 0;
+// Non-tissue voxels enclosed by the intraop brain, within the box: resection
+// cavity candidates. An internal cavity is filled in the outline
+// (brain_region) but carries no label; sulcal CSF open to the outside is not
+// in the outline. Only the box is scanned: this runs on every scan.
+Mask enclosed_non_tissue(const LabelImage& labels, const Mask& brain_region, const VoxelBox& box) {
+  Mask m = crop_to_box(brain_region, box);
+  std::size_t v = 0;
+  for (int k = box.lo[2]; k <= box.hi[2]; ++k)
+    for (int j = box.lo[1]; j <= box.hi[1]; ++j)
+      for (int i = box.lo[0]; i <= box.hi[0]; ++i, ++v)
+        if (labels.at(i, j, k) != 0) m.voxels[v] = 0;
   return m;
 }
 
@@ -91,16 +96,15 @@ ResectionMatch match_resection(const WarmState& warm, const IntraopInput& input,
   ResectionMatch out;
   if (warm.resectables.empty()) return out;
   Stopwatch watch;
-  const Mask holes = enclosed_non_tissue(input.labels, brain_region);
   // The structure whose neighbourhood holds the largest cavity.
   Candidate best;
   for (const auto& r : warm.resectables) {
     Candidate c{&r, wall_after_first_solve(r, A, nonrigid_mm), {}, 0};
-    const VoxelBox box = box_around(c.start.vertices_mm, holes.grid, 10.0);
+    const VoxelBox box = box_around(c.start.vertices_mm, brain_region.grid, 10.0);
     nlohmann::json& m = out.metrics["structures"][r.name];
     m = {{"preop_volume_ml", r.volume_ml}, {"cavity_ml", 0.0}, {"resected", false}};
     if (box.empty) continue;
-    c.cavity = crop_to_box(holes, box);
+    c.cavity = enclosed_non_tissue(input.labels, brain_region, box);
     c.cavity_ml = volume_ml(c.cavity);
     m["cavity_ml"] = c.cavity_ml;
     if (c.cavity_ml >= params.min_resection_cavity_ml && c.cavity_ml > best.cavity_ml) best = std::move(c);
