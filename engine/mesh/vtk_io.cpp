@@ -54,6 +54,16 @@ void write_vectors(TextOut& os, const std::string& name, const std::vector<Eigen
   os << "</DataArray>\n";
 }
 
+// 3D Slicer reads a model without a SPACE field as LPS and negates x and y,
+// so a RAS model would show mirrored left-right and front-back: every file
+// written here names its frame. VTK stores an ASCII string array as the
+// character codes of each string followed by a 0.
+void write_space_field(TextOut& os) {
+  os << "<FieldData>\n<Array type=\"String\" Name=\"SPACE\" NumberOfTuples=\"1\" format=\"ascii\">\n";
+  for (char c : std::string_view(kModelSpace)) os << static_cast<int>(c) << ' ';
+  os << "0\n</Array>\n</FieldData>\n";
+}
+
 void write_file(const std::filesystem::path& path, const std::string& bytes) {
   std::ofstream out(path, std::ios::binary);
   if (!out) throw InputError("cannot open " + path.string() + " for writing");
@@ -104,12 +114,31 @@ std::size_t section(std::string_view xml, std::string_view tag, std::string_view
 
 }  // namespace
 
+std::string vtk_space(std::string_view xml) {
+  const std::size_t field = xml.find("<FieldData>");
+  if (field == std::string_view::npos) return "";
+  const std::size_t end = xml.find("</FieldData>", field);
+  std::size_t tag = xml.find("Name=\"SPACE\"", field);
+  if (end == std::string_view::npos || tag == std::string_view::npos || tag > end) return "";
+  const std::size_t open = xml.find('>', tag), close = xml.find("</Array>", tag);
+  if (open == std::string_view::npos || close == std::string_view::npos || close > end) return "";
+  std::string space;
+  for (long long code : parse_numbers<long long>(xml.substr(open + 1, close - open - 1), "SPACE", "FieldData")) {
+    if (code == 0) break;
+    if (code < 32 || code > 126) return "";
+    space.push_back(static_cast<char>(code));
+  }
+  return space;
+}
+
 std::string vtu_bytes(const TetMesh& mesh, const std::vector<Eigen::Vector3d>* displacements) {
   if (displacements) check_size(displacements->size(), mesh.node_count(), "write_vtu displacement");
   if (mesh.tet_labels.size() != mesh.tet_count()) throw InputError("write_vtu: tet_labels size differs from tet count");
   TextOut os;
   os << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
-     << "<UnstructuredGrid>\n<Piece NumberOfPoints=\"" << mesh.node_count() << "\" NumberOfCells=\"" << mesh.tet_count() << "\">\n";
+     << "<UnstructuredGrid>\n";
+  write_space_field(os);
+  os << "<Piece NumberOfPoints=\"" << mesh.node_count() << "\" NumberOfCells=\"" << mesh.tet_count() << "\">\n";
   if (displacements) {
     os << "<PointData Vectors=\"displacement_mm\">\n";
     write_vectors(os, "displacement_mm", *displacements);
@@ -140,7 +169,9 @@ std::string vtp_bytes(const TriSurface& s, const SurfaceAttributes& attributes) 
   for (const auto& [name, v] : attributes.scalars) check_size(v.size(), nv, "write_vtp " + name);
   TextOut os;
   os << "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
-     << "<PolyData>\n<Piece NumberOfPoints=\"" << nv << "\" NumberOfVerts=\"0\" NumberOfLines=\"0\" NumberOfStrips=\"0\" NumberOfPolys=\""
+     << "<PolyData>\n";
+  write_space_field(os);
+  os << "<Piece NumberOfPoints=\"" << nv << "\" NumberOfVerts=\"0\" NumberOfLines=\"0\" NumberOfStrips=\"0\" NumberOfPolys=\""
      << s.triangles.size() << "\">\n<PointData>\n";
   if (!s.mesh_node.empty()) {
     os << "<DataArray type=\"Int32\" Name=\"mesh_node\" format=\"ascii\">\n";
@@ -193,6 +224,14 @@ TriSurface read_vtp_bytes(std::string_view xml, std::string_view name) {
     previous = end;
   }
   if (previous != static_cast<long long>(conn.size())) throw InputError(who + ": connectivity and offsets disagree");
+  // Files without SPACE are taken as RAS: this reader is for files written
+  // here (older ones lacked the field), not for arbitrary Slicer exports.
+  const std::string space = vtk_space(xml);
+  if (space == "LPS") {
+    for (auto& v : s.vertices_mm) v = Eigen::Vector3d(-v.x(), -v.y(), v.z());
+  } else if (!space.empty() && space != "RAS") {
+    throw InputError(who + ": unknown coordinate SPACE '" + space + "' (expected RAS or LPS)");
+  }
   const std::size_t pd = xml.find("<PointData");
   if (pd != std::string_view::npos && pd < points_at) {
     const auto nodes = data_array(xml, pd, points_at, "Name=\"mesh_node\"");

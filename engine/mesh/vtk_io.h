@@ -1,8 +1,9 @@
 #pragma once
 // VTK XML (ASCII) writers for meshes and surfaces, readable by ParaView and
 // 3D Slicer, plus a reader for the .vtp files written here (clients, tests).
-// Coordinates are written as stored: world RAS+ mm. Note that 3D Slicer
-// assumes LPS for models unless the file says otherwise; we do not flip.
+// Coordinates are written as stored: world RAS+ mm, and every file says so in
+// a VTK field-data string array SPACE = "RAS", which 3D Slicer reads (without
+// it Slicer assumes LPS and shows the model mirrored in x and y).
 #include <filesystem>
 #include <string>
 #include <string_view>
@@ -12,6 +13,12 @@
 #include "core/tet_mesh.h"
 
 namespace brainshift {
+
+// The frame of every coordinate written by this module.
+inline constexpr const char* kModelSpace = "RAS";
+
+// The SPACE field-data value of a VTK XML file ("RAS", "LPS"), "" when absent.
+std::string vtk_space(std::string_view xml);
 
 // Optional per-vertex arrays of a .vtp (each must have one entry per vertex).
 struct SurfaceAttributes {
@@ -30,7 +37,8 @@ void write_vtp(const std::filesystem::path& path, const TriSurface& surface,
                const SurfaceAttributes& attributes = {});
 std::string vtp_bytes(const TriSurface& surface, const SurfaceAttributes& attributes = {});
 
-// Reads points, triangles and "mesh_node" of a .vtp as written above.
+// Reads points, triangles and "mesh_node" of a .vtp as written above, in RAS:
+// a file whose SPACE is LPS is converted, one without SPACE is taken as RAS.
 // Throws InputError naming `name` on anything it cannot parse.
 TriSurface read_vtp_bytes(std::string_view bytes, std::string_view name = "<memory>");
 TriSurface read_vtp(const std::filesystem::path& path);

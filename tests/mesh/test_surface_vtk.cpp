@@ -188,6 +188,42 @@ TEST(VtkIo, VtpRoundTripsExactly) {
   EXPECT_EQ(read_vtp_bytes(vtp_bytes(s)).triangles, s.triangles);
 }
 
+// 3D Slicer takes a model without SPACE as LPS and mirrors it in x and y: every
+// file must say RAS, in the field-data form VTK's own XML reader understands
+// (a String array of character codes ending in 0).
+TEST(VtkIo, EveryFileNamesItsFrame) {
+  const TetMesh m = cube_mesh(1.0);
+  const TriSurface s = extract_boundary_surface(m, kAnyBoundary);
+  const std::string field =
+      "<FieldData>\n<Array type=\"String\" Name=\"SPACE\" NumberOfTuples=\"1\" format=\"ascii\">\n82 65 83 0\n</Array>\n</FieldData>\n";
+  const std::string vtp = vtp_bytes(s), vtu = vtu_bytes(m);
+  EXPECT_NE(vtp.find("<PolyData>\n" + field + "<Piece"), std::string::npos) << vtp.substr(0, 300);
+  EXPECT_NE(vtu.find("<UnstructuredGrid>\n" + field + "<Piece"), std::string::npos) << vtu.substr(0, 300);
+  EXPECT_EQ(vtk_space(vtp), "RAS");
+  EXPECT_EQ(vtk_space(vtu), "RAS");
+  const auto path = std::filesystem::temp_directory_path() / "brainshift_test_space.vtp";
+  write_vtp(path, s);
+  std::ifstream in(path);
+  const std::string on_disk((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  std::filesystem::remove(path);
+  EXPECT_EQ(vtk_space(on_disk), "RAS");
+}
+
+TEST(VtkIo, ReadsLpsModelsIntoRas) {
+  TriSurface s;
+  s.vertices_mm = {{10, 20, 30}, {-11, 21, 31}, {12, -22, 32}};
+  s.triangles = {{0, 1, 2}};
+  std::string lps = vtp_bytes(s);
+  lps.replace(lps.find("82 65 83 0"), 10, "76 80 83 0");  // "LPS"
+  ASSERT_EQ(vtk_space(lps), "LPS");
+  const TriSurface back = read_vtp_bytes(lps);
+  for (std::size_t v = 0; v < 3; ++v)
+    EXPECT_EQ(back.vertices_mm[v], Eigen::Vector3d(-s.vertices_mm[v].x(), -s.vertices_mm[v].y(), s.vertices_mm[v].z()));
+  std::string unknown = vtp_bytes(s);
+  unknown.replace(unknown.find("82 65 83 0"), 10, "88 89 90 0");  // "XYZ"
+  EXPECT_THROW(read_vtp_bytes(unknown, "x.vtp"), InputError);
+}
+
 TEST(VtkIo, VtpRejectsBadInput) {
   EXPECT_THROW(read_vtp_bytes("<VTKFile type=\"UnstructuredGrid\"/>", "x.vtp"), InputError);
   TriSurface s;

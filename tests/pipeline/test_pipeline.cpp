@@ -16,6 +16,7 @@
 #include "field/metrics.h"
 #include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
+#include "mesh/vtk_io.h"
 #include "pipeline/engine_session.h"
 #include "synthetic_head.h"
 
@@ -158,6 +159,13 @@ TEST_F(PipelineTest, OutputsAreWrittenCompletelyOrNotAtAll) {
   for (const char* f : {"field.nii.gz", "field.h5", "warped_image.nii.gz", "warped_labels.nii.gz", "metrics.json",
                         "timings.json", "report.png", "models/brain.vtp", "models/ventricles.vtp"})
     EXPECT_TRUE(fs::exists(dir / f)) << f;
+  // Every model says its frame, and reads back to the vertices carried.
+  for (const auto& [name, model] : r.models) {
+    std::ifstream in(dir / "models" / (name + ".vtp"));
+    const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    EXPECT_EQ(vtk_space(bytes), "RAS") << name;
+    EXPECT_EQ(read_vtp_bytes(bytes).vertices_mm, model.vertices_mm) << name;
+  }
   fs::remove_all(dir);
   const fs::path blocked = fs::temp_directory_path() / ("brainshift-file-" + std::to_string(::getpid()));
   { std::ofstream(blocked) << "a file, not a folder"; }
