@@ -153,7 +153,31 @@ void read_surface(const toml::table& root, const char* which, const std::string&
   s.read("force_smoothing_mm", p.force_smoothing_mm);
   s.read("edge_weight", p.edge_weight);
   s.read("edge_search_mm", p.edge_search_mm);
+  s.read("contact_fraction", p.contact_fraction);
+  s.read("capture_range_mm", p.capture_range_mm);
   s.finish();
+  if (!(p.contact_fraction > 0 && p.contact_fraction < 1))
+    throw InputError(src + ": [surface." + which + "] contact_fraction must be in (0, 1)");
+  if (!(p.capture_range_mm >= 0))
+    throw InputError(src + ": [surface." + which + "] capture_range_mm must be >= 0 (0: unlimited)");
+}
+
+void read_surface_repair(const toml::table& root, const std::string& src, SurfaceRepairParameters& p) {
+  Section s(sub(root, "surface", "repair"), "surface.repair", src);
+  s.read("enabled", p.enabled);
+  s.read("unreliable_residual_mm", p.unreliable_residual_mm);
+  s.read("rounds", p.rounds);
+  s.read("min_component_area_mm2", p.min_component_area_mm2);
+  s.read("smoothing_mm", p.smoothing_mm);
+  s.read("max_search_mm", p.max_search_mm);
+  s.read("max_defect_area_fraction", p.max_defect_area_fraction);
+  s.finish();
+  if (!(p.unreliable_residual_mm > 0) || p.rounds < 1 || p.rounds > 50 || !(p.min_component_area_mm2 >= 0) ||
+      !(p.smoothing_mm > 0) || !(p.max_search_mm >= 3 * p.smoothing_mm) ||
+      !(p.max_defect_area_fraction > 0 && p.max_defect_area_fraction < 1))
+    throw InputError(src + ": [surface.repair] needs unreliable_residual_mm > 0, rounds in 1..50, "
+                     "min_component_area_mm2 >= 0, smoothing_mm > 0, max_search_mm >= 3 x smoothing_mm and "
+                     "max_defect_area_fraction in (0, 1)");
 }
 
 // Ranges are the engine's (validation_error names the key); checked here too
@@ -258,6 +282,7 @@ PipelineParameters parameters_from(const toml::table& root, const std::string& s
   read_surface(root, "resection", src, p.resection_surface, &p.min_resection_cavity_ml);
   if (!(p.min_resection_cavity_ml > 0))
     throw InputError(src + ": [surface.resection] min_cavity_ml must be > 0");
+  read_surface_repair(root, src, p.surface_repair);
   read_intensity(root, src, p.intensity);
   read_rest(root, src, p);
   return p;

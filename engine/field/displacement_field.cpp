@@ -103,6 +103,9 @@ bool row_interval(const TetScan& s, int j, int k, double tol, int& i0, int& i1) 
       return false;
     }
   }
+  // A nearly flat tet (a strongly compressed element) gives bounds far outside
+  // the row: they must not reach the int conversion (overflow: a crash).
+  if (!(lo <= hi)) return false;
   i0 = static_cast<int>(std::ceil(lo));
   i1 = static_cast<int>(std::floor(hi));
   return i0 <= i1;

@@ -7,6 +7,7 @@
 #include <CGAL/Polygon_mesh_processing/self_intersections.h>
 #include <CGAL/Surface_mesh.h>
 
+#include <algorithm>
 #include <array>
 #include <iterator>
 #include <utility>
@@ -54,18 +55,23 @@ bool share_a_vertex(const std::array<int, 3>& a, const std::array<int, 3>& b) {
 
 }  // namespace
 
-std::size_t count_self_intersections(const TriSurface& surface) {
+std::vector<std::pair<int, int>> self_intersecting_triangle_pairs(const TriSurface& surface) {
   const Mesh mesh = to_surface_mesh(surface);
   std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
   CGAL::Polygon_mesh_processing::self_intersections(mesh, std::back_inserter(pairs));
   // Faces split apart at a non-manifold vertex or edge still touch there: not
   // a crossing.
-  std::size_t crossings = 0;
-  for (const auto& [f, g] : pairs)
-    if (!share_a_vertex(surface.triangles[static_cast<std::size_t>(f.idx())],
-                        surface.triangles[static_cast<std::size_t>(g.idx())]))
-      ++crossings;
+  std::vector<std::pair<int, int>> crossings;
+  for (const auto& [f, g] : pairs) {
+    const int a = static_cast<int>(f.idx()), b = static_cast<int>(g.idx());
+    if (!share_a_vertex(surface.triangles[static_cast<std::size_t>(a)], surface.triangles[static_cast<std::size_t>(b)]))
+      crossings.emplace_back(std::min(a, b), std::max(a, b));
+  }
   return crossings;
+}
+
+std::size_t count_self_intersections(const TriSurface& surface) {
+  return self_intersecting_triangle_pairs(surface).size();
 }
 
 }  // namespace brainshift

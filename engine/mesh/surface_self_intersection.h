@@ -4,6 +4,8 @@
 // went wrong (two parts of the cortex pulled through each other): its
 // displacements must not drive the FEM (a quality gate, see DESIGN.md).
 #include <cstddef>
+#include <utility>
+#include <vector>
 
 #include "core/tet_mesh.h"
 
@@ -15,5 +17,8 @@ namespace brainshift {
 // are accepted. Throws InputError for an index out of range or a degenerate
 // triangle (one vertex used twice).
 std::size_t count_self_intersections(const TriSurface& surface);
+
+// The crossing pairs themselves (triangle indices, first < second), same rules.
+std::vector<std::pair<int, int>> self_intersecting_triangle_pairs(const TriSurface& surface);
 
 }  // namespace brainshift

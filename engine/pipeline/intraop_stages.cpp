@@ -14,10 +14,9 @@
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "image/resample.h"
-#include "mesh/surface_self_intersection.h"
 #include "pipeline/resection_stage.h"
+#include "pipeline/surface_stage.h"
 #include "pipeline/warm_state.h"
-#include "registration/active_surface.h"
 #include "registration/affine_registration.h"
 #include "registration/intensity_refinement.h"
 
@@ -54,99 +53,6 @@ struct StageClock {
     if (progress) progress(stage, 1.0, s);
   }
 };
-
-TriSurface mapped_by_affine(const TriSurface& surface, const Eigen::Matrix4d& intraop_from_preop) {
-  TriSurface out = surface;
-  for (auto& v : out.vertices_mm) v = (intraop_from_preop * v.homogeneous()).head<3>();
-  return out;
-}
-
-// A surface match and the crossing triangle pairs of the matched surface.
-struct CheckedMatch {
-  SurfaceMatchResult match;
-  // nullopt when the surface is not a polygon mesh and cannot be checked:
-  // said in the metrics, never a reason to fail the scan (the flipped-triangle
-  // gate still applies).
-  std::optional<std::size_t> self_intersections;
-  std::string unchecked_reason;
-};
-
-CheckedMatch match_and_check(const TriSurface& start, const ImageF& target, const ActiveSurfaceParameters& p,
-                             const ImageF* image) {
-  CheckedMatch out{match_surface(start, target, p, image), std::nullopt, ""};
-  TriSurface matched = start;
-  for (std::size_t v = 0; v < matched.vertices_mm.size(); ++v) matched.vertices_mm[v] += out.match.displacement_mm[v];
-  try {
-    out.self_intersections = count_self_intersections(matched);
-  } catch (const InputError& e) {
-    out.unchecked_reason = e.what();
-  }
-  return out;
-}
-
-// Matches every mesh boundary surface to its intraop structure and returns the
-// non-rigid displacement of every fixed node (intraop frame, from A p to the
-// matched position).
-std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const IntraopDistanceMaps& maps,
-                                            const Eigen::Matrix4d& A, const IntraopInput& input,
-                                            const PipelineParameters& params, nlohmann::json& metrics,
-                                            std::string* failure) {
-  const auto& fixed = warm.fem.fixed_nodes();
-  std::vector<Eigen::Vector3d> values(fixed.size(), Eigen::Vector3d::Zero());
-  const bool intraop_has_ventricles =
-      std::any_of(maps.ventricle_sdf_mm.voxels.begin(), maps.ventricle_sdf_mm.voxels.end(),
-                  [](float d) { return d < 0.f; });
-  const ImageF* image = input.t1 ? &*input.t1 : nullptr;
-  // The surfaces are independent: each is matched in its own thread (the
-  // outer surface dominates; the ventricles then come for free on the second
-  // core). Results are gathered in surface order, so the outcome is the same
-  // as a sequential run.
-  std::vector<std::future<CheckedMatch>> matches(warm.surfaces.size());
-  for (std::size_t i = 0; i < warm.surfaces.size(); ++i) {
-    const auto& s = warm.surfaces[i];
-    const bool outer = s.cavity_label == 0;
-    if (!outer && !intraop_has_ventricles) continue;
-    const ImageF& target = outer ? maps.outer_sdf_mm : maps.ventricle_sdf_mm;
-    const auto& p = outer ? params.outer_surface : params.ventricle_surface;
-    matches[i] = std::async(std::launch::async, [&s, &target, &p, &A, image] {
-      return match_and_check(mapped_by_affine(s.surface, A), target, p, image);
-    });
-  }
-  for (std::size_t i = 0; i < warm.surfaces.size(); ++i) {
-    const auto& s = warm.surfaces[i];
-    nlohmann::json& m = metrics["surfaces"][s.name];
-    if (!matches[i].valid()) {
-      // No intraop data for this wall: it follows the affine (non-rigid 0) and
-      // the metrics say so rather than inventing a match.
-      m["matched"] = false;
-      m["reason"] = "structure absent from the intraop labels";
-      continue;
-    }
-    const CheckedMatch checked = matches[i].get();
-    const SurfaceMatchResult& r = checked.match;
-    for (std::size_t v = 0; v < s.surface.mesh_node.size(); ++v)
-      values[warm.fixed_index_of_node[s.surface.mesh_node[v]]] = r.displacement_mm[v];
-    m = {{"matched", true},
-         {"vertices", s.surface.vertices_mm.size()},
-         {"iterations", r.iterations},
-         {"converged", r.converged},
-         {"mean_residual_mm", r.mean_residual_mm},
-         {"max_residual_mm", r.max_residual_mm},
-         {"flipped_triangles", r.flipped_triangles}};
-    const std::optional<std::size_t>& crossings = checked.self_intersections;
-    if (crossings) m["self_intersections"] = *crossings;
-    else m["self_intersections"] = "not checked: " + checked.unchecked_reason;
-    if (r.flipped_triangles > 0 && failure->empty())
-      *failure = "surface match of " + s.name + " folded " + std::to_string(r.flipped_triangles) + " triangles";
-    if (crossings.value_or(0) > 0 && failure->empty())
-      *failure = "surface match of " + s.name + " self-intersects (" + std::to_string(*crossings) +
-                 " pairs of crossing triangles)";
-    if (r.mean_residual_mm > params.gates.max_mean_surface_residual_mm && failure->empty())
-      *failure = "surface match of " + s.name + " diverged (mean residual " +
-                 std::to_string(r.mean_residual_mm) + " mm)";
-  }
-  return values;
-}
 
 // The intraop T1 corrects the interior of the non-rigid field
 // (registration/intensity_refinement.h), before the Jacobian gate sees it.

@@ -13,6 +13,7 @@
 #include "registration/active_surface.h"
 #include "registration/affine_registration.h"
 #include "registration/intensity_refinement.h"
+#include "registration/surface_repair.h"
 
 namespace brainshift {
 
@@ -38,6 +39,7 @@ struct PipelineParameters {
   ActiveSurfaceParameters outer_surface;      // outer brain surface
   ActiveSurfaceParameters ventricle_surface;  // lateral-ventricle wall
   ActiveSurfaceParameters resection_surface;  // wall of a resected structure -> cavity
+  SurfaceRepairParameters surface_repair;     // local repair of outer and ventricle matches
   // An intraop cavity of at least this volume (ml) next to a resectable
   // structure means it was resected (smaller holes are segmentation noise).
   double min_resection_cavity_ml = 0.1;

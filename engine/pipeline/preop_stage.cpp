@@ -8,6 +8,7 @@
 #include "core/timer.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
+#include "mesh/surface_contacts.h"
 #include "mesh/surface_extraction.h"
 #include "models/surface_models.h"
 #include "pipeline/warm_state.h"
@@ -29,9 +30,14 @@ ElasticOptions elastic_options_for(const PipelineParameters& params) {
   return options;
 }
 
+// Facing walls closer than this are kept apart during the match (pairs
+// farther apart may close by contact_fraction x 8 mm = 3.2 mm or more, which
+// brain shift's own compression of a sulcus or a ventricle stays within).
+constexpr double kContactMaxGapMm = 8.0;
+
 std::vector<MatchedSurface> matched_surfaces(const TetMesh& mesh, const LabelTable& table) {
   std::vector<MatchedSurface> out;
-  out.push_back({"outer", 0, extract_boundary_surface(mesh, 0)});
+  out.push_back({"outer", 0, extract_boundary_surface(mesh, 0), {}});
   if (out.front().surface.triangles.empty())
     throw ComputeError("the brain mesh has no outer boundary surface");
   for (const auto cavity : table.cavity_labels()) {
@@ -40,8 +46,9 @@ std::vector<MatchedSurface> matched_surfaces(const TetMesh& mesh, const LabelTab
     // surface matcher expects normals pointing out of the structure it is
     // matched to (the cavity), so the wall is turned around.
     for (auto& t : wall.triangles) std::swap(t[1], t[2]);
-    if (!wall.triangles.empty()) out.push_back({table.find(cavity)->name, cavity, std::move(wall)});
+    if (!wall.triangles.empty()) out.push_back({table.find(cavity)->name, cavity, std::move(wall), {}});
   }
+  for (auto& s : out) s.contacts = facing_vertex_pairs(s.surface, kContactMaxGapMm);
   return out;
 }
 

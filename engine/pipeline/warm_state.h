@@ -7,6 +7,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "core/surface_contact.h"
 #include "core/tet_mesh.h"
 #include "models/carry.h"
 #include "pipeline/engine_session.h"
@@ -20,6 +21,7 @@ struct MatchedSurface {
   std::string name;                      // "outer" or the cavity label's name
   std::uint16_t cavity_label = 0;        // 0 for the outer surface
   TriSurface surface;                    // preop, vertices tied to mesh nodes
+  ContactPairs contacts;                 // its facing walls (mesh/surface_contacts.h), preop frame
 };
 
 // A structure that may be resected (the tumor): its wall, and the FEM system

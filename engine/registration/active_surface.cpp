@@ -13,6 +13,7 @@
 #include "core/errors.h"
 #include "core/timer.h"
 #include "registration/linear_sampler.h"
+#include "registration/surface_repair.h"
 #include "image/resample.h"
 
 namespace brainshift {
@@ -35,9 +36,10 @@ void validate(const TriSurface& s, const ImageF& target, const ActiveSurfacePara
   }
   if (!(p.step > 0 && p.step <= 1) || !(p.membrane_stiffness >= 0) || p.max_iterations < 1 ||
       !(p.convergence_tolerance_mm > 0) || p.convergence_iterations < 1 || !(p.max_step_mm > 0) ||
-      !(p.force_smoothing_mm >= 0) || !(p.edge_weight >= 0) || !(p.edge_search_mm > 0)) {
+      !(p.force_smoothing_mm >= 0) || !(p.edge_weight >= 0) || !(p.edge_search_mm > 0) ||
+      !(p.contact_fraction > 0 && p.contact_fraction < 1) || !(p.capture_range_mm >= 0)) {
     throw InputError("active surface: invalid parameters (need 0 < step <= 1, stiffness >= 0, "
-                     "positive tolerances, iterations and step clip)");
+                     "positive tolerances, iterations and step clip, 0 < contact_fraction < 1, capture_range_mm >= 0)");
   }
 }
 
@@ -73,20 +75,6 @@ void assemble_membrane(const TriSurface& s, Eigen::VectorXd* mass, SpMat* stiffn
     if (!((*mass)[v] > 0)) (*mass)[v] = typical > 0 ? typical : 1.0;
   stiffness->resize(n, n);
   stiffness->setFromTriplets(trip.begin(), trip.end());
-}
-
-std::vector<std::vector<int>> vertex_neighbours(const TriSurface& s) {
-  std::vector<std::vector<int>> nb(s.vertices_mm.size());
-  for (const auto& t : s.triangles)
-    for (int c = 0; c < 3; ++c) {
-      nb[t[c]].push_back(t[(c + 1) % 3]);
-      nb[t[c]].push_back(t[(c + 2) % 3]);
-    }
-  for (auto& list : nb) {
-    std::sort(list.begin(), list.end());
-    list.erase(std::unique(list.begin(), list.end()), list.end());
-  }
-  return nb;
 }
 
 double mean_edge_length(const TriSurface& s) {
@@ -146,6 +134,7 @@ ForceField compute_force(const TriSurface& s, const Points& x, const LinearSampl
     // Near the medial axis of the distance map the gradient vanishes and its
     // direction means nothing: no force there rather than a random one.
     if (len < 0.2) continue;
+    if (p.capture_range_mm > 0 && std::abs(d) > p.capture_range_mm) continue;
     f.has_data[v] = 1;
     // Along the surface normal only, scaled by how well the normal agrees with
     // the distance gradient: the trilinear gradient direction jumps from cell
@@ -179,6 +168,24 @@ void smooth_along_surface(Points* f, const std::vector<std::vector<int>>& nb, in
   }
 }
 
+// Cuts back the approach of every facing-wall pair (see the header). Rows of
+// u are vertex displacements.
+void keep_walls_apart(Eigen::MatrixXd& u, const ContactPairs& contacts, double fraction) {
+  for (int sweep = 0; sweep < 3; ++sweep) {
+    bool changed = false;
+    for (const ContactPair& c : contacts) {
+      const Eigen::Vector3d d = c.direction_from_vertex;
+      const double approach = (u.row(c.vertex) - u.row(c.facing)).dot(d.transpose());
+      const double excess = approach - fraction * c.gap_mm;
+      if (excess <= 0) continue;
+      u.row(c.vertex) -= 0.5 * excess * d.transpose();
+      u.row(c.facing) += 0.5 * excess * d.transpose();
+      changed = true;
+    }
+    if (!changed) return;
+  }
+}
+
 std::size_t count_flipped(const TriSurface& s, const Points& x) {
   std::size_t flipped = 0;
   for (const auto& t : s.triangles) {
@@ -193,8 +200,13 @@ std::size_t count_flipped(const TriSurface& s, const Points& x) {
 }  // namespace
 
 SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target_sdf,
-                                 const ActiveSurfaceParameters& p, const ImageF* intraop_image) {
+                                 const ActiveSurfaceParameters& p, const ImageF* intraop_image,
+                                 const ContactPairs* contacts) {
   validate(surface, target_sdf, p);
+  if (contacts)
+    for (const ContactPair& c : *contacts)
+      if (c.vertex < 0 || c.facing < 0 || static_cast<std::size_t>(std::max(c.vertex, c.facing)) >= surface.vertices_mm.size())
+        throw InputError("active surface: a contact pair refers to a vertex out of range");
   const Stopwatch clock;
   const std::size_t n = surface.vertices_mm.size();
 
@@ -210,7 +222,7 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
     r.message = "failed: membrane matrix factorisation failed (degenerate surface?)";
     return r;
   }
-  const auto neighbours = vertex_neighbours(surface);
+  const auto neighbours = surface_vertex_neighbours(surface);
   const double h = mean_edge_length(surface);
   const int smoothing_passes = std::min(
       20, static_cast<int>(std::lround(4 * p.force_smoothing_mm * p.force_smoothing_mm / (h * h))));
@@ -233,7 +245,8 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
       rhs.row(v) += step.transpose();
     }
     rhs = mass.asDiagonal() * rhs;
-    const Eigen::MatrixXd u_new = solver.solve(rhs);
+    Eigen::MatrixXd u_new = solver.solve(rhs);
+    if (contacts) keep_walls_apart(u_new, *contacts, p.contact_fraction);
     ++r.iterations;
     // Convergence looks at the update along the current vertex normals: that
     // is the matched shape. Tangential motion keeps relaxing slowly afterwards

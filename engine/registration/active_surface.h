@@ -35,6 +35,9 @@
 // (normal forces give the membrane no tangential pull) and are not waited for:
 // they slide vertices along the surface (measured <= 1.9 mm at the flanks of
 // an 8 mm dent) without changing it.
+// Self-contact: after every step the approach of each facing-wall pair,
+// (u_a - u_b) . d, is cut back to contact_fraction x its gap, half from each
+// side (a few Gauss-Seidel sweeps, as a vertex can be in several pairs).
 // Folding check: a triangle whose normal turned by more than 90 degrees from
 // the input surface (or collapsed to zero area) is counted as flipped; the
 // pipeline refuses results with flipped triangles.
@@ -45,6 +48,7 @@
 #include <Eigen/Dense>
 
 #include "core/image.h"
+#include "core/surface_contact.h"
 #include "core/tet_mesh.h"
 
 namespace brainshift {
@@ -64,6 +68,17 @@ struct ActiveSurfaceParameters {
   // within +-edge_search_mm. Small: the label map is the primary evidence.
   double edge_weight = 0.2;
   double edge_search_mm = 2.0;
+  // Self-contact: two facing walls of the surface (a thin horn's walls, a
+  // narrow sulcus's banks; ContactPair) may close at most this fraction of
+  // the gap between them, so they never pass through each other. Below 0.5
+  // each wall keeps to its half.
+  double contact_fraction = 0.4;
+  // Capture range (mm; 0 = unlimited): a vertex farther than this from the
+  // target's zero level gets no force and follows its neighbours. A part of a
+  // structure the segmenter missed (a thin horn) is then not dragged onto the
+  // nearest other wall. Only for surfaces whose motion beyond the affine is
+  // small (the ventricles); the cortex under a craniotomy moves 20 mm.
+  double capture_range_mm = 0.0;
 };
 
 struct SurfaceMatchResult {
@@ -85,9 +100,12 @@ struct SurfaceMatchResult {
 // Throws InputError for an empty surface, out-of-range triangle indices,
 // invalid parameters or an empty target image. Never throws for a poor match:
 // converged / flipped_triangles / message report it.
+// contacts: facing-wall pairs of the surface (optional); their approach is
+// projected back after every step.
 SurfaceMatchResult match_surface(const TriSurface& surface_in_intraop_frame,
                                  const ImageF& target_signed_distance_mm,
                                  const ActiveSurfaceParameters& params,
-                                 const ImageF* intraop_image = nullptr);
+                                 const ImageF* intraop_image = nullptr,
+                                 const ContactPairs* contacts = nullptr);
 
 }  // namespace brainshift

@@ -39,10 +39,13 @@ double mean(const std::vector<double>& v) {
 CaseResult evaluate_case(EngineSession& session, const PhantomSpec& spec) {
   const PhantomCase c = make_phantom(session.preop().t1, session.preop().labels, spec);
   IntraopInput input{c.intraop_labels, c.intraop_t1};
-  const ScanResult r = session.register_scan(input, nullptr);
+  return evaluate_result(spec.name, c, session.register_scan(input, nullptr));
+}
+
+CaseResult evaluate_result(const std::string& name, const PhantomCase& c, const ScanResult& r) {
   const Errors e = landmark_errors(c, r);
   CaseResult out;
-  out.name = spec.name;
+  out.name = name;
   out.uncorrected_mean_mm = mean(e.uncorrected);
   out.uncorrected_p95_mm = percentile(e.uncorrected, 95.0);
   out.affine_mean_mm = mean(e.affine);

@@ -26,6 +26,9 @@ struct CaseResult {
 // One case: make the phantom from the session's preop, register, measure.
 CaseResult evaluate_case(EngineSession& session, const PhantomSpec& spec);
 
+// Measures one registration of a case made elsewhere (e.g. a robustness case).
+CaseResult evaluate_result(const std::string& name, const PhantomCase& c, const ScanResult& r);
+
 nlohmann::json to_json(const CaseResult& r);
 
 // Pools the landmark errors of several cases.

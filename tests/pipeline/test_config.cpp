@@ -121,3 +121,31 @@ TEST(Config, BadIntensityValuesAreErrorsNamingSectionAndKey) {
   EXPECT_NE(message_of("[intensity]\nlatice_spacing_mm = 8.0\n").find("latice_spacing_mm"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nenabled = \"yes\"\n").find("enabled"), std::string::npos);
 }
+
+TEST(Config, SurfaceRepairAndSelfContactAreConfiguredWithTheEnginesDefaults) {
+  const auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
+  const SurfaceRepairParameters engine;
+  EXPECT_EQ(p.surface_repair.enabled, engine.enabled);
+  EXPECT_DOUBLE_EQ(p.surface_repair.unreliable_residual_mm, engine.unreliable_residual_mm);
+  EXPECT_EQ(p.surface_repair.rounds, engine.rounds);
+  EXPECT_DOUBLE_EQ(p.surface_repair.min_component_area_mm2, engine.min_component_area_mm2);
+  EXPECT_DOUBLE_EQ(p.surface_repair.smoothing_mm, engine.smoothing_mm);
+  EXPECT_DOUBLE_EQ(p.surface_repair.max_search_mm, engine.max_search_mm);
+  EXPECT_DOUBLE_EQ(p.surface_repair.max_defect_area_fraction, engine.max_defect_area_fraction);
+  EXPECT_DOUBLE_EQ(p.outer_surface.contact_fraction, 0.4);
+  EXPECT_DOUBLE_EQ(p.ventricle_surface.contact_fraction, 0.4);
+  EXPECT_DOUBLE_EQ(p.ventricle_surface.capture_range_mm, 6.0);
+  EXPECT_DOUBLE_EQ(p.outer_surface.capture_range_mm, 0.0);
+  const auto off = config::pipeline_parameters_from_text(
+      "[surface.repair]\nenabled = false\nmax_defect_area_fraction = 0.3\n[surface.ventricles]\ncontact_fraction = 0.2\n", "t");
+  EXPECT_FALSE(off.surface_repair.enabled);
+  EXPECT_DOUBLE_EQ(off.surface_repair.max_defect_area_fraction, 0.3);
+  EXPECT_DOUBLE_EQ(off.ventricle_surface.contact_fraction, 0.2);
+  EXPECT_NE(message_of("[surface.repair]\nrounds = 0\n").find("[surface.repair]"), std::string::npos);
+  EXPECT_NE(message_of("[surface.repair]\nmax_defect_area_fraction = 1.5\n").find("max_defect_area_fraction"),
+            std::string::npos);
+  EXPECT_NE(message_of("[surface.repair]\nsmoothing_mm = 20.0\nmax_search_mm = 30.0\n").find("max_search_mm"),
+            std::string::npos);
+  EXPECT_NE(message_of("[surface.repair]\nringz = 2\n").find("ringz"), std::string::npos);
+  EXPECT_NE(message_of("[surface.ventricles]\ncontact_fraction = 1.0\n").find("contact_fraction"), std::string::npos);
+}

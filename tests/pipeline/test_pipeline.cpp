@@ -309,11 +309,11 @@ TEST_F(PipelineTest, AnElasticSolveThatFailsIsReportedAndFallsBack) {
   expect_marked_affine_only(r, scan, "elastic solve");
 }
 
-TEST_F(PipelineTest, ASurfaceMatchThatCrossesItselfIsReportedAndFallsBack) {
-  // A 6 mm resection slit 25 mm deep into the top of the brain, matched by a
-  // membrane without stiffness or smoothing: vertices from both lips of the
-  // slit are pulled past each other and the surface passes through itself.
-  IntraopInput scan = translated_scan(*preop_, Eigen::Vector3d::Zero());
+// A 6 mm resection slit 25 mm deep into the top of the brain, matched by a
+// membrane without stiffness or smoothing: vertices from both lips of the
+// slit are pulled past each other and the surface passes through itself.
+IntraopInput slit_scan(const PreopInput& preop) {
+  IntraopInput scan = translated_scan(preop, Eigen::Vector3d::Zero());
   const Grid3& g = scan.labels.grid;
   for (int k = 0; k < g.dims[2]; ++k)
     for (int j = 0; j < g.dims[1]; ++j)
@@ -321,16 +321,49 @@ TEST_F(PipelineTest, ASurfaceMatchThatCrossesItselfIsReportedAndFallsBack) {
         const Eigen::Vector3d p = g.world_mm(i, j, k);
         if (std::abs(p.x()) < 3.0 && std::abs(p.y()) < 25.0 && p.z() > 15.0) scan.labels.at(i, j, k) = 0;
       }
+  return scan;
+}
+
+void floppy_outer_membrane(PipelineParameters& p) {
+  p.outer_surface.membrane_stiffness = 0.0;
+  p.outer_surface.force_smoothing_mm = 0.0;
+  p.outer_surface.edge_weight = 0.0;
+  p.outer_surface.max_step_mm = 20.0;
+  p.outer_surface.max_iterations = 200;
+}
+
+TEST_F(PipelineTest, ASurfaceMatchThatCrossesItselfIsRefusedWithoutRepair) {
+  const IntraopInput scan = slit_scan(*preop_);
   const ScanResult r = register_with(*preop_, session_->mesh(), scan, [](PipelineParameters& p) {
-    p.outer_surface.membrane_stiffness = 0.0;
-    p.outer_surface.force_smoothing_mm = 0.0;
-    p.outer_surface.edge_weight = 0.0;
-    p.outer_surface.max_step_mm = 20.0;
-    p.outer_surface.max_iterations = 200;
+    floppy_outer_membrane(p);
+    p.surface_repair.enabled = false;
   });
   EXPECT_GT(r.metrics["surfaces"]["outer"]["self_intersections"].get<std::size_t>(), 0u);
-  // The flipped-triangle gate is checked first and fires on the same match.
   expect_marked_affine_only(r, scan, "surface match of outer");
+}
+
+TEST_F(PipelineTest, ALocallyCrossedMatchIsRepairedReportedAndKept) {
+  // The same crossing, repaired: the vertices around it take the motion of
+  // their reliable neighbours; the result stays non-rigid, fold-free, and says
+  // what was repaired.
+  const IntraopInput scan = slit_scan(*preop_);
+  const ScanResult r = register_with(*preop_, session_->mesh(), scan, floppy_outer_membrane);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  const auto& repair = r.metrics["surfaces"]["outer"]["repair"];
+  EXPECT_GT(repair["crossing_pairs_before"].get<std::size_t>() + repair["flipped_triangles_before"].get<std::size_t>(), 0u)
+      << repair.dump();
+  EXPECT_EQ(repair["crossing_pairs_after"], 0) << repair.dump();
+  EXPECT_EQ(repair["flipped_triangles_after"], 0) << repair.dump();
+  EXPECT_GT(repair["repaired_vertices"].get<std::size_t>(), 0u);
+  EXPECT_GT(repair["repaired_area_fraction"].get<double>(), 0.0);
+  EXPECT_LE(repair["repaired_area_fraction"].get<double>(), 0.15);
+  EXPECT_GT(r.metrics["jacobian"]["min"].get<double>(), 0.0);
+  // Past the stated fraction the same repair is not trusted.
+  const ScanResult strict = register_with(*preop_, session_->mesh(), scan, [](PipelineParameters& p) {
+    floppy_outer_membrane(p);
+    p.surface_repair.max_defect_area_fraction = 1e-4;
+  });
+  expect_marked_affine_only(strict, scan, "needed repair over");
 }
 
 // ------------------------------------------------------------------ resection

@@ -1,0 +1,41 @@
+#pragma once
+// A second preoperative label map of the Colin27 head, made another way than
+// the default atlas (atlas/default_atlas.h), so that robustness cases are not
+// graded on the segmentation the engine was tuned with:
+// - Brain: ch2bet > 0 with no morphological smoothing (largest 26-connected
+//   component, holes filled): its outline keeps the one-voxel notches and
+//   strands that the atlas opens and closes away.
+// - Lateral ventricles: region growing in the ch2 T1 alone (no ch2better):
+//   dark voxels (T1 below csf_max) of the brain eroded by erosion_mm, grown
+//   26-connected from seeds in the ventricle bodies, so the thin temporal and
+//   occipital horns that leave the atlas's central box are kept. Candidates
+//   below z_floor_mm (brainstem, cerebellum, fourth ventricle) are dropped;
+//   what remains connected to the bodies is kept, whatever its shape.
+// - Corticospinal tract: JHU white-matter labels 7/8, 15/16, 19/20, 25/26,
+//   as in the atlas (the tract is carried, not matched).
+// Labels: 1 brain, 2 lateral ventricles, 3 CST (same table as the atlas).
+#include <filesystem>
+
+#include "core/image.h"
+
+namespace brainshift {
+
+struct IndependentLabelParameters {
+  float csf_max = 58.f;          // ch2: CSF ~30, grey matter ~80, white matter ~110
+  double erosion_mm = 2.0;       // keeps cortical sulci out of the candidates
+  double seed_box_half_width_mm = 20;  // seeds: |x| below this, in the bodies' box
+  double z_floor_mm = -30;       // candidates below this (brainstem, cerebellum) are dropped
+  double min_ml = 10;            // growth must reach at least this (else a clear error)
+};
+
+struct IndependentLabels {
+  LabelImage labels;  // on the T1's grid
+  double brain_ml = 0, ventricles_ml = 0, cst_ml = 0;
+  int ventricle_components = 0;
+};
+
+// t1 = ch2.nii.gz; reads ch2bet and the JHU labels from templates_dir.
+IndependentLabels build_independent_labels(const ImageF& t1, const std::filesystem::path& templates_dir,
+                                           const IndependentLabelParameters& p = {});
+
+}  // namespace brainshift
