@@ -18,6 +18,12 @@ namespace {
 
 static_assert(sizeof(Eigen::Vector3f) == 3 * sizeof(float), "a field's voxels are copied as packed float triples");
 
+void check_name(const std::string& what, const std::string& name) {
+  if (name.size() > kMaxDeviceName)
+    throw std::logic_error("OpenIGTLink " + what + " \"" + name + "\" is longer than " +
+                           std::to_string(kMaxDeviceName) + " characters");
+}
+
 void check_device(const std::string& device) {
   if (device.empty() || device.size() > kMaxDeviceName)
     throw std::logic_error("OpenIGTLink device name \"" + device + "\" must be 1.." +
@@ -131,6 +137,7 @@ PackedMessage pack_polydata(const std::string& device, const TriSurface& surface
 PackedMessage pack_status(const std::string& device, int code, std::int64_t subcode, const std::string& error_name,
                           const std::string& text, TimeStamp t) {
   check_device(device);
+  check_name("error name", error_name);
   auto m = ::igtl::StatusMessage::New();
   m->SetDeviceName(device.c_str());
   m->SetCode(code);
@@ -167,9 +174,11 @@ std::vector<PackedMessage> encode_result(const ResultContent& r) {
   for (const auto& [structure, surface] : r.models)
     add([&] { return pack_polydata(model_device(structure), surface, t); });
   const bool fallback = r.kind == "affine_only_fallback";
-  // The error name field holds 20 bytes: the kind's name fits.
+  // The error name field is 20 bytes, and a receiver reads a name that fills
+  // them past the end (libopenigtlink 1.11): "affine_only_fallback" is 20.
   out.push_back(pack_status(kStatusDevice, ::igtl::StatusMessage::STATUS_OK,
-                            fallback ? kAffineFallbackSubcode : kNonrigidSubcode, r.kind, status_text(status), t));
+                            fallback ? kAffineFallbackSubcode : kNonrigidSubcode,
+                            fallback ? kAffineFallbackName : kNonrigidName, status_text(status), t));
   return out;
 }
 

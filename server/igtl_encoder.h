@@ -36,6 +36,9 @@ std::string model_device(protocol::Structure s);
 // valid results; the fallback is marked, not failed).
 inline constexpr std::int64_t kNonrigidSubcode = 0;
 inline constexpr std::int64_t kAffineFallbackSubcode = 1;
+// The STATUS error name of each kind (at most 19 characters, as device names).
+inline constexpr const char* kNonrigidName = "nonrigid";
+inline constexpr const char* kAffineFallbackName = "affine_fallback";
 
 // Header time stamp: seconds since 1970 (UTC) and a 32-bit binary fraction.
 struct TimeStamp {
