@@ -238,6 +238,15 @@ void IgtlGateway::load_and_send(const std::string& scan_id) {
 }
 
 void IgtlGateway::enqueue(Client& c, const std::vector<Shared>& messages) {
+  // A new result supersedes what a client has not begun to receive of older
+  // ones: a stalled client then holds at most one old message and the
+  // latest result, however many results go by (a whole-head field is
+  // ~130 MB).
+  const std::size_t keep = c.written > 0 ? 1 : 0;
+  if (c.queue.size() > keep) {
+    dropped_ += c.queue.size() - keep;
+    c.queue.erase(c.queue.begin() + static_cast<std::ptrdiff_t>(keep), c.queue.end());
+  }
   for (const auto& m : messages) {
     c.queue.push_back(m);
     // The front message may be half written: it stays, the next one goes.

@@ -9,11 +9,14 @@
 // on_event() and info() never wait for it, so neither the engine nor the
 // request socket ever waits for an OpenIGTLink client.
 //
-// Slow clients: each client has a queue of at most queue_messages messages;
-// when a new one does not fit, the oldest not yet begun is dropped (counted
-// in info().messages_dropped). A message being written is always finished,
-// so the stream stays well-formed. A result's messages are shared by all
-// clients, not copied.
+// Slow clients: each client has a queue of at most queue_messages messages.
+// A new result first drops the client's unsent messages of older results
+// (superseded: the client gets the latest), then, should it still not fit,
+// the oldest unsent messages go; every drop is counted in
+// info().messages_dropped. A message being written is always finished, so
+// the stream stays well-formed. A result's messages are shared by all
+// clients, not copied: a stalled client holds at most one old message and
+// the latest result.
 #include <atomic>
 #include <cstdint>
 #include <deque>

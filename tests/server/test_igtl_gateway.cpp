@@ -174,6 +174,15 @@ TEST(IgtlGateway, SlowClientLosesTheOldestMessagesNeverTheStream) {
   EXPECT_EQ(got.back().type, "STATUS");
   EXPECT_EQ(status_scan({got.back()}), last);
   EXPECT_LT(got.size(), 13u * 6);
+  // Superseded results were dropped, the latest one arrives whole.
+  ASSERT_GE(got.size(), 6u);
+  const std::vector<IgtlReceived> latest(got.end() - 6, got.end());
+  std::vector<std::string> devices;
+  for (const auto& m : latest) devices.push_back(m.device);
+  EXPECT_EQ(devices, (std::vector<std::string>{"bs.field", "bs.warped_image", "bs.warped_labels", "bs.model.brain",
+                                               "bs.model.tumor", "bs.status"}));
+  ASSERT_NE(latest[0].image(), nullptr);
+  EXPECT_EQ(static_cast<const float*>(latest[0].image()->GetScalarPointer())[0], 9.0f);
 }
 
 TEST(IgtlGateway, ConnectionsBeyondMaxClientsAreClosed) {
