@@ -184,3 +184,40 @@ TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient
   std::error_code ec;
   if (!::testing::Test::HasFailure() && !std::getenv("BRAINSHIFT_KEEP_TEST_FILES")) fs::remove_all(dir, ec);
 }
+
+TEST(E2eIgtl, UnsafeOrImpossibleSettingsStopTheStartWithAClearError) {
+  const fs::path dir = fs::temp_directory_path() / ("bs-e2e-igtl-cfg-" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  auto daemon_argv = [&](const std::string& config_text, std::vector<std::string> extra) {
+    const fs::path config = dir / "c.toml";
+    std::ofstream(config) << test_config_text(2) << config_text;
+    std::vector<std::string> argv = {BRAINSHIFTD_BIN, "--config", config.string(), "--store", (dir / "store").string(),
+                                     "--endpoint", "tcp://127.0.0.1:*", "--events", "tcp://127.0.0.1:*"};
+    argv.insert(argv.end(), extra.begin(), extra.end());
+    return argv;
+  };
+  // Every interface without saying so.
+  auto r = run(daemon_argv("\n[openigtlink]\nenabled = true\nbind = \"0.0.0.0\"\n", {}), dir, 60);
+  EXPECT_EQ(r.code, 2) << r.out << r.err;
+  EXPECT_NE((r.out + r.err).find("allow_non_loopback"), std::string::npos) << r.out << r.err;
+  // Not a port.
+  r = run(daemon_argv("", {"--igtl-port", "70000"}), dir, 60);
+  EXPECT_EQ(r.code, 2) << r.out << r.err;
+  EXPECT_NE((r.out + r.err).find("--igtl-port"), std::string::npos) << r.out << r.err;
+  // A port another program holds.
+  const int holder = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  inet_pton(AF_INET, "127.0.0.1", &a.sin_addr);
+  ASSERT_EQ(::bind(holder, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
+  ASSERT_EQ(::listen(holder, 1), 0);
+  socklen_t len = sizeof a;
+  getsockname(holder, reinterpret_cast<sockaddr*>(&a), &len);
+  const std::string port = std::to_string(ntohs(a.sin_port));
+  r = run(daemon_argv("", {"--igtl-port", port}), dir, 60);
+  ::close(holder);
+  EXPECT_EQ(r.code, 1) << r.out << r.err;
+  EXPECT_NE((r.out + r.err).find("cannot listen on 127.0.0.1:" + port), std::string::npos) << r.out << r.err;
+  std::error_code ec;
+  if (!::testing::Test::HasFailure()) fs::remove_all(dir, ec);
+}
