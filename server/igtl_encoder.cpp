@@ -30,10 +30,13 @@ void check_device(const std::string& device) {
                            std::to_string(kMaxDeviceName) + " characters");
 }
 
-PackedMessage take_pack(::igtl::MessageBase& message, const std::string& device, const char* type) {
-  message.Pack();
-  const auto* p = static_cast<const char*>(message.GetPackPointer());
-  return PackedMessage{device, type, std::string(p, p + message.GetPackSize())};
+PackedMessage take_pack(::igtl::MessageBase::Pointer message, const std::string& device, const char* type) {
+  message->Pack();
+  const auto* p = static_cast<const char*>(message->GetPackPointer());
+  const std::string_view bytes(p, static_cast<std::size_t>(message->GetPackSize()));
+  // The deleter holds a reference to the message, which owns the buffer.
+  std::shared_ptr<const void> owner(p, [keep = message](const void*) mutable { keep = nullptr; });
+  return PackedMessage{device, type, bytes, std::move(owner)};
 }
 
 // The IMAGE geometry: the library stores unit axis directions ("normals"),
@@ -74,7 +77,7 @@ PackedMessage pack_voxels(const std::string& device, const Grid3& grid, int scal
     throw std::logic_error(device + ": IMAGE size differs from the voxel buffer");
   std::memcpy(m->GetScalarPointer(), voxels, voxel_bytes);
   m->SetTimeStamp(t.seconds, t.fraction);
-  return take_pack(*m, device, "IMAGE");
+  return take_pack(m.GetPointer(), device, "IMAGE");
 }
 
 }  // namespace
@@ -131,7 +134,7 @@ PackedMessage pack_polydata(const std::string& device, const TriSurface& surface
   m->SetPoints(points);
   m->SetPolygons(polygons);
   m->SetTimeStamp(t.seconds, t.fraction);
-  return take_pack(*m, device, "POLYDATA");
+  return take_pack(m.GetPointer(), device, "POLYDATA");
 }
 
 PackedMessage pack_status(const std::string& device, int code, std::int64_t subcode, const std::string& error_name,
@@ -145,7 +148,7 @@ PackedMessage pack_status(const std::string& device, int code, std::int64_t subc
   m->SetErrorName(error_name.c_str());
   m->SetStatusString(text.c_str());
   m->SetTimeStamp(t.seconds, t.fraction);
-  return take_pack(*m, device, "STATUS");
+  return take_pack(m.GetPointer(), device, "STATUS");
 }
 
 std::string status_text(const ResultContent& r) {

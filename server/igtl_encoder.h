@@ -10,8 +10,10 @@
 // it. An IMAGE's matrix origin is the CENTRE of the volume (OpenIGTLink's
 // convention), not voxel (0,0,0).
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -48,11 +50,14 @@ struct TimeStamp {
 // "2024-05-01T12:34:56.789Z" (the store's finished_at); InputError otherwise.
 TimeStamp time_stamp_from_iso(const std::string& utc);
 
-// One packed message, header and body, ready for the socket.
+// One packed message, header and body, ready for the socket. The bytes are
+// the library's own pack buffer (not copied: a whole-head field is ~130 MB),
+// kept alive by owner.
 struct PackedMessage {
   std::string device;
-  std::string type;   // "IMAGE", "POLYDATA", "STATUS"
-  std::string bytes;  // 58-byte header + body
+  std::string type;         // "IMAGE", "POLYDATA", "STATUS"
+  std::string_view bytes;   // 58-byte header + body
+  std::shared_ptr<const void> owner;
 };
 
 // Images on their grid: dims, spacing, unit axis directions and centre from

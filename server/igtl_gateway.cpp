@@ -290,7 +290,7 @@ void IgtlGateway::accept_clients() {
 
 bool IgtlGateway::write_some(Client& c) {
   while (!c.queue.empty()) {
-    const std::string& bytes = c.queue.front()->bytes;
+    const std::string_view bytes = c.queue.front()->bytes;
     const ssize_t n = ::send(c.fd, bytes.data() + c.written, bytes.size() - c.written, MSG_NOSIGNAL);
     if (n < 0) {
       if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) return true;

@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <iostream>
 #include <random>
 
@@ -40,6 +41,13 @@ TriSurface sphere(int vertices, double radius_mm) {
       s.triangles.push_back({b, a + segments, b + segments});
     }
   return s;
+}
+
+std::uint64_t vm_rss_kib() {
+  std::ifstream in("/proc/self/status");
+  for (std::string line; std::getline(in, line);)
+    if (line.rfind("VmRSS:", 0) == 0) return std::stoull(line.substr(6));
+  return 0;
 }
 
 double median(std::vector<double> v) {
@@ -81,6 +89,8 @@ int main(int argc, char** argv) {
       files[std::string("models/") + s + ".vtp"] = vtp_bytes(sphere(model_vertices, 50));
     store.save_result(rec.scan_id, files, "nonrigid", "");
 
+    const std::uint64_t rss_before = vm_rss_kib();
+    std::vector<server::igtl::PackedMessage> latest;  // as the gateway keeps the latest result
     std::vector<double> read_s, pack_s;
     std::map<std::string, std::vector<double>> per_type;
     std::size_t bytes = 0, messages = 0;
@@ -88,12 +98,13 @@ int main(int argc, char** argv) {
       const auto t0 = std::chrono::steady_clock::now();
       const auto content = server::load_igtl_result(store, rec.scan_id);
       const auto t1 = std::chrono::steady_clock::now();
-      const auto packed = server::igtl::encode_result(content);
+      auto packed = server::igtl::encode_result(content);
       const auto t2 = std::chrono::steady_clock::now();
       read_s.push_back(std::chrono::duration<double>(t1 - t0).count());
       pack_s.push_back(std::chrono::duration<double>(t2 - t1).count());
       bytes = messages = 0;
       for (const auto& m : packed) bytes += m.bytes.size(), ++messages;
+      latest = std::move(packed);
       // Per message type, packed alone.
       const auto ts = server::igtl::time_stamp_from_iso(content.finished_at);
       auto time = [&](const char* type, auto f) {
@@ -112,7 +123,8 @@ int main(int argc, char** argv) {
                        {"megabytes", bytes / 1e6},
                        {"read_from_store_s", median(read_s)},
                        {"pack_s", median(pack_s)},
-                       {"total_s", median(read_s) + median(pack_s)}};
+                       {"total_s", median(read_s) + median(pack_s)},
+                       {"vm_rss_growth_mib", (static_cast<double>(vm_rss_kib()) - rss_before) / 1024}};
     for (auto& [type, v] : per_type) out["pack_one_s"][type] = median(v);
     std::cout << out.dump() << '\n';
   }

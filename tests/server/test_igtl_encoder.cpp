@@ -228,7 +228,7 @@ TEST(IgtlEncoder, TimeStampsFromTheStoreClock) {
 TEST(IgtlEncoder, GoldenStatusHeaderBytes) {
   const auto p = sigtl::pack_status("bs.status", 1, 0, "nonrigid", "{}", sigtl::time_stamp_from_iso("2026-01-02T03:04:05.500Z"));
   ASSERT_GE(p.bytes.size(), 58u);
-  const std::string header = p.bytes.substr(0, 58), body = p.bytes.substr(58);
+  const std::string header(p.bytes.substr(0, 58)), body(p.bytes.substr(58));
   // code u16, subcode i64, error name [20], then the NUL-terminated string.
   EXPECT_EQ(body.size(), 2u + 8 + 20 + 3);
   EXPECT_EQ(big_endian_u64(header, 50), crc64(body)) << "CRC-64 of the body";
