@@ -264,8 +264,11 @@ void IgtlGateway::accept_clients() {
     socklen_t len = sizeof addr;
     const int fd = ::accept4(listen_fd_, reinterpret_cast<sockaddr*>(&addr), &len, SOCK_NONBLOCK | SOCK_CLOEXEC);
     if (fd < 0) {
-      if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR && errno != ECONNABORTED)
-        spdlog::warn("OpenIGTLink: accept(): {}", errno_text());
+      if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR || errno == ECONNABORTED) return;
+      spdlog::warn("OpenIGTLink: accept(): {}", errno_text());
+      // Out of descriptors: the pending connection keeps the listening
+      // socket readable, so without a pause this would spin.
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
       return;
     }
     char ip[INET_ADDRSTRLEN] = "?";

@@ -185,6 +185,21 @@ TEST(IgtlGateway, SlowClientLosesTheOldestMessagesNeverTheStream) {
   EXPECT_EQ(static_cast<const float*>(latest[0].image()->GetScalarPointer())[0], 9.0f);
 }
 
+TEST(IgtlGateway, WhatAClientSendsIsReadAndIgnored) {
+  test::TempDir dir;
+  CaseStore store(dir.path() / "store");
+  const std::string scan = store_result(store, 1.0f);
+  IgtlGateway gateway(any_port(), store);
+  IgtlReceiver chatty(gateway.port(), 10s);
+  // Slicer may send messages of its own; garbage must not confuse the gateway either.
+  const std::string noise(1 << 20, '\x5a');
+  ASSERT_EQ(chatty.socket().Send(noise.data(), static_cast<int>(noise.size())), 1);
+  EXPECT_EQ(status_scan(chatty.next_result()), scan);
+  gateway.publish(scan);
+  EXPECT_EQ(status_scan(chatty.next_result()), scan);
+  wait_clients(gateway, 1);
+}
+
 TEST(IgtlGateway, ConnectionsBeyondMaxClientsAreClosed) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
