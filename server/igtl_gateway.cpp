@@ -218,10 +218,15 @@ void IgtlGateway::run() {
 void IgtlGateway::load_and_send(const std::string& scan_id) {
   try {
     const auto t0 = std::chrono::steady_clock::now();
-    const igtl::ResultContent content = load_igtl_result(store_, scan_id);
-    const double read_s = seconds_since(t0);
-    const auto t1 = std::chrono::steady_clock::now();
-    std::vector<igtl::PackedMessage> packed = igtl::encode_result(content);
+    double read_s = 0;
+    auto t1 = t0;
+    std::vector<igtl::PackedMessage> packed;
+    {
+      const igtl::ResultContent content = load_igtl_result(store_, scan_id);  // freed once packed
+      read_s = seconds_since(t0);
+      t1 = std::chrono::steady_clock::now();
+      packed = igtl::encode_result(content);
+    }
     std::vector<Shared> messages;
     std::size_t bytes = 0;
     for (auto& m : packed) {
