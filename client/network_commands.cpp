@@ -144,6 +144,10 @@ int cmd_status(const NetworkOptions& o, bool json) {
   if (s.mesh) std::cout << "mesh:    " << s.mesh->nodes << " nodes, " << s.mesh->tets << " tets\n";
   std::cout << "ranks:   " << s.mpi_ranks << "\nqueue:   " << s.queue.depth << " / " << s.queue.capacity << '\n';
   if (s.current_scan_id) std::cout << "running: " << *s.current_scan_id << '\n';
+  if (s.openigtlink)
+    std::cout << "openigtlink: port " << s.openigtlink->port << ", " << s.openigtlink->clients << " client(s), "
+              << s.openigtlink->messages_sent << " message(s) sent, " << s.openigtlink->messages_dropped
+              << " dropped\n";
   if (s.last_error) std::cout << "last error: " << to_string(s.last_error->code) << ": " << s.last_error->message << '\n';
   for (const auto& [k, v] : s.versions) std::cout << "version " << k << ": " << v << '\n';
   return kExitOk;

@@ -25,3 +25,17 @@ find_library(NIFTI_ZNZ_LIBRARY NAMES znz libznz.so.3 REQUIRED)
 add_library(brainshift_nifti INTERFACE)
 target_include_directories(brainshift_nifti SYSTEM INTERFACE ${NIFTI_INCLUDE_DIR})
 target_link_libraries(brainshift_nifti INTERFACE ${NIFTI_IO_LIBRARY} ${NIFTI_ZNZ_LIBRARY} ZLIB::ZLIB m)
+
+# OpenIGTLink 1.11 (protocol version 2: IMAGE, POLYDATA, STATUS), for the
+# gateway to 3D Slicer. Debian installs OpenIGTLinkConfig.cmake under
+# /usr/lib/openigtlink, which find_package searches by name; it defines paths
+# but no imported target, and its REQUIRED_*_FLAGS (e.g. -fno-tree-vectorize)
+# are meant for building the library itself, so only the paths are used.
+find_package(OpenIGTLink REQUIRED CONFIG)
+if(OpenIGTLink_PROTOCOL_VERSION LESS 2)
+  message(FATAL_ERROR "OpenIGTLink protocol version ${OpenIGTLink_PROTOCOL_VERSION}: POLYDATA needs version 2")
+endif()
+find_library(OPENIGTLINK_LIBRARY OpenIGTLink HINTS ${OpenIGTLink_LIBRARY_DIRS} REQUIRED)
+add_library(brainshift_openigtlink INTERFACE)
+target_include_directories(brainshift_openigtlink SYSTEM INTERFACE ${OpenIGTLink_INCLUDE_DIRS})
+target_link_libraries(brainshift_openigtlink INTERFACE ${OPENIGTLINK_LIBRARY} Threads::Threads)

@@ -256,7 +256,7 @@ LabelTable label_table_from(const toml::table& root, const std::string& src) {
 
 PipelineParameters parameters_from(const toml::table& root, const std::string& src,
                                    const std::filesystem::path* base_dir) {
-  static const std::set<std::string> sections = {"server", "security", "mesh", "elastic", "affine", "surface",
+  static const std::set<std::string> sections = {"server", "security", "openigtlink", "mesh", "elastic", "affine", "surface",
                                                  "field", "intensity", "models", "gates", "limits", "label"};
   for (const auto& [key, value] : root)
     if (!sections.count(std::string(key.str())) && key.str() != "label_table")

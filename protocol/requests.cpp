@@ -204,6 +204,11 @@ Message make_status_reply(const std::string& request_id, const StatusReply& r) {
   h["queue"] = {{"depth", r.queue.depth}, {"capacity", r.queue.capacity}};
   if (r.current_scan_id) h["current_scan_id"] = *r.current_scan_id;
   if (r.last_error) h["last_error"] = to_json_value(*r.last_error);
+  if (r.openigtlink)
+    h["openigtlink"] = {{"port", r.openigtlink->port},
+                        {"clients", r.openigtlink->clients},
+                        {"messages_sent", r.openigtlink->messages_sent},
+                        {"messages_dropped", r.openigtlink->messages_dropped}};
   return m;
 }
 
@@ -231,6 +236,11 @@ StatusReply parse_status_reply(const Message& m) {
   r.current_scan_id = f.opt_string("current_scan_id");
   if (const json* e = f.opt_object("last_error"))
     r.last_error = error_info_from_json(*e, "status.reply.last_error");
+  if (const json* g = f.opt_object("openigtlink")) {
+    const FieldReader gf(*g, "status.reply.openigtlink");
+    r.openigtlink = OpenIgtlinkInfo{gf.uint("port"), gf.uint("clients"), gf.uint("messages_sent"),
+                                    gf.uint("messages_dropped")};
+  }
   return r;
 }
 

@@ -78,6 +78,15 @@ struct QueueInfo {
   std::uint64_t capacity = 0;  // scan.push beyond this gets "busy"
   bool operator==(const QueueInfo&) const = default;
 };
+// The OpenIGTLink gateway's counters (PROTOCOL.md section 16), when it runs.
+struct OpenIgtlinkInfo {
+  std::uint64_t port = 0;              // TCP port it listens on
+  std::uint64_t clients = 0;           // connected now
+  std::uint64_t messages_sent = 0;     // whole messages written, all clients, since start
+  std::uint64_t messages_dropped = 0;  // oldest unsent messages dropped from full client queues
+  bool operator==(const OpenIgtlinkInfo&) const = default;
+};
+
 struct StatusReply {
   ServerState state = ServerState::kIdle;
   std::optional<Progress> progress{};             // present while kLoadingPreop
@@ -88,6 +97,7 @@ struct StatusReply {
   QueueInfo queue{};
   std::optional<std::string> current_scan_id{};  // present while kProcessing
   std::optional<ErrorInfo> last_error{};         // last failed preop.load, if any
+  std::optional<OpenIgtlinkInfo> openigtlink{};  // when the OpenIGTLink gateway is on
   bool operator==(const StatusReply&) const = default;
 };
 Message make_status_reply(const std::string& request_id, const StatusReply& r);

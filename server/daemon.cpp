@@ -15,6 +15,7 @@
 #include "protocol/transport.h"
 #include "server/case_store.h"
 #include "server/curve_auth.h"
+#include "server/igtl_gateway.h"
 #include "server/server_core.h"
 
 namespace brainshift::server {
@@ -40,11 +41,14 @@ class EventOutbox {
   std::deque<protocol::Message> events_;
 };
 
-void write_ready_file(const fs::path& path, const std::string& endpoint, const std::string& events) {
+void write_ready_file(const fs::path& path, const std::string& endpoint, const std::string& events,
+                      const IgtlGateway* igtl) {
   const fs::path tmp = path.string() + ".tmp";
   {
     std::ofstream out(tmp);
-    out << nlohmann::json{{"endpoint", endpoint}, {"events", events}, {"pid", ::getpid()}}.dump() << '\n';
+    nlohmann::json ready{{"endpoint", endpoint}, {"events", events}, {"pid", ::getpid()}};
+    if (igtl) ready["igtl_port"] = igtl->port();
+    out << ready.dump() << '\n';
   }
   fs::rename(tmp, path);
 }
@@ -115,6 +119,7 @@ void run_jobs(ServerCore& core, const std::atomic<bool>& stop, std::chrono::mill
 int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atomic<bool>& stop) {
   const ServerSettings& s = options.settings;
   std::unique_ptr<CaseStore> store;
+  std::unique_ptr<IgtlGateway> igtl;  // after the store, which it reads
   zmq::context_t context(1);
   // Declared before the sockets so that it outlives them: a CURVE socket
   // without a ZAP handler would admit every key.
@@ -152,6 +157,7 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
     pub.set(zmq::sockopt::linger, 200);
     router.bind(s.endpoint);
     pub.bind(s.events);
+    if (s.openigtlink.enabled) igtl = std::make_unique<IgtlGateway>(s.openigtlink, *store);
   } catch (const std::exception& e) {
     spdlog::critical("cannot start: {}", e.what());
     engine.stop_workers();
@@ -163,14 +169,20 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
   EventOutbox outbox;
   int exit_code = 0;
   {
-    ServerCore core(s, *store, engine, [&outbox](protocol::Message m) { outbox.push(std::move(m)); },
+    IgtlGateway* gateway = igtl.get();
+    ServerCore core(s, *store, engine,
+                    [&outbox, gateway](protocol::Message m) {
+                      if (gateway) gateway->on_event(m);  // returns at once
+                      outbox.push(std::move(m));
+                    },
                     {{"brainshiftd", "0.1.0"}});
+    if (gateway) core.set_status_extension([gateway](protocol::StatusReply& r) { r.openigtlink = gateway->info(); });
     std::atomic<bool> sockets_running{true};
     std::thread socket_thread(socket_loop, std::ref(router), std::ref(pub), std::ref(core), std::ref(outbox),
                               std::cref(sockets_running), s.security.curve);
     try {
       core.start();
-      if (!options.ready_file.empty()) write_ready_file(options.ready_file, endpoint, events);
+      if (!options.ready_file.empty()) write_ready_file(options.ready_file, endpoint, events, igtl.get());
       spdlog::info("brainshiftd listening on {} (events {}), store {}, {} MPI rank(s)", endpoint, events,
                    s.store.string(), engine.ranks());
       run_jobs(core, stop, std::chrono::milliseconds(s.idle_release_ms));

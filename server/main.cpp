@@ -13,6 +13,7 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 
 #include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
@@ -52,7 +53,7 @@ struct Configuration {
 // Every rank parses the same files, so a bad configuration fails on every
 // rank alike and no worker is left waiting for a rank 0 that never starts.
 Configuration read_configuration(const std::string& config_path, const std::string& endpoint,
-                                 const std::string& events, const std::string& store) {
+                                 const std::string& events, const std::string& store, std::optional<int> igtl_port) {
   using namespace brainshift;
   Configuration c;
   if (config_path.empty()) {
@@ -65,6 +66,10 @@ Configuration read_configuration(const std::string& config_path, const std::stri
   if (!endpoint.empty()) c.daemon.settings.endpoint = endpoint;
   if (!events.empty()) c.daemon.settings.events = events;
   if (!store.empty()) c.daemon.settings.store = store;
+  if (igtl_port) {
+    c.daemon.settings.openigtlink.enabled = true;
+    c.daemon.settings.openigtlink.port = *igtl_port;
+  }
   server::validate_endpoints(c.daemon.settings);
   return c;
 }
@@ -120,6 +125,11 @@ int main(int argc, char** argv) {
   app.add_option("--events", events, "event endpoint (PUB), overrides [server] events");
   app.add_option("--store", store, "case store directory, overrides [server] store");
   app.add_option("--ready-file", ready_file, "write the bound endpoints here as JSON once listening");
+  std::optional<int> igtl_port;
+  app.add_option("--igtl-port", igtl_port,
+                 "serve OpenIGTLink (3D Slicer) on this TCP port, overrides [openigtlink] port and enables it; "
+                 "0: any free port (written to --ready-file as igtl_port)")
+      ->check(CLI::Range(0, 65535));
   std::string export_scan, export_out;
   auto* export_opt = app.add_option("--export-result", export_scan,
                                     "write a stored scan's result files (all of them, report.png included) to --out and exit");
@@ -145,7 +155,7 @@ int main(int argc, char** argv) {
 
   Configuration c;
   try {
-    c = read_configuration(config_path, endpoint, events, store);
+    c = read_configuration(config_path, endpoint, events, store, igtl_port);
   } catch (const std::exception& e) {
     if (rank == 0) spdlog::critical("configuration: {}", e.what());
     MPI_Finalize();

@@ -200,7 +200,9 @@ StatusReply ServerCore::status() const {
 
 Message ServerCore::on_status(const Message& m) {
   parse_status_request(m);
-  return make_status_reply(m.request_id(), status());
+  StatusReply r = status();
+  if (status_extension_) status_extension_(r);  // outside mutex_
+  return make_status_reply(m.request_id(), r);
 }
 
 Message ServerCore::on_preop_load(const Message& m) {

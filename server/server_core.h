@@ -48,6 +48,12 @@ class ServerCore {
     return handle_wire(std::move(wire), Peer::unauthenticated_local());
   }
   protocol::StatusReply status() const;
+  // Adds what other parts of the daemon report (the OpenIGTLink gateway's
+  // counters) to every status reply (not to status()). Set before the socket thread starts;
+  // called on the socket thread, so it must not wait.
+  void set_status_extension(std::function<void(protocol::StatusReply&)> extend) {
+    status_extension_ = std::move(extend);
+  }
   bool shutdown_requested() const { return shutdown_.load(); }
   const protocol::Limits& inbound_limits() const { return limits_; }
 
@@ -88,6 +94,7 @@ class ServerCore {
   CaseStore& store_;
   EnginePort& engine_;
   EventSink events_;
+  std::function<void(protocol::StatusReply&)> status_extension_;
   std::map<std::string, std::string> versions_;
   protocol::Limits limits_;
   ScanQueue queue_;

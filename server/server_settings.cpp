@@ -1,5 +1,7 @@
 #include "server/server_settings.h"
 
+#include <arpa/inet.h>
+
 #include <fstream>
 #include <set>
 #include <sstream>
@@ -14,37 +16,39 @@ namespace {
 
 namespace fs = std::filesystem;
 
-[[noreturn]] void fail(const std::string& source, const std::string& key, const std::string& what) {
-  throw InputError(source + ": [server] " + key + ": " + what);
+[[noreturn]] void fail(const std::string& source, const std::string& key, const std::string& what,
+                       const char* section = "server") {
+  throw InputError(source + ": [" + section + "] " + key + ": " + what);
 }
 [[noreturn]] void fail_security(const std::string& source, const std::string& key, const std::string& what) {
   throw InputError(source + ": [security] " + key + ": " + what);
 }
 
 std::string get_string(const toml::table& t, const char* key, const std::string& fallback,
-                       const std::string& source) {
+                       const std::string& source, const char* section = "server") {
   const toml::node* n = t.get(key);
   if (!n) return fallback;
-  if (!n->is_string()) fail(source, key, "must be a string");
+  if (!n->is_string()) fail(source, key, "must be a string", section);
   return n->as_string()->get();
 }
 
 std::int64_t get_int(const toml::table& t, const char* key, std::int64_t fallback,
-                     std::int64_t lo, std::int64_t hi, const std::string& source) {
+                     std::int64_t lo, std::int64_t hi, const std::string& source, const char* section = "server") {
   const toml::node* n = t.get(key);
   if (!n) return fallback;
-  if (!n->is_integer()) fail(source, key, "must be an integer");
+  if (!n->is_integer()) fail(source, key, "must be an integer", section);
   const std::int64_t v = n->as_integer()->get();
   if (v < lo || v > hi)
     fail(source, key, "must be in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " +
-                          std::to_string(v));
+                          std::to_string(v), section);
   return v;
 }
 
-bool get_bool(const toml::table& t, const char* key, bool fallback, const std::string& source) {
+bool get_bool(const toml::table& t, const char* key, bool fallback, const std::string& source,
+              const char* section = "server") {
   const toml::node* n = t.get(key);
   if (!n) return fallback;
-  if (!n->is_boolean()) fail(source, key, "must be true or false");
+  if (!n->is_boolean()) fail(source, key, "must be true or false", section);
   return n->as_boolean()->get();
 }
 
@@ -154,6 +158,28 @@ SecuritySettings read_security(const toml::node* section, const std::string& sou
   return s;
 }
 
+OpenIgtlinkSettings read_openigtlink(const toml::node* section, const std::string& source) {
+  OpenIgtlinkSettings o;
+  if (!section) return o;
+  if (!section->is_table()) throw InputError(source + ": [openigtlink] must be a table");
+  const toml::table& t = *section->as_table();
+  static const std::set<std::string> known = {"enabled", "port", "bind", "allow_non_loopback", "queue_messages",
+                                              "max_clients"};
+  const char* in = "openigtlink";
+  for (const auto& [k, v] : t)
+    if (!known.count(std::string(k.str()))) fail(source, std::string(k.str()), "unknown key", in);
+  o.enabled = get_bool(t, "enabled", o.enabled, source, in);
+  o.port = static_cast<int>(get_int(t, "port", o.port, 0, 65535, source, in));
+  o.bind = get_string(t, "bind", o.bind, source, in);
+  o.allow_non_loopback = get_bool(t, "allow_non_loopback", o.allow_non_loopback, source, in);
+  // At least one whole result (three images, four models, a status) fits.
+  o.queue_messages = static_cast<std::size_t>(
+      get_int(t, "queue_messages", static_cast<std::int64_t>(o.queue_messages), 8, 1024, source, in));
+  o.max_clients = static_cast<std::size_t>(
+      get_int(t, "max_clients", static_cast<std::int64_t>(o.max_clients), 1, 64, source, in));
+  return o;
+}
+
 }  // namespace
 
 std::vector<AllowedClient> allowed_clients_from_text(const std::string& toml_text, const std::string& source) {
@@ -185,6 +211,7 @@ ServerSettings server_settings_from_text(const std::string& toml_text, const std
   const toml::table root = parse_toml(toml_text, source);
   ServerSettings s;
   s.security = read_security(root.get("security"), source, base_dir);
+  s.openigtlink = read_openigtlink(root.get("openigtlink"), source);
   const toml::node* section = root.get("server");
   if (!section) return s;
   if (!section->is_table()) throw InputError(source + ": [server] must be a table");
@@ -223,6 +250,11 @@ ServerSettings server_settings_from_file(const std::filesystem::path& path) {
   return server_settings_from_text(text.str(), path.string(), path.parent_path());
 }
 
+bool is_loopback_ipv4(const std::string& address) {
+  in_addr a{};
+  return inet_pton(AF_INET, address.c_str(), &a) == 1 && (ntohl(a.s_addr) >> 24) == 127;
+}
+
 bool is_local_endpoint(const std::string& endpoint) {
   if (endpoint.rfind("ipc://", 0) == 0 || endpoint.rfind("inproc://", 0) == 0) return true;
   if (endpoint.rfind("tcp://", 0) != 0) return false;
@@ -254,6 +286,17 @@ void validate_endpoints(const ServerSettings& s) {
     if (s.security.clients.empty() && s.security.clients_file.empty())
       throw InputError("[security] curve = true needs an allow-list ([[security.clients]] or clients_file): "
                        "without one no client could connect");
+  }
+  const OpenIgtlinkSettings& igtl = s.openigtlink;
+  if (igtl.enabled) {
+    in_addr a{};
+    if (inet_pton(AF_INET, igtl.bind.c_str(), &a) != 1)
+      throw InputError("[openigtlink] bind \"" + igtl.bind + "\": expected an IPv4 address such as 127.0.0.1");
+    if (!is_loopback_ipv4(igtl.bind) && !igtl.allow_non_loopback)
+      throw InputError("[openigtlink] bind \"" + igtl.bind +
+                       "\" is not a loopback address: OpenIGTLink has no authentication or encryption, so anyone "
+                       "on that network could read every result; set [openigtlink] allow_non_loopback = true to "
+                       "do it anyway, on an isolated network");
   }
   // "tcp://127.0.0.1:*" twice is fine: the system picks two free ports.
   const bool wildcard = s.endpoint.find('*') != std::string::npos;

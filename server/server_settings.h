@@ -42,6 +42,19 @@ struct SecuritySettings {
   bool allow_unauthenticated_shutdown = false;
 };
 
+// [openigtlink]: the OpenIGTLink gateway that streams each result to 3D
+// Slicer (server/igtl_gateway.h, PROTOCOL.md section 16). OpenIGTLink has no
+// authentication or encryption, so it is off unless asked for and listens on
+// loopback unless a non-loopback address is allowed explicitly.
+struct OpenIgtlinkSettings {
+  bool enabled = false;
+  int port = 18944;                  // OpenIGTLink's registered port; 0: any free port (tests)
+  std::string bind = "127.0.0.1";    // IPv4 address to listen on
+  bool allow_non_loopback = false;   // required for a bind outside 127.0.0.0/8
+  std::size_t queue_messages = 32;   // per client; beyond it the oldest unsent message is dropped
+  std::size_t max_clients = 8;       // connections beyond it are closed at once
+};
+
 struct ServerSettings {
   std::string endpoint = "tcp://127.0.0.1:5555";  // ROUTER, requests
   std::string events = "tcp://127.0.0.1:5556";    // PUB, events and timings
@@ -60,12 +73,13 @@ struct ServerSettings {
   // unless this is set: a hospital network is not a trusted one.
   bool allow_plain_tcp_non_loopback = false;
   SecuritySettings security;
+  OpenIgtlinkSettings openigtlink;
 
   std::filesystem::path timing_log_path() const;
   std::filesystem::path atlas_cache_path() const;
 };
 
-// Reads [server] and [security] from TOML text (missing section or keys:
+// Reads [server], [security] and [openigtlink] from TOML text (missing section or keys:
 // defaults). Throws InputError naming source_name and the key for a parse
 // error, an unknown key, a wrong type or an out-of-range value. Relative key
 // file paths are resolved against base_dir (the configuration file's folder).
@@ -76,12 +90,15 @@ ServerSettings server_settings_from_file(const std::filesystem::path& path);
 
 // Throws InputError when an endpoint is malformed, or is not loopback while
 // CURVE is off and allow_plain_tcp_non_loopback is not set, or when CURVE is
-// on without a server key or an allow-list. Reads no file (see
-// load_server_curve for the keys themselves).
+// on without a server key or an allow-list, or when [openigtlink] bind is
+// not an IPv4 address, or not loopback without allow_non_loopback. Reads no
+// file (see load_server_curve for the keys themselves).
 void validate_endpoints(const ServerSettings& settings);
 
 // tcp://127.0.0.1:..., tcp://localhost:..., tcp://[::1]:..., ipc://, inproc://.
 bool is_local_endpoint(const std::string& endpoint);
+// A dotted IPv4 address in 127.0.0.0/8.
+bool is_loopback_ipv4(const std::string& address);
 
 // An allow-list file: [[clients]] tables {name, role, public_key}, nothing
 // else. Throws InputError for a missing or malformed field.

@@ -4,6 +4,8 @@
 // axes: p_lps = F p_ras with F = diag(-1, -1, 1), and F is its own inverse.
 // Points, origins and displacement vectors transform with F; a voxel-to-world
 // matrix transforms as F * world_from_voxel (rows 0 and 1 negate).
+// The OpenIGTLink link to 3D Slicer (server/igtl_encoder.h) converts nothing:
+// Slicer's OpenIGTLinkIF takes IMAGE matrices and POLYDATA points as RAS.
 #include <Eigen/Dense>
 
 namespace brainshift {

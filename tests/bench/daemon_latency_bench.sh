@@ -5,8 +5,10 @@
 # a `brainshift phantom` scan (256x256x60 intraop grid) one at a time, and
 # reports push->result-ready p50/p95 and VmRSS of every rank after the scans.
 # Prints one JSON object per NP, as a JSON array.
-# Usage: [PRESET=name] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
+# Usage: [PRESET=name] [IGTL=1] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
 #        (default 20 scans, NP 1 2, phantom preset left_frontal_sinking_12mm)
+# IGTL=1: the OpenIGTLink gateway on, with one receiver connected
+# (brainshift_igtl_receive_bench); its JSON goes to stderr.
 set -euo pipefail
 BUILD=$(cd "${1:?usage: $0 BUILD_DIR [SCANS] [NP...]}" && pwd)
 SCANS=${2:-20}
@@ -51,8 +53,10 @@ for np in "${NPS[@]}"; do
          -e "s|^allow_unauthenticated_shutdown = .*|allow_unauthenticated_shutdown = true|" "$run/brainshiftd.toml"
   launch=("$DAEMON")
   [[ $np -gt 1 ]] && launch=(mpirun -np "$np" --oversubscribe "$DAEMON")
+  igtl=()
+  [[ ${IGTL:-0} == 1 ]] && igtl=(--igtl-port 0)
   "${launch[@]}" --config "$run/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \
-    --ready-file "$run/ready.json" >"$run/daemon.out" 2>"$run/daemon.log" &
+    --ready-file "$run/ready.json" "${igtl[@]}" >"$run/daemon.out" 2>"$run/daemon.log" &
   DAEMON_PID=$!
   for _ in $(seq 1 300); do [[ -f $run/ready.json ]] && break; sleep 0.1; done
   [[ -f $run/ready.json ]] || { echo "bench: daemon (np $np) did not start; see $run/daemon.log" >&2; exit 1; }
@@ -65,11 +69,18 @@ for np in "${NPS[@]}"; do
     pids=$DAEMON_PID
   fi
   echo "bench: np $np, daemon pids $pids" >&2
+  RECEIVER_PID=""
+  if [[ ${IGTL:-0} == 1 ]]; then
+    port=$(sed -n 's/.*"igtl_port":\([0-9]*\).*/\1/p' "$run/ready.json")
+    "$BUILD/tests/bench/brainshift_igtl_receive_bench" --port "$port" --results "$SCANS" >&2 &
+    RECEIVER_PID=$!
+  fi
   [[ $first -eq 1 ]] || echo ","
   first=0
   "$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$WORK/phantom/intraop_labels.nii.gz" \
     --image "$WORK/phantom/intraop_t1.nii.gz" --scans "$SCANS" --load-preop --pids "$pids" |
     sed "1s/^{/{\n  \"np\": $np,/"
+  [[ -n $RECEIVER_PID ]] && wait "$RECEIVER_PID"
   stop_daemon
 done
 echo "]"

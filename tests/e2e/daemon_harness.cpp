@@ -46,6 +46,7 @@ Daemon::Daemon(DaemonSpec spec) : spec_(std::move(spec)) {
                                std::string("tcp://127.0.0.1:*"), std::string("--events"),
                                std::string("tcp://127.0.0.1:*"), std::string("--ready-file"), ready.string()})
     argv.push_back(a);
+  argv.insert(argv.end(), spec_.extra_args.begin(), spec_.extra_args.end());
   process_ = std::make_unique<Process>(argv, spec_.work_dir / (spec_.name + ".out"),
                                        spec_.work_dir / (spec_.name + ".err"));
   for (const auto& name : exported) ::unsetenv(name.c_str());
@@ -57,6 +58,7 @@ Daemon::Daemon(DaemonSpec spec) : spec_(std::move(spec)) {
   endpoint = r.at("endpoint").get<std::string>();
   events = r.at("events").get<std::string>();
   rank0_pid_ = r.at("pid").get<pid_t>();
+  if (r.contains("igtl_port")) igtl_port = r.at("igtl_port").get<int>();
 }
 
 // spdlog writes to stdout; MPI and crashes to stderr.

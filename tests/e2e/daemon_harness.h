@@ -32,6 +32,7 @@ struct DaemonSpec {
   std::string name;       // prefix of the log files
   int mpi_ranks = 0;      // 0: no mpirun
   std::vector<std::string> mpi_env;  // NAME=VALUE pairs exported to every rank (mpirun -x)
+  std::vector<std::string> extra_args;  // appended to brainshiftd's command line
 };
 
 class Daemon {
@@ -43,6 +44,7 @@ class Daemon {
   std::string log() const;
 
   std::string endpoint, events;
+  std::optional<int> igtl_port;  // when the OpenIGTLink gateway is on
 
  private:
   DaemonSpec spec_;

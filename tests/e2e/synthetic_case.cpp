@@ -35,12 +35,11 @@ void write_synthetic_preop(const std::filesystem::path& dir) {
   write_label_image(dir / "preop_labels.nii.gz", h.labels);
 }
 
-void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
-                          double voxel_scale) {
+namespace {
+
+void write_scan_on(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
+                   const Grid3& g) {
   const Head h = synthetic_head();
-  // iMRI-like: thick slices, its own field of view.
-  auto n = [voxel_scale](int dim) { return static_cast<int>(dim / voxel_scale + 0.5); };
-  const Grid3 g = grid({n(96), n(110), n(44)}, Eigen::Vector3d(1.4, 1.4, 2.8) * voxel_scale, {-68, -77, -62});
   Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
   preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
   LabelImage labels = resample_nearest(h.labels, g, preop_from_intraop);
@@ -48,6 +47,29 @@ void write_synthetic_scan(const std::filesystem::path& dir, const std::string& p
     if (v == 4) v = 1;  // intraop labels: 1 brain, 2 ventricles
   write_label_image(dir / (prefix + "_labels.nii.gz"), labels);
   write_scalar_image(dir / (prefix + "_t1.nii.gz"), resample_linear(h.t1, g, preop_from_intraop));
+}
+
+}  // namespace
+
+void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
+                          double voxel_scale) {
+  // iMRI-like: thick slices, its own field of view.
+  auto n = [voxel_scale](int dim) { return static_cast<int>(dim / voxel_scale + 0.5); };
+  write_scan_on(dir, prefix, shift_mm,
+                grid({n(96), n(110), n(44)}, Eigen::Vector3d(1.4, 1.4, 2.8) * voxel_scale, {-68, -77, -62}));
+}
+
+void write_synthetic_oblique_las_scan(const std::filesystem::path& dir, const std::string& prefix,
+                                      const Eigen::Vector3d& shift_mm) {
+  Grid3 g;
+  g.dims = {100, 112, 46};
+  const Eigen::Matrix3d tilt = Eigen::AngleAxisd(0.21, Eigen::Vector3d(0.2, 0.3, 1).normalized()).toRotationMatrix();
+  g.world_from_voxel.topLeftCorner<3, 3>() = tilt * Eigen::Vector3d(-1.4, 1.4, 2.8).asDiagonal();
+  // Centred where the axis-aligned scan is.
+  const Eigen::Vector3d centre(-1.5, -0.7, -1.8);
+  const Eigen::Vector3d half_extent = 0.5 * Eigen::Vector3d(g.dims[0] - 1, g.dims[1] - 1, g.dims[2] - 1);
+  g.world_from_voxel.block<3, 1>(0, 3) = centre - g.world_from_voxel.topLeftCorner<3, 3>() * half_extent;
+  write_scan_on(dir, prefix, shift_mm, g);
 }
 
 }  // namespace brainshift::e2e

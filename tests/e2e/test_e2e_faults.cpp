@@ -74,7 +74,7 @@ class CleanUp : public ::testing::Environment {
 const auto* const g_cleanup = ::testing::AddGlobalTestEnvironment(new CleanUp);
 
 DaemonSpec spec(const fs::path& store, const std::string& name, int mpi_ranks = 0) {
-  return DaemonSpec{inputs().dir, inputs().config, store, name, mpi_ranks, {}};
+  return DaemonSpec{inputs().dir, inputs().config, store, name, mpi_ranks, {}, {}};
 }
 
 bool is_scan_event(const Message& m, MessageType type, const std::string& scan_id) {

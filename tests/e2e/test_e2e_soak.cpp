@@ -76,7 +76,7 @@ TEST(DaemonSoak, TwoHundredScansBackToBack) {
   // Voxels twice as large: the same head, an eighth of the result bytes.
   const std::vector<ScanBytes> scans = write_synthetic_inputs(dir, 4, 2.0);
 
-  Daemon d(DaemonSpec{dir, config, dir / "store", "soak", ranks > 1 ? ranks : 0, {}});
+  Daemon d(DaemonSpec{dir, config, dir / "store", "soak", ranks > 1 ? ranks : 0, {}, {}});
   const pid_t pid = d.rank0_pid();
   Client pusher(d.endpoint);
   pusher.load_preop(read_file(dir / "preop_t1.nii.gz"), read_file(dir / "preop_labels.nii.gz"));

@@ -54,6 +54,7 @@ TEST(Status, RequestAndReplyRoundTrip) {
   r.mpi_ranks = 2;
   r.queue = {1, 8};
   r.last_error = bp::ErrorInfo{ErrorCode::kInvalidRequest, "labels and t1 grids differ"};
+  r.openigtlink = bp::OpenIgtlinkInfo{18944, 2, 17, 3};
   const auto back = bp::parse_status_reply(wire_trip(bp::make_status_reply("s1", r)));
   r.versions["protocol"] = "1";  // always added by the builder
   EXPECT_EQ(back, r);
@@ -66,6 +67,7 @@ TEST(Status, RequestAndReplyRoundTrip) {
   EXPECT_EQ(back2.mesh, ready.mesh);
   EXPECT_EQ(back2.current_scan_id, ready.current_scan_id);
   EXPECT_FALSE(back2.progress.has_value());
+  EXPECT_FALSE(back2.openigtlink.has_value());
 }
 
 TEST(Status, RequestWithAFrameIsRefused) {
@@ -80,6 +82,11 @@ TEST(Status, ReplyWithBadStateOrFractionIsRefused) {
   EXPECT_EQ(error_of([&] { bp::parse_status_reply(m); }), ErrorCode::kInvalidRequest);
   m = bp::make_status_reply("s1", bp::StatusReply{.progress = bp::Progress{"mesh", 0.5}});
   m.header["progress"]["fraction"] = 1.5;
+  EXPECT_EQ(error_of([&] { bp::parse_status_reply(m); }), ErrorCode::kInvalidRequest);
+  m = bp::make_status_reply("s1", bp::StatusReply{.openigtlink = bp::OpenIgtlinkInfo{18944, 1, 9, 0}});
+  m.header["openigtlink"]["messages_dropped"] = -1;
+  EXPECT_EQ(error_of([&] { bp::parse_status_reply(m); }), ErrorCode::kInvalidRequest);
+  m.header["openigtlink"].erase("messages_dropped");
   EXPECT_EQ(error_of([&] { bp::parse_status_reply(m); }), ErrorCode::kInvalidRequest);
 }
 

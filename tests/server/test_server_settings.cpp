@@ -92,10 +92,82 @@ TEST(ServerSettings, PlainTcpOnlyOnLoopbackUnlessAllowed) {
   EXPECT_FALSE(is_local_endpoint("tcp://*:5555"));
 }
 
+TEST(OpenIgtlinkSettings, OffOnLoopbackByDefault) {
+  const ServerSettings s = server_settings_from_text("[server]\nqueue_depth = 2\n", "t.toml");
+  EXPECT_FALSE(s.openigtlink.enabled);
+  EXPECT_EQ(s.openigtlink.port, 18944);
+  EXPECT_EQ(s.openigtlink.bind, "127.0.0.1");
+  EXPECT_FALSE(s.openigtlink.allow_non_loopback);
+  EXPECT_EQ(s.openigtlink.queue_messages, 32u);
+  EXPECT_EQ(s.openigtlink.max_clients, 8u);
+}
+
+TEST(OpenIgtlinkSettings, ReadsEveryKey) {
+  const ServerSettings s = server_settings_from_text(R"(
+[openigtlink]
+enabled = true
+port = 0
+bind = "10.1.2.3"
+allow_non_loopback = true
+queue_messages = 9
+max_clients = 2
+)", "t.toml");
+  EXPECT_TRUE(s.openigtlink.enabled);
+  EXPECT_EQ(s.openigtlink.port, 0);
+  EXPECT_EQ(s.openigtlink.bind, "10.1.2.3");
+  EXPECT_TRUE(s.openigtlink.allow_non_loopback);
+  EXPECT_EQ(s.openigtlink.queue_messages, 9u);
+  EXPECT_EQ(s.openigtlink.max_clients, 2u);
+  EXPECT_NO_THROW(validate_endpoints(s));
+}
+
+TEST(OpenIgtlinkSettings, RefusesBadValuesNamingTheSectionAndKey) {
+  expect_input_error("[openigtlink]\nenable = true\n", "[openigtlink] enable: unknown key");
+  expect_input_error("[openigtlink]\nenabled = \"yes\"\n", "[openigtlink] enabled");
+  expect_input_error("[openigtlink]\nport = 65536\n", "[openigtlink] port");
+  expect_input_error("[openigtlink]\nport = -1\n", "[openigtlink] port");
+  expect_input_error("[openigtlink]\nbind = 127\n", "[openigtlink] bind");
+  expect_input_error("[openigtlink]\nqueue_messages = 7\n", "[openigtlink] queue_messages");
+  expect_input_error("[openigtlink]\nmax_clients = 0\n", "[openigtlink] max_clients");
+  expect_input_error("openigtlink = 1\n", "[openigtlink] must be a table");
+}
+
+TEST(OpenIgtlinkSettings, NonLoopbackBindOnlyWhenAllowed) {
+  ServerSettings s;
+  s.openigtlink.enabled = true;
+  EXPECT_NO_THROW(validate_endpoints(s));
+  s.openigtlink.bind = "127.4.5.6";
+  EXPECT_NO_THROW(validate_endpoints(s));
+  for (const char* bind : {"0.0.0.0", "192.168.1.20", "128.0.0.1"}) {
+    s.openigtlink.bind = bind;
+    try {
+      validate_endpoints(s);
+      FAIL() << "accepted bind " << bind;
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("allow_non_loopback"), std::string::npos) << e.what();
+    }
+  }
+  s.openigtlink.allow_non_loopback = true;
+  EXPECT_NO_THROW(validate_endpoints(s));
+  for (const char* bind : {"localhost", "::1", "127.0.0", ""}) {
+    s.openigtlink.bind = bind;
+    EXPECT_THROW(validate_endpoints(s), InputError) << bind;
+  }
+  s.openigtlink.enabled = false;  // not checked when off
+  EXPECT_NO_THROW(validate_endpoints(s));
+  EXPECT_TRUE(is_loopback_ipv4("127.0.0.1"));
+  EXPECT_FALSE(is_loopback_ipv4("126.255.255.255"));
+}
+
 TEST(ServerSettings, ShippedConfigurationParses) {
   const ServerSettings s = server_settings_from_file(BRAINSHIFT_SOURCE_DIR "/config/brainshiftd.toml");
   EXPECT_NO_THROW(validate_endpoints(s));
   EXPECT_GE(s.queue_depth, 1u);
+  // The shipped file states the defaults the code has.
+  EXPECT_FALSE(s.openigtlink.enabled);
+  EXPECT_EQ(s.openigtlink.port, OpenIgtlinkSettings{}.port);
+  EXPECT_EQ(s.openigtlink.bind, OpenIgtlinkSettings{}.bind);
+  EXPECT_EQ(s.openigtlink.queue_messages, OpenIgtlinkSettings{}.queue_messages);
 }
 
 TEST(ServerSettings, MissingFileIsAnInputError) {

@@ -1,0 +1,95 @@
+#pragma once
+// The OpenIGTLink gateway: a TCP server that 3D Slicer's OpenIGTLinkIF
+// connects to as a client. After every scan.done it sends that result
+// (igtl_encoder.h) to each connected client, and a client that connects gets
+// the latest result at once. PROTOCOL.md section 16.
+//
+// Threads: the gateway has one thread of its own, which reads the result
+// from the store, packs it and writes it to the sockets (non-blocking, poll).
+// on_event() and info() never wait for it, so neither the engine nor the
+// request socket ever waits for an OpenIGTLink client.
+//
+// Slow clients: each client has a queue of at most queue_messages messages.
+// A new result first drops the client's unsent messages of older results
+// (superseded: the client gets the latest), then, should it still not fit,
+// the oldest unsent messages go; every drop is counted in
+// info().messages_dropped. A message being written is always finished, so
+// the stream stays well-formed. A result's messages are shared by all
+// clients, not copied: a stalled client holds at most one old message and
+// the latest result.
+#include <atomic>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "protocol/message.h"
+#include "protocol/requests.h"
+#include "server/case_store.h"
+#include "server/igtl_encoder.h"
+#include "server/server_settings.h"
+
+namespace brainshift::server {
+
+// A done scan's result read back from the store; unreadable parts are left
+// out and named in problems.
+igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id);
+
+class IgtlGateway {
+ public:
+  // Listens on settings.bind:settings.port (port 0: any free port) and starts
+  // the thread, which first loads the newest done scan in the store. Throws
+  // std::runtime_error naming the address when it cannot listen.
+  IgtlGateway(const OpenIgtlinkSettings& settings, const CaseStore& store);
+  ~IgtlGateway();  // closes every connection
+  IgtlGateway(const IgtlGateway&) = delete;
+  IgtlGateway& operator=(const IgtlGateway&) = delete;
+
+  int port() const { return port_; }
+  // Any thread, returns at once: an event.scan.done message queues that
+  // scan's result for every client; other events are ignored.
+  void on_event(const protocol::Message& event);
+  // Same, by scan id.
+  void publish(const std::string& scan_id);
+  protocol::OpenIgtlinkInfo info() const;
+
+ private:
+  using Shared = std::shared_ptr<const igtl::PackedMessage>;
+  struct Client {
+    int fd = -1;
+    std::string peer;
+    std::deque<Shared> queue;
+    std::size_t written = 0;  // bytes of queue.front() already sent
+  };
+
+  void run();
+  void load_and_send(const std::string& scan_id);
+  void enqueue(Client& c, const std::vector<Shared>& messages);
+  void accept_clients();
+  bool write_some(Client& c);  // false: the client is gone
+  bool drain_input(Client& c);  // false: the client is gone
+  void close_client(Client& c, const char* why);
+  void wake();
+
+  OpenIgtlinkSettings settings_;
+  const CaseStore& store_;
+  int listen_fd_ = -1;
+  int wake_fd_ = -1;  // eventfd: publish() and the destructor wake poll()
+  int port_ = 0;
+
+  std::mutex mutex_;  // guards pending_ and stop_
+  std::vector<std::string> pending_;
+  bool stop_ = false;
+
+  // The gateway thread's own state.
+  std::vector<Client> clients_;
+  std::vector<Shared> latest_;
+
+  std::atomic<std::uint64_t> connected_{0}, sent_{0}, dropped_{0};
+  std::thread thread_;
+};
+
+}  // namespace brainshift::server

@@ -1,0 +1,66 @@
+#include "igtl_receiver.h"
+
+#include <stdexcept>
+
+#include <igtlMessageHeader.h>
+
+namespace brainshift::test {
+
+IgtlReceiver::IgtlReceiver(int port, std::chrono::milliseconds timeout) : socket_(igtl::ClientSocket::New()) {
+  if (socket_->ConnectToServer("127.0.0.1", port) != 0)
+    throw std::runtime_error("cannot connect to OpenIGTLink port " + std::to_string(port));
+  socket_->SetReceiveTimeout(static_cast<int>(timeout.count()));
+}
+
+std::optional<IgtlReceived> IgtlReceiver::next() {
+  auto header = igtl::MessageHeader::New();
+  header->InitPack();
+  if (socket_->Receive(header->GetPackPointer(), header->GetPackSize()) != header->GetPackSize()) return std::nullopt;
+  header->Unpack();
+  IgtlReceived r;
+  r.type = header->GetDeviceType();
+  r.device = header->GetDeviceName();
+  header->GetTimeStamp(&r.seconds, &r.fraction);
+  if (r.type == "IMAGE") r.message = igtl::ImageMessage::New().GetPointer();
+  else if (r.type == "POLYDATA") r.message = igtl::PolyDataMessage::New().GetPointer();
+  else if (r.type == "STATUS") r.message = igtl::StatusMessage::New().GetPointer();
+  else throw std::runtime_error("unexpected OpenIGTLink message type " + r.type);
+  r.message->SetMessageHeader(header);
+  r.message->AllocatePack();
+  const int body = r.message->GetPackBodySize();
+  if (body > 0 && socket_->Receive(r.message->GetPackBodyPointer(), body) != body) return std::nullopt;
+  if ((r.message->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) == 0)
+    throw std::runtime_error(r.type + " " + r.device + ": body does not unpack (CRC)");
+  return r;
+}
+
+std::vector<IgtlReceived> IgtlReceiver::next_result() {
+  std::vector<IgtlReceived> out;
+  for (;;) {
+    auto m = next();
+    if (!m) throw std::runtime_error("no complete OpenIGTLink result arrived (" + std::to_string(out.size()) +
+                                     " message(s) before the timeout)");
+    out.push_back(*m);
+    if (out.back().type == "STATUS") return out;
+  }
+}
+
+Eigen::Matrix4d igtl_world_from_voxel(igtl::ImageMessage& image) {
+  int dims[3];
+  float spacing[3];
+  image.GetDimensions(dims);
+  image.GetSpacing(spacing);
+  igtl::Matrix4x4 m;
+  image.GetMatrix(m);
+  Eigen::Matrix4d w = Eigen::Matrix4d::Identity();
+  Eigen::Vector3d centre(m[0][3], m[1][3], m[2][3]);
+  for (int a = 0; a < 3; ++a) {
+    const Eigen::Vector3d axis = Eigen::Vector3d(m[0][a], m[1][a], m[2][a]).normalized();
+    w.block<3, 1>(0, a) = axis * spacing[a];
+    centre -= axis * spacing[a] * (dims[a] - 1) / 2.0;
+  }
+  w.block<3, 1>(0, 3) = centre;
+  return w;
+}
+
+}  // namespace brainshift::test
