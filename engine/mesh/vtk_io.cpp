@@ -1,6 +1,8 @@
 #include "mesh/vtk_io.h"
 
+#include <algorithm>
 #include <cctype>
+#include <cmath>
 #include <charconv>
 #include <concepts>
 #include <fstream>
@@ -31,6 +33,19 @@ class TextOut {
   TextOut& operator<<(std::floating_point auto v) { return put(static_cast<double>(v)); }
   TextOut& operator<<(std::integral auto v) { return put(v); }
   std::string str() && { return std::move(text_); }
+  // A value in [-1, 1] to 4 decimals, through integer formatting: normals
+  // need no more for shading, and the shortest-double text of 3 components
+  // per vertex nearly doubled the encoding of a brain model (0.14 -> 0.26 s).
+  TextOut& unit_fixed4(double v) {
+    const long q = std::lround(std::clamp(v, -1.0, 1.0) * 10000.0);
+    if (q < 0) text_.push_back('-');
+    const long a = q < 0 ? -q : q;
+    put(a / 10000);
+    char digits[5] = {'.', '0', '0', '0', '0'};
+    for (long r = a % 10000, d = 4; d > 0; --d, r /= 10) digits[d] = static_cast<char>('0' + r % 10);
+    text_.append(digits, 5);
+    return *this;
+  }
 
  private:
   template <class T>
@@ -188,12 +203,13 @@ std::string vtp_bytes(const TriSurface& s, const SurfaceAttributes& attributes) 
   write_space_field(os);
   os << "<Piece NumberOfPoints=\"" << nv << "\" NumberOfVerts=\"0\" NumberOfLines=\"0\" NumberOfStrips=\"0\" NumberOfPolys=\""
      << s.triangles.size() << "\">\n<PointData Normals=\"" << kNormalsArray << "\">\n";
-  // Float32: a shading direction needs no more, and it keeps the text (and the
-  // daemon's encoding time) small.
+  // Float32 at 4 decimals: a shading direction needs no more, and it keeps
+  // the text (and the daemon's encoding time on the latency path) small.
   os << "<DataArray type=\"Float32\" Name=\"" << kNormalsArray << "\" NumberOfComponents=\"3\" format=\"ascii\">\n";
   for (const Eigen::Vector3d& n : vertex_normals(s)) {
-    const Eigen::Vector3f f = n.cast<float>();
-    os << f.x() << ' ' << f.y() << ' ' << f.z() << '\n';
+    os.unit_fixed4(n.x()) << ' ';
+    os.unit_fixed4(n.y()) << ' ';
+    os.unit_fixed4(n.z()) << '\n';
   }
   os << "</DataArray>\n";
   if (!s.mesh_node.empty()) {
