@@ -15,7 +15,6 @@ find_package(tomlplusplus REQUIRED)
 find_package(spdlog REQUIRED)
 find_package(CLI11 REQUIRED)
 find_package(ZLIB REQUIRED)
-find_package(GTest REQUIRED)
 find_package(Threads REQUIRED)
 
 # Debian's NIFTIConfig.cmake points NIFTI::znz at a file that does not exist,
