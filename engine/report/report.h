@@ -56,6 +56,9 @@ struct ReportSummary {
   std::optional<double> min_jacobian;
   std::optional<double> worst_residual_mm;  // largest surface-match residual
   std::string worst_residual_surface;
+  // Replaces the result line when set (a picture of something other than a
+  // registration, e.g. a phantom's ground truth).
+  std::string result_text;
 };
 
 struct ReportInputs {

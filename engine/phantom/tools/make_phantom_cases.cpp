@@ -81,7 +81,8 @@ void write_case(const bs::DefaultAtlas& atlas, const bs::PhantomSpec& spec, cons
   in.outer_label = bs::labels::brain;
   // The truth, not a registration: row 2 is the rigid part alone, row 3 the
   // true field; there are no registration numbers to print.
-  in.summary.scan_id = spec.name + " (ground truth)";
+  in.summary.scan_id = spec.name;
+  in.summary.result_text = "Ground truth of the phantom: row 2 = the rigid part alone, row 3 = the true field";
   bs::write_report_png(dir / "truth_report.png", in, opt);
   std::printf("%-36s %.2f s  scale %.2f  min_jac %.3f  landmarks %zu\n", spec.name.c_str(), seconds,
               pc.description["nonrigid_scale_applied"].get<double>(), pc.description["min_jacobian"].get<double>(),
