@@ -12,8 +12,11 @@
 #include <sstream>
 #include <thread>
 
+#include "config_file.h"
+#include "core/errors.h"
 #include "connection.h"
 #include "pulled_files.h"
+#include "slicer_scene.h"
 #include "protocol/events.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
@@ -263,6 +266,8 @@ int cmd_push(const NetworkOptions& o, const PushArgs& a) {
 struct PullArgs {
   std::string scan, out;
   std::vector<std::string> parts;
+  bool scene = false;
+  std::string scene_labels, preop_image, intraop_image;
 };
 
 std::optional<ResultPart> part_from_cli(const std::string& name) {
@@ -297,15 +302,63 @@ std::vector<ResultPart> write_pulled(const ScanResultReply& r, const fs::path& o
   return pending;
 }
 
+// The label table the scene names and colours with: the file the daemon was
+// configured with, or the shipped labels.toml.
+std::vector<SceneLabel> scene_labels(const std::string& toml_file) {
+  try {
+    const brainshift::LabelTable table =
+        toml_file.empty()
+            ? config::pipeline_parameters_from_text(config::default_config_text(), "built-in").label_table
+            : config::label_table_from_text(read_file(toml_file), toml_file);
+    std::vector<SceneLabel> out;
+    for (const auto& e : table.entries) out.push_back({e.value, e.name, e.colour, e.role == LabelRole::parenchyma});
+    return out;
+  } catch (const InputError& e) {
+    throw CommandError(kExitUsage, e.what());
+  }
+}
+
+// A local image copied into the result folder (the scene refers to it there,
+// so the folder stays self-contained): <stem> plus the file's extension.
+std::string copy_into(const fs::path& out, const std::string& file, const std::string& stem) {
+  if (!fs::is_regular_file(file)) throw CommandError(kExitUsage, file + ": no such file");
+  const std::string name = file.size() > 7 && file.compare(file.size() - 7, 7, ".nii.gz") == 0
+                               ? stem + ".nii.gz"
+                               : stem + fs::path(file).extension().string();
+  fs::copy_file(file, out / name, fs::copy_options::overwrite_existing);
+  std::cout << (out / name).string() << '\n';
+  return name;
+}
+
+void write_scene(const PullArgs& a) {
+  const fs::path out = a.out;
+  SceneContents contents;
+  contents.labels = scene_labels(a.scene_labels);
+  if (!a.preop_image.empty()) contents.preop_image = copy_into(out, a.preop_image, "preop_image");
+  if (!a.intraop_image.empty()) contents.intraop_image = copy_into(out, a.intraop_image, "intraop_image");
+  try {
+    write_slicer_scene(out, contents);
+  } catch (const std::runtime_error& e) {
+    throw CommandError(kExitUsage, e.what());
+  }
+  std::cout << (out / kSceneFile).string() << '\n';
+}
+
 int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
   ScanResultRequest req;
   req.scan_id = a.scan;
-  for (const auto& name : a.parts) {
+  std::vector<std::string> parts = a.parts;
+  // What the scene shows must be in the folder.
+  if (a.scene) parts.insert(parts.end(), {"field_h5", "warped_image", "warped_labels", "models"});
+  else if (!a.preop_image.empty() || !a.intraop_image.empty() || !a.scene_labels.empty())
+    throw CommandError(kExitUsage, "--preop-image, --intraop-image and --scene-labels go with --scene");
+  for (const auto& name : parts) {
     const auto p = part_from_cli(name);
     if (!p) throw CommandError(kExitUsage, "unknown part \"" + name + "\"");
     if (std::find(req.parts.begin(), req.parts.end(), *p) == req.parts.end()) req.parts.push_back(*p);
   }
   if (req.parts.empty()) return kExitOk;
+  if (a.scene) scene_labels(a.scene_labels);  // a bad table fails before anything is pulled
   const double timeout_s = std::max(o.timeout_s, 30.0);  // a field is tens of MB
   Connection c(o.server, as_ms(timeout_s), curve_keys(o));
   req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
@@ -319,6 +372,7 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
     std::this_thread::sleep_for(200ms);
     req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
   }
+  if (a.scene) write_scene(a);
   return kExitOk;
 }
 
@@ -442,6 +496,14 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   pull->add_option("--out", pl->out, "output folder")->required();
   pull->add_option("--parts", pl->parts, "field,field_h5,warped_image,warped_labels,models,metrics,timings,report")
       ->delimiter(',');
+  pull->add_flag("--scene", pl->scene,
+                 "also write scene.mrml, a 3D Slicer scene of the result (pulls field_h5, warped_image, "
+                 "warped_labels and models)");
+  pull->add_option("--scene-labels", pl->scene_labels,
+                   "labels.toml naming and colouring the scene (the daemon's; default: the shipped one)");
+  pull->add_option("--preop-image", pl->preop_image,
+                   "preop T1 to copy into the scene, shown under the field (the daemon does not send it)");
+  pull->add_option("--intraop-image", pl->intraop_image, "intraop T1 to copy into the scene");
   pull->callback([&o, exit_code, pl] { run(exit_code, [&] { return cmd_pull(o, *pl); }); });
 
   auto limit = std::make_shared<std::uint64_t>(100);

@@ -87,7 +87,12 @@ int run_register_rank0(const RegisterOptions& o) {
   // Decoding the files is part of what the surgeon waits for.
   result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;
   result.timings["intraop"]["total"] = result.timings["intraop"]["total"].get<double>() + read_seconds;
-  write_scan_outputs(result, intraop.t1 ? &*intraop.t1 : nullptr, o.out);
+  ScanOutputOptions outputs;
+  outputs.label_table = session.parameters().label_table;
+  // register has no scan id: the output folder names the report.
+  const fs::path out_dir = fs::path(o.out).filename().empty() ? fs::path(o.out).parent_path() : fs::path(o.out);
+  outputs.scan_id = out_dir.filename().string();
+  write_scan_outputs(result, intraop.t1 ? &*intraop.t1 : nullptr, o.out, outputs);
   std::fprintf(stderr, "[intraop] total      %8.3f s\n", result.timings["intraop"]["total"].get<double>());
   std::cout << "wrote " << o.out << '\n';
   if (result.kind == ResultKind::affine_only_fallback) {

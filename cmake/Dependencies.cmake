@@ -3,6 +3,8 @@
 find_package(PkgConfig REQUIRED)
 find_package(MPI REQUIRED COMPONENTS C CXX)
 pkg_check_modules(PETSC REQUIRED IMPORTED_TARGET PETSc)
+# report.png is drawn and encoded with Cairo (no second PNG writer).
+pkg_check_modules(CAIRO REQUIRED IMPORTED_TARGET cairo)
 find_package(Eigen3 3.4 REQUIRED NO_MODULE)
 find_package(CGAL REQUIRED)
 set(HDF5_PREFER_PARALLEL TRUE)
@@ -13,8 +15,6 @@ find_package(tomlplusplus REQUIRED)
 find_package(spdlog REQUIRED)
 find_package(CLI11 REQUIRED)
 find_package(ZLIB REQUIRED)
-find_package(PNG REQUIRED)
-find_package(GTest REQUIRED)
 find_package(Threads REQUIRED)
 
 # Debian's NIFTIConfig.cmake points NIFTI::znz at a file that does not exist,

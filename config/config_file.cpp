@@ -236,6 +236,7 @@ LabelTable label_table_from(const toml::table& root, const std::string& src) {
     LabelEntry e;
     std::string role = "structure";
     std::int64_t value = -1;
+    std::string colour;
     Section s(t, "label", src);
     s.read("value", value);
     s.read("name", e.name);
@@ -244,9 +245,15 @@ LabelTable label_table_from(const toml::table& root, const std::string& src) {
     s.read("poisson_ratio", e.poisson_ratio);
     s.read("model", e.make_model);
     s.read("resectable", e.resectable);
+    s.read("colour", colour);
     s.finish();
     if (value < 1 || value > 65535) throw InputError(src + ": label value must be in 1..65535");
     e.value = static_cast<std::uint16_t>(value);
+    try {
+      e.colour = colour.empty() ? default_label_colour(e.value) : label_colour_from_hex(colour);
+    } catch (const InputError& err) {
+      throw InputError(src + ": [[label]] " + e.name + ": " + err.what());
+    }
     e.role = label_role_from_string(role);
     table.entries.push_back(e);
   }

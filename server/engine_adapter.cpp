@@ -7,7 +7,7 @@
 #include "field/itk_transform_io.h"
 #include "image/nifti_io.h"
 #include "mesh/vtk_io.h"
-#include "phantom/report_png.h"
+#include "pipeline/scan_report.h"
 #include "server/hdf5_file.h"
 
 namespace brainshift::server {
@@ -85,7 +85,7 @@ std::optional<std::string> EngineAdapter::itk_field_from_nifti(const std::string
   return itk_field_bytes(vector_image_from_bytes(field_nii, "field.nii", field_nii.size() + (1u << 20)));
 }
 
-void EngineAdapter::render_deferred(const DeferredOutputFn& add) {
+void EngineAdapter::render_deferred(const std::string& scan_id, const DeferredOutputFn& add) {
   if (!deferred_) return;
   const std::unique_ptr<Deferred> d = std::move(deferred_);
   ScanResult& r = d->result;
@@ -94,12 +94,7 @@ void EngineAdapter::render_deferred(const DeferredOutputFn& add) {
   add("field.h5", itk_field_bytes(r.pullback_field_mm));
   // The picture needs an intraop image to draw on (as in register).
   if (!d->input.t1) return;
-  ReportInputs in;
-  in.intraop = &*d->input.t1;
-  in.warped_preop_affine = &r.warped_t1_affine_only;
-  in.warped_preop_nonrigid = &r.warped_t1;
-  in.warped_labels = &r.warped_labels;
-  add("report.png", report_png_bytes(in));
+  add("report.png", scan_report_png(r, *d->input.t1, session_.parameters().label_table, scan_id));
 }
 
 }  // namespace brainshift::server

@@ -25,7 +25,7 @@ class EngineAdapter final : public EnginePort {
   int ranks() const override { return session_.ranks(); }
   std::size_t max_image_bytes() const override { return session_.parameters().max_image_bytes; }
   void stop_workers() override { session_.stop_workers(); }
-  void render_deferred(const DeferredOutputFn& add) override;
+  void render_deferred(const std::string& scan_id, const DeferredOutputFn& add) override;
   std::optional<std::string> itk_field_from_nifti(const std::string& field_nii) override;
 
  private:

@@ -67,9 +67,9 @@ class EnginePort {
   // quality gates already ran), field.h5 (the same field as field.nii, in
   // ITK's encoding) and report.png (only with an intraop image). Each is
   // handed to `add` as soon as it is ready; nothing when already rendered.
-  // Frees what it kept for them.
+  // Frees what it kept for them. scan_id titles the report.
   using DeferredOutputFn = std::function<void(const std::string& name, const std::string& bytes)>;
-  virtual void render_deferred(const DeferredOutputFn& add) = 0;
+  virtual void render_deferred(const std::string& scan_id, const DeferredOutputFn& add) = 0;
   // field.h5 made from a stored field.nii (the same field in ITK's
   // encoding), for a result whose field.h5 was lost to a crash; nullopt when
   // the engine cannot make it.

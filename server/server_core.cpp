@@ -482,7 +482,7 @@ void ServerCore::repair_scan(const std::string& scan_id) {
     const DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
     fs::create_directories(scratch);
     engine_.register_scan(d.labels, d.image, d.read_seconds, scratch, [](const std::string&, double, double) {});
-    engine_.render_deferred([&](const std::string& name, const std::string& bytes) {
+    engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
       if (std::find(names.begin(), names.end(), name) != names.end()) return;
       store_.add_result_file(scan_id, name, bytes);
       spdlog::warn("scan {}: {} was missing (stopped before it was stored); made again by registering the stored "
@@ -642,7 +642,7 @@ void ServerCore::result_not_stored(const ScanRecord& record, const std::string& 
 void ServerCore::add_deferred_outputs(const std::string& scan_id, const std::string& preop_id) {
   auto t0 = Clock::now();
   try {
-    engine_.render_deferred([&](const std::string& name, const std::string& bytes) {
+    engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
       store_.add_result_file(scan_id, name, bytes);
       const std::string stage = name == "report.png"     ? "report"
                                 : name == "field.h5"     ? "itk_field"

@@ -4,7 +4,8 @@
 #   2. wait until the atlas, mesh and factorisation are warm,
 #   3. make a phantom intraop scan (`brainshift phantom`) as the scanner would,
 #   4. push it and wait for the result,
-#   5. pull the field and models as the visualisation station would,
+#   5. pull the field and models as the visualisation station would, with a
+#      3D Slicer scene of them (scene.mrml),
 #   6. pull report.png, print the timing table, write everything to OUT_DIR,
 #   7. stop the daemon (also on any error or Ctrl-C: see the trap).
 # Usage: tests/demo.sh BUILD_DIR OUT_DIR [PRESET]
@@ -101,8 +102,12 @@ SCAN=$(bs push --labels "$OUT/phantom/intraop_labels.nii.gz" --image "$OUT/phant
 echo "demo: scan $SCAN registered"
 
 echo "demo: pulling the field and models as the visualisation station would"
+# --scene: also scene.mrml, to open the result in 3D Slicer (File > Open):
+# the preop atlas T1 under the field, the intraop T1, warped image and labels,
+# coloured models.
 bs pull --scan "$SCAN" --out "$OUT/result" \
-   --parts field,field_h5,warped_image,warped_labels,models,metrics,timings >/dev/null
+   --parts field,field_h5,warped_image,warped_labels,models,metrics,timings \
+   --scene --preop-image "$ATLAS_CACHE/t1.nii.gz" --intraop-image "$OUT/phantom/intraop_t1.nii.gz" >/dev/null
 # The picture for the record: rendered by the daemon just after the result
 # (off the latency path); pull waits for it if it is still being drawn.
 bs pull --scan "$SCAN" --out "$OUT/result" --parts report >/dev/null

@@ -52,4 +52,22 @@ inline double enclosed_volume_mm3(const TriSurface& surface) {
   return volume;
 }
 
+// Per-vertex unit normals: the area-weighted mean of the incident triangles'
+// normals, so they point the way the triangles face (outward for a model).
+// A vertex no triangle uses gets (0, 0, 0).
+inline std::vector<Eigen::Vector3d> vertex_normals(const TriSurface& surface) {
+  std::vector<Eigen::Vector3d> normals(surface.vertices_mm.size(), Eigen::Vector3d::Zero());
+  for (const auto& t : surface.triangles) {
+    const Eigen::Vector3d& a = surface.vertices_mm[t[0]];
+    // |cross| is twice the area: the sum is area-weighted without a division.
+    const Eigen::Vector3d n = (surface.vertices_mm[t[1]] - a).cross(surface.vertices_mm[t[2]] - a);
+    for (int v : t) normals[v] += n;
+  }
+  for (auto& n : normals) {
+    const double length = n.norm();
+    if (length > 0) n /= length;
+  }
+  return normals;
+}
+
 }  // namespace brainshift

@@ -111,6 +111,10 @@ struct ScanOutputOptions {
   bool gzip_images = true;          // false: field.nii, warped_image.nii, warped_labels.nii
   bool write_report = true;         // report.png (needs the intraop image)
   bool itk_single_precision = false;  // field.h5 parameters as float (half the bytes)
+  // What report.png names and colours: the registration's label table and an
+  // id for its title (register uses the output folder's name).
+  LabelTable label_table = LabelTable::defaults();
+  std::string scan_id;
 };
 
 // Writes what `brainshift register --out DIR` writes (field.nii.gz, field.h5,

@@ -12,10 +12,11 @@ namespace brainshift {
 LabelTable LabelTable::defaults() {
   LabelTable table;
   table.entries = {
-      {labels::brain, "brain", LabelRole::parenchyma, 3000.0, 0.35, true},
-      {labels::ventricles, "ventricles", LabelRole::cavity, 3000.0, 0.35, true},
-      {labels::corticospinal_tract, "corticospinal_tract", LabelRole::structure, 3000.0, 0.35, true},
-      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.35, true, true},
+      {labels::brain, "brain", LabelRole::parenchyma, 3000.0, 0.35, true, false, {40, 220, 60}},
+      {labels::ventricles, "ventricles", LabelRole::cavity, 3000.0, 0.35, true, false, {0, 200, 255}},
+      {labels::corticospinal_tract, "corticospinal_tract", LabelRole::structure, 3000.0, 0.35, true, false,
+       {255, 40, 40}},
+      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.35, true, true, {255, 230, 0}},
   };
   return table;
 }
@@ -81,6 +82,42 @@ std::string to_string(LabelRole role) {
     case LabelRole::structure: return "structure";
   }
   return "structure";
+}
+
+LabelColour label_colour_from_hex(const std::string& text) {
+  auto hex = [](char c) -> int {
+    if (c >= '0' && c <= '9') return c - '0';
+    if (c >= 'a' && c <= 'f') return c - 'a' + 10;
+    if (c >= 'A' && c <= 'F') return c - 'A' + 10;
+    return -1;
+  };
+  LabelColour out{};
+  bool ok = text.size() == 7 && text[0] == '#';
+  for (int c = 0; ok && c < 3; ++c) {
+    const int hi = hex(text[1 + 2 * c]), lo = hex(text[2 + 2 * c]);
+    ok = hi >= 0 && lo >= 0;
+    out[c] = static_cast<std::uint8_t>(16 * hi + lo);
+  }
+  if (!ok) throw InputError("colour \"" + text + "\" is not of the form \"#rrggbb\"");
+  return out;
+}
+
+std::string to_hex(const LabelColour& colour) {
+  static const char digits[] = "0123456789abcdef";
+  std::string out = "#";
+  for (std::uint8_t c : colour) {
+    out.push_back(digits[c >> 4]);
+    out.push_back(digits[c & 15]);
+  }
+  return out;
+}
+
+LabelColour default_label_colour(std::uint16_t value) {
+  // Distinct, saturated hues that read on a grey MR slice and differ from the
+  // shipped table's green, cyan, red and yellow.
+  static constexpr std::array<LabelColour, 6> palette{{
+      {255, 0, 255}, {255, 140, 0}, {150, 90, 255}, {0, 255, 170}, {255, 105, 180}, {170, 255, 0}}};
+  return palette[value % palette.size()];
 }
 
 LabelRole label_role_from_string(const std::string& text) {

@@ -6,6 +6,8 @@
 #include <string>
 #include <vector>
 
+#include "core/labels.h"
+
 namespace brainshift {
 
 enum class LabelRole {
@@ -25,6 +27,9 @@ struct LabelEntry {
   // given a second warm system in which its wall is fixed, so that a
   // resection cavity in an intraop scan can pull the wall (structure role only).
   bool resectable = false;
+  // How the structure is drawn wherever it is shown: the report's contours and
+  // legend, the Slicer scene's models and its label colour table.
+  LabelColour colour = {255, 0, 255};
 };
 
 struct LabelTable {
@@ -44,6 +49,12 @@ struct LabelTable {
 };
 
 std::string to_string(LabelRole role);
+// "#rrggbb" (as written in labels.toml); InputError naming the text otherwise.
+LabelColour label_colour_from_hex(const std::string& text);
+std::string to_hex(const LabelColour& colour);
+// The colour of a label whose table entry names none: a fixed palette by value,
+// so an unlisted fifth structure still gets a colour of its own.
+LabelColour default_label_colour(std::uint16_t value);
 LabelRole label_role_from_string(const std::string& text);  // InputError if unknown
 
 }  // namespace brainshift

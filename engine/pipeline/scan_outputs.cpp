@@ -6,8 +6,8 @@
 #include "field/itk_transform_io.h"
 #include "image/nifti_io.h"
 #include "mesh/vtk_io.h"
-#include "phantom/report_png.h"
 #include "pipeline/engine_session.h"
+#include "pipeline/scan_report.h"
 
 namespace brainshift {
 namespace fs = std::filesystem;
@@ -40,12 +40,10 @@ void write_all(const ScanResult& r, const ImageF* intraop_t1, const fs::path& di
   write_json(dir / "timings.json", r.timings);
   // The picture needs an intraop image to draw on; without one there is none.
   if (intraop_t1 && options.write_report) {
-    ReportInputs in;
-    in.intraop = intraop_t1;
-    in.warped_preop_affine = &r.warped_t1_affine_only;
-    in.warped_preop_nonrigid = &r.warped_t1;
-    in.warped_labels = &r.warped_labels;
-    write_report_png(dir / "report.png", in);
+    const std::string png = scan_report_png(r, *intraop_t1, options.label_table, options.scan_id);
+    std::ofstream out(dir / "report.png", std::ios::binary);
+    out.write(png.data(), static_cast<std::streamsize>(png.size()));
+    if (!out) throw InputError((dir / "report.png").string() + ": cannot write");
   }
 }
 

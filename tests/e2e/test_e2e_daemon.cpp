@@ -15,6 +15,7 @@
 #include <nlohmann/json.hpp>
 
 #include "image/nifti_io.h"
+#include "mesh/vtk_io.h"
 #include "process.h"
 #include "protocol/timing_log.h"
 #include "synthetic_case.h"
@@ -202,6 +203,24 @@ TEST_F(DaemonE2E, SingleProcessFullCycleConcurrencyAndRestart) {
     for (const char* f : {"models/brain.vtp", "models/ventricles.vtp"})
       EXPECT_NE(read_file(path("pull_a") / f).find("Name=\"SPACE\" NumberOfTuples=\"1\" format=\"ascii\">\n82 65 83 0"),
                 std::string::npos) << f;
+    // Models carry outward unit normals that Slicer shades with.
+    for (const auto& n : read_vtp_normals(read_file(path("pull_a") / "models/brain.vtp"), "brain.vtp"))
+      ASSERT_NEAR(n.norm(), 1.0, 2e-4);
+    // --scene: a Slicer scene over the pulled folder, with the local images copied in.
+    const RunResult scene = d.client({"pull", "--scan", scan_a, "--out", path("pull_scene").string(), "--parts",
+                                      "timings", "--scene", "--preop-image", path("preop_t1.nii.gz").string(),
+                                      "--intraop-image", path("scan_a_t1.nii.gz").string()});
+    ASSERT_EQ(scene.code, 0) << scene.err;
+    const std::string mrml = read_file(path("pull_scene") / "scene.mrml");
+    for (const char* f : {"field.h5", "warped_image.nii.gz", "warped_labels.nii.gz", "models/brain.vtp",
+                          "models/ventricles.vtp", "preop_image.nii.gz", "intraop_image.nii.gz", "labels.ctbl"}) {
+      EXPECT_TRUE(fs::exists(path("pull_scene") / f)) << f;
+      EXPECT_NE(mrml.find(std::string("fileName=\"") + f + "\""), std::string::npos) << f;
+    }
+    EXPECT_NE(mrml.find("<GridTransform"), std::string::npos);
+    EXPECT_NE(mrml.find("fileName=\"models/brain.vtp\" useCompression=\"1\" coordinateSystem=\"RAS\""), std::string::npos);
+    EXPECT_EQ(d.client({"pull", "--scan", scan_a, "--out", path("pull_scene_bad").string(), "--scene",
+                        "--scene-labels", path("no-such-labels.toml").string()}).code, 2);
     // The daemon's field is the one-shot register's field on the same inputs.
     EXPECT_LT(max_field_difference(path("pull_a/field.nii.gz"), path("register_a/field.nii.gz")), 1e-3f);
     EXPECT_EQ(read_file(path("pull_a/warped_labels.nii.gz")).size() > 0, true);

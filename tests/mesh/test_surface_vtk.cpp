@@ -209,6 +209,21 @@ TEST(VtkIo, EveryFileNamesItsFrame) {
   EXPECT_EQ(vtk_space(on_disk), "RAS");
 }
 
+// A closed cube: each corner's normal is the area-weighted mean of its three
+// faces' normals, so it points outward, within 55 degrees of the diagonal.
+TEST(VtkIo, VtpNormalsAreUnitAndOutward) {
+  const TetMesh m = cube_mesh(2.0);
+  const TriSurface s = extract_boundary_surface(m, kAnyBoundary);
+  const auto normals = read_vtp_normals(vtp_bytes(s));
+  ASSERT_EQ(normals.size(), s.vertices_mm.size());
+  const Eigen::Vector3d centre(1, 1, 1);
+  for (std::size_t v = 0; v < normals.size(); ++v) {
+    EXPECT_NEAR(normals[v].norm(), 1.0, 2e-4);  // 4 decimals per component
+    const Eigen::Vector3d radial = s.vertices_mm[v] - centre;
+    EXPECT_GT(normals[v].dot(radial), 0.5 * radial.norm()) << v;
+  }
+}
+
 TEST(VtkIo, ReadsLpsModelsIntoRas) {
   TriSurface s;
   s.vertices_mm = {{10, 20, 30}, {-11, 21, 31}, {12, -22, 32}};

@@ -7,6 +7,7 @@
 #include <numbers>
 
 #include "core/errors.h"
+#include "mesh/vtk_io.h"
 #include "models/surface_models.h"
 
 namespace brainshift {
@@ -80,6 +81,43 @@ TEST(SurfaceModel, FlippedObliqueAffineKeepsOutwardNormals) {
   w.topRightCorner<3, 1>() = centre - w.topLeftCorner<3, 3>() * Eigen::Vector3d::Constant(20);
   const auto labels = ball_labels(w, 40, centre, r, 1);
   expect_sphere(surface_model(labels, std::uint16_t{1}), r, centre);
+}
+
+// Every .vtp carries per-vertex normals that VTK and 3D Slicer shade with:
+// unit length, outward (radial on a ball, also through a handedness-flipping
+// oblique grid), in RAS like the points, and read back as written.
+TEST(SurfaceModel, VtpCarriesOutwardUnitNormals) {
+  const Eigen::Vector3d centre(-5, 7, 1);
+  const double r = 10.0;
+  Eigen::Matrix4d w = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d rot = Eigen::AngleAxisd(0.4, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  w.topLeftCorner<3, 3>() = rot * Eigen::Vector3d(-0.8, 0.8, 0.8).asDiagonal();
+  w.topRightCorner<3, 1>() = centre - w.topLeftCorner<3, 3>() * Eigen::Vector3d::Constant(20);
+  const TriSurface s = surface_model(ball_labels(w, 40, centre, r, 1), std::uint16_t{1});
+  const std::string xml = vtp_bytes(s);
+  EXPECT_NE(xml.find("<PointData Normals=\"Normals\">"), std::string::npos);
+  const std::vector<Eigen::Vector3d> normals = read_vtp_normals(xml, "ball.vtp");
+  ASSERT_EQ(normals.size(), s.vertices_mm.size());
+  double worst_cos = 1;
+  for (std::size_t v = 0; v < normals.size(); ++v) {
+    EXPECT_NEAR(normals[v].norm(), 1.0, 2e-4) << v;  // 4 decimals per component
+    worst_cos = std::min(worst_cos, normals[v].dot((s.vertices_mm[v] - centre).normalized()));
+  }
+  // A smoothed voxel sphere: every normal within ~25 degrees of the radius.
+  EXPECT_GT(worst_cos, 0.9);
+  // As written: the area-weighted vertex normals, to the 4 decimals of the text.
+  const std::vector<Eigen::Vector3d> exact = vertex_normals(s);
+  for (std::size_t v = 0; v < normals.size(); ++v) EXPECT_LT((normals[v] - exact[v]).cwiseAbs().maxCoeff(), 0.5e-4 + 1e-12);
+  // An LPS file's normals come back in RAS, like its points.
+  std::string lps = xml;
+  lps.replace(lps.find("82 65 83 0"), 10, "76 80 83 0");
+  const auto from_lps = read_vtp_normals(lps, "lps.vtp");
+  ASSERT_EQ(from_lps.size(), normals.size());
+  EXPECT_EQ(from_lps[0], Eigen::Vector3d(-normals[0].x(), -normals[0].y(), normals[0].z()));
+  // The writer owns the name: a caller's "Normals" array would be a second one.
+  SurfaceAttributes clash;
+  clash.vectors.push_back({"Normals", s.vertices_mm});
+  EXPECT_THROW(vtp_bytes(s, clash), InputError);
 }
 
 TEST(SurfaceModel, AnisotropicVoxels) {

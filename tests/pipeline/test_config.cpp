@@ -80,6 +80,35 @@ TEST(Config, LabelTableValidation) {
             std::vector<std::uint16_t>{4});
 }
 
+// Colours drawn in report.png and the Slicer scene: labels.toml and the code's
+// defaults agree; a missing colour gets the palette's; a malformed one names
+// the file and the label.
+TEST(Config, LabelColoursParseDefaultAndFailClearly) {
+  const auto file = config::pipeline_parameters_from_text(config::default_config_text(), "built-in").label_table;
+  const LabelTable code = LabelTable::defaults();
+  ASSERT_EQ(file.entries.size(), code.entries.size());
+  for (std::size_t i = 0; i < code.entries.size(); ++i) EXPECT_EQ(file.entries[i].colour, code.entries[i].colour) << i;
+  EXPECT_EQ(file.find("tumor")->colour, (LabelColour{255, 230, 0}));
+  const auto t = config::label_table_from_text(
+      "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\ncolour = \"#0A0b0C\"\n"
+      "[[label]]\nvalue = 5\nname = \"arcuate\"\n", "t");
+  EXPECT_EQ(t.find(1)->colour, (LabelColour{10, 11, 12}));
+  EXPECT_EQ(t.find(5)->colour, default_label_colour(5));
+  EXPECT_EQ(to_hex(LabelColour{10, 11, 255}), "#0a0bff");
+  for (const char* bad : {"red", "#12345", "#1234567", "#12345g"}) {
+    const std::string text =
+        std::string("[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\ncolour = \"") + bad + "\"\n";
+    try {
+      config::label_table_from_text(text, "lab.toml");
+      ADD_FAILURE() << bad << " was accepted";
+    } catch (const InputError& e) {
+      const std::string m = e.what();
+      EXPECT_NE(m.find("lab.toml"), std::string::npos) << m;
+      EXPECT_NE(m.find(bad), std::string::npos) << m;
+    }
+  }
+}
+
 TEST(Config, IntensitySectionDefaultsMatchTheEngineAndOverride) {
   const auto file = config::pipeline_parameters_from_text(config::default_config_text(), "built-in").intensity;
   const IntensityRefinementParameters code;  // the file documents the engine's defaults, not other values

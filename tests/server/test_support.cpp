@@ -112,7 +112,7 @@ const std::string FakeEngine::kReportPng(
     "\0\0\x03\x01\x01\0\xc9\xfe\x92\xef\0\0\0\0IEND\xae" "B`\x82",
     69);
 
-void FakeEngine::render_deferred(const DeferredOutputFn& add) {
+void FakeEngine::render_deferred(const std::string& /*scan_id*/, const DeferredOutputFn& add) {
   if (!report_due_) return;
   report_due_ = false;
   if (while_rendering_report) while_rendering_report();

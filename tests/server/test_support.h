@@ -52,7 +52,7 @@ class FakeEngine : public server::EnginePort {
   void stop_workers() override { stopped = true; }
   // report.png = kReportPng when the last scan had an intraop image (once), as
   // the real adapter draws report.png only over an intraop image.
-  void render_deferred(const DeferredOutputFn& add) override;
+  void render_deferred(const std::string& scan_id, const DeferredOutputFn& add) override;
 
   // Expected output files for these inputs (what register_scan returns).
   static std::map<std::string, std::string> files_for(const LabelImage& labels, bool with_image);

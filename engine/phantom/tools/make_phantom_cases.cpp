@@ -14,7 +14,8 @@
 #include "image/nifti_io.h"
 #include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
-#include "phantom/report_png.h"
+#include "pipeline/scan_report.h"
+#include "report/report.h"
 
 namespace bs = brainshift;
 
@@ -62,6 +63,7 @@ void write_case(const bs::DefaultAtlas& atlas, const bs::PhantomSpec& spec, cons
        },
        true_t1, true_labels);
   bs::ReportOptions opt;
+  opt.centre_label = bs::labels::tumor;
   if (pc.description.contains("sinking")) {
     const auto& c = pc.description["sinking"]["craniotomy_preop_mm"];
     const Eigen::Vector3d preop(c[0].get<double>(), c[1].get<double>(), c[2].get<double>());
@@ -70,7 +72,18 @@ void write_case(const bs::DefaultAtlas& atlas, const bs::PhantomSpec& spec, cons
     const Eigen::Vector3d gravity(gv[0].get<double>(), gv[1].get<double>(), gv[2].get<double>());
     opt.centre_mm = (pc.true_intraop_from_preop_rigid * (preop + 15 * gravity).homogeneous()).head<3>();
   }
-  bs::write_report_png(dir / "truth_report.png", {&pc.intraop_t1, &rigid_t1, &true_t1, &true_labels}, opt);
+  bs::ReportInputs in;
+  in.intraop = &pc.intraop_t1;
+  in.warped_preop_affine = &rigid_t1;
+  in.warped_preop_nonrigid = &true_t1;
+  in.warped_labels = &true_labels;
+  in.legend = bs::report_legend(bs::LabelTable::defaults());
+  in.outer_label = bs::labels::brain;
+  // The truth, not a registration: row 2 is the rigid part alone, row 3 the
+  // true field; there are no registration numbers to print.
+  in.summary.scan_id = spec.name;
+  in.summary.result_text = "Ground truth of the phantom: row 2 = the rigid part alone, row 3 = the true field";
+  bs::write_report_png(dir / "truth_report.png", in, opt);
   std::printf("%-36s %.2f s  scale %.2f  min_jac %.3f  landmarks %zu\n", spec.name.c_str(), seconds,
               pc.description["nonrigid_scale_applied"].get<double>(), pc.description["min_jacobian"].get<double>(),
               pc.landmarks_intraop_preop_mm.size());
