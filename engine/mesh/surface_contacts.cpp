@@ -22,17 +22,6 @@ using Tree = CGAL::AABB_tree<CGAL::AABB_traits<Kernel, Primitive>>;
 
 Kernel::Point_3 point(const Eigen::Vector3d& p) { return {p.x(), p.y(), p.z()}; }
 
-std::vector<Eigen::Vector3d> vertex_normals(const TriSurface& s) {
-  std::vector<Eigen::Vector3d> n(s.vertices_mm.size(), Eigen::Vector3d::Zero());
-  for (const auto& t : s.triangles) {
-    const Eigen::Vector3d fn = (s.vertices_mm[t[1]] - s.vertices_mm[t[0]]).cross(s.vertices_mm[t[2]] - s.vertices_mm[t[0]]);
-    for (int v : t) n[v] += fn;
-  }
-  for (auto& v : n)
-    if (v.norm() > 0) v.normalize();
-  return n;
-}
-
 }  // namespace
 
 std::vector<ContactPair> facing_vertex_pairs(const TriSurface& s, double max_gap_mm) {
