@@ -270,11 +270,11 @@ TEST_F(BadFiles, HugeClaimInSmallFileIsTruncationNotAllocation) {
 }
 
 TEST_F(BadFiles, GarbageAndBadMagic) {
-  expect_rejected("garbage.nii", std::string(1000, 'x'), "not a NIfTI-1 file");
+  expect_rejected("garbage.nii", std::string(1000, 'x'), "not a NIfTI-1 or NIfTI-2 file");
   std::string raw = good_raw();
   raw[344] = 'X';
   expect_rejected("magic.nii", raw, "bad magic");
-  expect_rejected("empty.nii.gz", "", "not a NIfTI-1 file");
+  expect_rejected("empty.nii.gz", "", "not a NIfTI file");
 }
 
 TEST_F(BadFiles, FourDimensionalWhereThreeExpected) {

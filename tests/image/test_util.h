@@ -1,9 +1,12 @@
 #pragma once
 // Helpers to build NIfTI byte streams with deliberate defects.
+#include <nifti/nifti2.h>
+
 #include <cstdint>
 #include <cstring>
 #include <filesystem>
 #include <string>
+#include <string_view>
 
 namespace brainshift::test {
 
@@ -33,5 +36,14 @@ constexpr std::size_t sform_code = 254;  // int16
 constexpr std::size_t srow_x = 280;      // float[4]
 constexpr std::size_t data = 352;
 }  // namespace offsets
+
+// NIfTI-2 from the reference layout (nifti2.h): the header of an uncompressed
+// little-endian NIfTI-1 file (as our writer makes it) widened field by field,
+// with magic "n+2\0\r\n\032\n" and vox_offset 544.
+nifti_2_header nifti2_header_of(const std::string& nifti1_raw);
+// The voxel bytes of an uncompressed NIfTI-1 file (from its vox_offset on).
+std::string_view nifti1_voxels(const std::string& nifti1_raw);
+// A single-file NIfTI-2: header, the 4-byte extension flag, voxels.
+std::string nifti2_file(const nifti_2_header& h, std::string_view voxels);
 
 }  // namespace brainshift::test
