@@ -71,7 +71,7 @@ int run_register_rank0(const RegisterOptions& o) {
   Stopwatch read_clock;
   IntraopInput intraop{read_label_image(o.intraop_labels, params.max_image_bytes), std::nullopt};
   if (!o.intraop_image.empty()) intraop.t1 = read_scalar_image(o.intraop_image, params.max_image_bytes);
-  if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid, 1e-3))
+  if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid))
     throw InputError(o.intraop_image + ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
   const double read_seconds = read_clock.seconds();
 
