@@ -10,6 +10,7 @@
 
 #include "atlas/default_atlas.h"
 #include "config_file.h"
+#include "exit_codes.h"
 #include "core/errors.h"
 #include "core/timer.h"
 #include "fem/petsc_session.h"
@@ -20,10 +21,6 @@
 namespace brainshift::cli {
 namespace fs = std::filesystem;
 namespace {
-
-constexpr int kExitOk = 0;
-constexpr int kExitError = 1;
-constexpr int kExitFallback = 4;
 
 fs::path default_atlas_cache() {
   if (const char* xdg = std::getenv("XDG_CACHE_HOME"); xdg && *xdg) return fs::path(xdg) / "brainshift" / "atlas";

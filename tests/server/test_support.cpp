@@ -103,6 +103,12 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
   progress("solve", 1.0, 0.003);
   server::EngineScanOutput out;
   out.files = files_for(labels, image.has_value());
+  if (fallback_next_scan) {
+    fallback_next_scan = false;
+    out.kind = "affine_only_fallback";
+    out.fallback_reason = "fake: surface match diverged";
+    out.files["metrics.json"] = R"({"result": "affine_only_fallback", "fallback_reason": "fake: surface match diverged"})";
+  }
   report_due_ = image.has_value();
   return out;
 }

@@ -62,6 +62,8 @@ class FakeEngine : public server::EnginePort {
   std::function<void()> while_rendering_report;  // called inside render_deferred
 
   bool fail_next_scan = false;   // ComputeError from the next register_scan
+  // The next scan's result is the affine-only fallback (metrics.json says so).
+  bool fallback_next_scan = false;
   bool fail_preop = false;       // InputError from load_preop
   std::optional<TetMesh> last_stored_mesh;
   server::PreopImages last_preop;
