@@ -6,6 +6,7 @@
 #include <memory>
 #include <unistd.h>
 
+#include "temp_dir.h"
 #include "atlas/default_atlas.h"
 #include "core/labels.h"
 #include "core/timer.h"
@@ -21,15 +22,15 @@ class DefaultAtlasTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     if (!std::filesystem::exists(kTemplates / "ch2.nii.gz")) return;
-    cache_dir_ = std::filesystem::temp_directory_path() / ("brainshift_atlas_" + std::to_string(::getpid()));
-    std::filesystem::remove_all(cache_dir_);
+    cache_tmp_ = std::make_unique<test::TempDir>("atlas");
+    cache_dir_ = cache_tmp_->path();
     Stopwatch sw;
     atlas_ = std::make_unique<DefaultAtlas>(load_or_build_default_atlas(cache_dir_));
     build_seconds_ = sw.seconds();
     std::printf("atlas build: %.2f s\n", build_seconds_);
   }
   static void TearDownTestSuite() {
-    if (!cache_dir_.empty()) std::filesystem::remove_all(cache_dir_);
+    cache_tmp_.reset();
     atlas_.reset();
   }
   void SetUp() override {
@@ -53,6 +54,7 @@ class DefaultAtlasTest : public ::testing::Test {
     return {volume_ml(left), volume_ml(right)};
   }
 
+  static inline std::unique_ptr<test::TempDir> cache_tmp_;
   static inline std::filesystem::path cache_dir_;
   static inline std::unique_ptr<DefaultAtlas> atlas_;
   static inline double build_seconds_ = 0;
@@ -147,15 +149,13 @@ TEST_F(DefaultAtlasTest, CorruptCacheIsRebuilt) {
 }
 
 TEST(DefaultAtlasErrors, MissingTemplatesNameTheFile) {
-  const auto empty = std::filesystem::temp_directory_path() / ("brainshift_no_templates_" + std::to_string(::getpid()));
-  std::filesystem::create_directories(empty);
+  const test::TempDir empty("no_templates");
   try {
-    build_default_atlas(empty);
+    build_default_atlas(empty.path());
     ADD_FAILURE() << "expected InputError";
   } catch (const std::exception& e) {
     EXPECT_NE(std::string(e.what()).find("ch2.nii.gz"), std::string::npos) << e.what();
   }
-  std::filesystem::remove_all(empty);
 }
 
 }  // namespace

@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "temp_dir.h"
 #include "box_mesh.h"
 #include "core/errors.h"
 #include "field/itk_transform_io.h"
@@ -20,21 +21,11 @@ namespace {
 
 namespace fs = std::filesystem;
 
-fs::path temp_dir() {
-  return fs::temp_directory_path() / ("brainshift_field_test_" + std::to_string(::getpid()));
-}
-
+// The test's scratch files, removed when the program ends.
 fs::path temp_path(const std::string& name) {
-  fs::create_directories(temp_dir());
-  return temp_dir() / name;
+  static const test::TempDir dir("itk");
+  return dir / name;
 }
-
-// Removes the test's scratch files after all tests ran.
-class ScratchCleanup : public ::testing::Environment {
- public:
-  void TearDown() override { fs::remove_all(temp_dir()); }
-};
-const auto* const kCleanup = ::testing::AddGlobalTestEnvironment(new ScratchCleanup);
 
 VectorImage3 random_field(const Grid3& g, unsigned seed) {
   VectorImage3 f(g);

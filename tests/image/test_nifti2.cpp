@@ -11,6 +11,7 @@
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
+#include "temp_dir.h"
 #include "test_util.h"
 
 namespace brainshift {
@@ -123,7 +124,7 @@ TEST(Nifti2, DoubleSformIsKeptBeyondFloatPrecision) {
 // 3.0.1 writes no single-file NIfTI-2 itself: after nifti_set_filenames its
 // data overwrite the header) read as written.
 TEST(Nifti2, HeadersMadeByNiftilibReadExactly) {
-  const auto dir = test::temp_dir("nifti2_niftilib");
+  const test::TempDir dir("nifti2");
   const Grid3 g = oblique_grid();
   const ImageF truth = ramp(g);
   const int64_t dims[8] = {3, g.dims[0], g.dims[1], g.dims[2], 1, 1, 1, 1};

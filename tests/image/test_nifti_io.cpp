@@ -8,6 +8,7 @@
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
+#include "temp_dir.h"
 #include "test_util.h"
 
 namespace brainshift {
@@ -61,8 +62,8 @@ void expect_input_error_naming(Fn&& fn, const std::string& name, const std::stri
 
 class NiftiFiles : public ::testing::Test {
  protected:
-  std::filesystem::path dir = test::temp_dir("nifti");
-  void TearDown() override { std::filesystem::remove_all(dir); }
+  test::TempDir tmp{"nifti"};
+  const std::filesystem::path& dir = tmp.path();
 };
 
 TEST_F(NiftiFiles, ScalarFloat32RoundTripFileAndGzip) {

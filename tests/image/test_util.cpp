@@ -5,7 +5,6 @@
 
 #include <fstream>
 #include <stdexcept>
-#include <unistd.h>
 
 namespace brainshift::test {
 
@@ -46,13 +45,6 @@ void write_bytes(const std::filesystem::path& path, const std::string& bytes) {
   std::ofstream out(path, std::ios::binary);
   out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
   if (!out) throw std::runtime_error("cannot write " + path.string());
-}
-
-std::filesystem::path temp_dir(const std::string& name) {
-  const auto dir = std::filesystem::temp_directory_path() /
-                   ("brainshift_" + name + "_" + std::to_string(::getpid()));
-  std::filesystem::create_directories(dir);
-  return dir;
 }
 
 nifti_2_header nifti2_header_of(const std::string& nifti1_raw) {

@@ -13,7 +13,6 @@ namespace brainshift::test {
 std::string gzip(const std::string& raw);
 std::string gunzip(const std::string& gz);
 void write_bytes(const std::filesystem::path& path, const std::string& bytes);
-std::filesystem::path temp_dir(const std::string& name);
 
 // Overwrites a value at a byte offset of an uncompressed NIfTI-1 header
 // (offsets from the NIfTI-1 specification; the writer is little-endian).

@@ -1,22 +1,11 @@
 #include "test_support.h"
 
-#include <random>
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
 
 namespace brainshift::test {
 namespace fs = std::filesystem;
-
-TempDir::TempDir() {
-  std::random_device rd;
-  path_ = fs::temp_directory_path() / ("bs-server-test-" + std::to_string(rd()) + std::to_string(rd()));
-  fs::create_directories(path_);
-}
-TempDir::~TempDir() {
-  std::error_code ec;
-  fs::remove_all(path_, ec);
-}
 
 Grid3 small_grid(int n) {
   Grid3 g;

@@ -1,5 +1,5 @@
 #pragma once
-// Helpers for the server unit tests: temporary directories, small images, and
+// Helpers for the server unit tests: small images and
 // a test double of the engine (tests only; the shipped daemon uses the real one).
 #include <filesystem>
 #include <functional>
@@ -13,18 +13,9 @@
 #include "server/engine_port.h"
 #include "server/server_core.h"
 #include "server/server_settings.h"
+#include "temp_dir.h"  // tests/support: TempDir
 
 namespace brainshift::test {
-
-class TempDir {
- public:
-  TempDir();
-  ~TempDir();
-  const std::filesystem::path& path() const { return path_; }
-
- private:
-  std::filesystem::path path_;
-};
 
 // An oblique 1.5 mm grid of n^3 voxels.
 Grid3 small_grid(int n);
