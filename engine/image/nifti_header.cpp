@@ -70,36 +70,33 @@ NiftiHeader widen(const H& h) {
   return out;
 }
 
-NiftiHeader nifti1_from(const char* bytes, bool swapped, std::string_view name) {
-  nifti_1_header h;
-  std::memcpy(&h, bytes, sizeof h);
-  if (swapped) swap_header(h);
-  if (std::memcmp(h.magic, "ni1\0", 4) == 0)
-    fail(name, "two-file NIfTI (.hdr/.img) is not supported; convert to a single .nii");
-  if (std::memcmp(h.magic, "n+1\0", 4) != 0) fail(name, "not a NIfTI-1 file (bad magic)");
-  NiftiHeader out = widen(h);
-  out.version = 1;
-  out.header_bytes = sizeof h;
-  return out;
-}
-
-NiftiHeader nifti2_from(const char* bytes, bool swapped, std::string_view name) {
-  nifti_2_header h;
-  std::memcpy(&h, bytes, sizeof h);
-  if (swapped) swap_header(h);
-  if (std::memcmp(h.magic, "ni2\0", 4) == 0)
-    fail(name, "two-file NIfTI-2 (.hdr/.img) is not supported; convert to a single .nii");
-  if (std::memcmp(h.magic, "n+2\0", 4) != 0) fail(name, "not a NIfTI-2 file (bad magic)");
+// "n+1\0" / "n+2\0" single file; "ni1\0" / "ni2\0" is the two-file form.
+void check_magic(const char* magic, int version, std::string_view name) {
+  const std::string v = std::to_string(version);
+  if (std::memcmp(magic, ("ni" + v).c_str(), 4) == 0)
+    fail(name, "two-file NIfTI-" + v + " (.hdr/.img) is not supported; convert to a single .nii");
+  if (std::memcmp(magic, ("n+" + v).c_str(), 4) != 0) fail(name, "not a NIfTI-" + v + " file (bad magic)");
   // Bytes 4..7 of the NIfTI-2 magic are "\r\n\032\n", so that a text-mode
   // transfer (CR/LF rewriting) is detected instead of shifting every voxel.
   // Zeros are accepted too: niftilib's own nifti_convert_nim2n2hdr leaves
   // them zero (nibabel accepts both as well).
-  if (std::memcmp(h.magic + 4, "\r\n\032\n", 4) != 0 && std::memcmp(h.magic + 4, "\0\0\0\0", 4) != 0)
+  if (version == 2 && std::memcmp(magic + 4, "\r\n\032\n", 4) != 0 && std::memcmp(magic + 4, "\0\0\0\0", 4) != 0)
     fail(name, "NIfTI-2 magic is damaged (bytes 4..7 are neither \\r\\n\\032\\n nor zero): the file was "
                "altered, e.g. by a text-mode transfer");
+}
+
+// H is nifti_1_header or nifti_2_header.
+template <class H>
+NiftiHeader decode_as(const char* bytes, bool swapped, std::string_view name) {
+  H h;
+  std::memcpy(&h, bytes, sizeof h);
+  if (swapped) swap_header(h);
+  const int version = sizeof(H) == sizeof(nifti_2_header) ? 2 : 1;
+  check_magic(h.magic, version, name);
   NiftiHeader out = widen(h);
-  out.version = 2;
+  out.version = version;
   out.header_bytes = sizeof h;
+  out.swapped = swapped;
   return out;
 }
 
@@ -144,19 +141,13 @@ NiftiHeader read_header(ByteStream& stream, std::string_view name) {
   swap_in_place(swapped_size);
   const bool swapped = size != 348 && size != 540;
   if (swapped) size = swapped_size;
-  if (size == 348) {
-    NiftiHeader h = nifti1_from(bytes, swapped, name);
-    h.swapped = swapped;
-    return h;
-  }
+  if (size == 348) return decode_as<nifti_1_header>(bytes, swapped, name);
   if (size != 540) fail(name, "not a NIfTI-1 or NIfTI-2 file (sizeof_hdr is neither 348 nor 540)");
   const std::size_t rest = sizeof(nifti_2_header) - sizeof(nifti_1_header);
   const std::size_t more = stream.read(bytes + sizeof(nifti_1_header), rest);
   if (more < rest)
     fail(name, "truncated NIfTI-2 header: only " + std::to_string(got + more) + " bytes, a header needs 540");
-  NiftiHeader h = nifti2_from(bytes, swapped, name);
-  h.swapped = swapped;
-  return h;
+  return decode_as<nifti_2_header>(bytes, swapped, name);
 }
 
 std::size_t bytes_per_voxel(std::int32_t datatype) {

@@ -36,9 +36,9 @@ constexpr std::size_t srow_x = 280;      // float[4]
 constexpr std::size_t data = 352;
 }  // namespace offsets
 
-// NIfTI-2 from the reference layout (nifti2.h): the header of an uncompressed
-// little-endian NIfTI-1 file (as our writer makes it) widened field by field,
-// with magic "n+2\0\r\n\032\n" and vox_offset 544.
+// The NIfTI-2 header niftilib makes from the header of an uncompressed
+// little-endian NIfTI-1 file (as our writer makes it), with magic
+// "n+2\0\r\n\032\n" and vox_offset 544.
 nifti_2_header nifti2_header_of(const std::string& nifti1_raw);
 // The voxel bytes of an uncompressed NIfTI-1 file (from its vox_offset on).
 std::string_view nifti1_voxels(const std::string& nifti1_raw);

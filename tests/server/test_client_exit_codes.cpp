@@ -5,9 +5,6 @@
 #include <gtest/gtest.h>
 
 #include <fstream>
-#include <thread>
-
-#include <nlohmann/json.hpp>
 
 #include "client/exit_codes.h"
 #include "image/nifti_io.h"
@@ -32,20 +29,11 @@ class LoopbackDaemon {
     o.settings.store = dir.path() / "store";
     o.settings.preop.kind = DefaultPreop::Kind::none;
     o.ready_file = dir.path() / "ready.json";
-    thread_ = std::thread([this, o] { run_daemon(o, engine, stop_); });
-    for (int i = 0; i < 1000 && !fs::exists(o.ready_file); ++i) std::this_thread::sleep_for(10ms);
-    if (!fs::exists(o.ready_file)) throw std::runtime_error("run_daemon did not start");
-    std::ifstream in(o.ready_file);
-    const nlohmann::json r = nlohmann::json::parse(in);
-    endpoint_ = r.at("endpoint").get<std::string>();
-    events_ = r.at("events").get<std::string>();
-  }
-  ~LoopbackDaemon() {
-    stop_ = true;
-    if (thread_.joinable()) thread_.join();
+    daemon_ = std::make_unique<test::DaemonThread>(o, engine);
   }
   e2e::RunResult client(std::vector<std::string> args) {
-    std::vector<std::string> argv{BRAINSHIFT_BIN, "--server", endpoint_, "--events", events_, "--timeout", "10"};
+    std::vector<std::string> argv{BRAINSHIFT_BIN, "--server", daemon_->endpoint(), "--events", daemon_->events(),
+                                  "--timeout", "10"};
     argv.insert(argv.end(), args.begin(), args.end());
     return e2e::run(argv, dir.path(), 60);
   }
@@ -59,9 +47,7 @@ class LoopbackDaemon {
   test::FakeEngine engine;
 
  private:
-  std::atomic<bool> stop_{false};
-  std::thread thread_;
-  std::string endpoint_, events_;
+  std::unique_ptr<test::DaemonThread> daemon_;
 };
 
 TEST(ClientExitCodes, EachCodeForTheCaseItNames) {

@@ -1,6 +1,11 @@
 #include "test_support.h"
 
 
+#include <chrono>
+#include <fstream>
+
+#include <nlohmann/json.hpp>
+
 #include "core/errors.h"
 #include "image/nifti_io.h"
 
@@ -112,6 +117,31 @@ void FakeEngine::render_deferred(const DeferredOutputFn& add) {
   report_due_ = false;
   if (while_rendering_report) while_rendering_report();
   add("report.png", kReportPng);
+}
+
+DaemonThread::DaemonThread(const server::DaemonOptions& options, server::EnginePort& engine) {
+  thread_ = std::thread([this, options, &engine] { exit_code_ = server::run_daemon(options, engine, stop_); });
+  for (int i = 0; i < 1000 && !fs::exists(options.ready_file) && exit_code_ < 0; ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  if (!fs::exists(options.ready_file)) {
+    stop_ = true;
+    thread_.join();
+    throw std::runtime_error("run_daemon did not start");
+  }
+  std::ifstream in(options.ready_file);
+  const nlohmann::json r = nlohmann::json::parse(in);
+  endpoint_ = r.at("endpoint").get<std::string>();
+  events_ = r.at("events").get<std::string>();
+}
+
+DaemonThread::~DaemonThread() {
+  stop_ = true;
+  if (thread_.joinable()) thread_.join();
+}
+
+int DaemonThread::join() {
+  if (thread_.joinable()) thread_.join();
+  return exit_code_;
 }
 
 IdleServer::IdleServer() {

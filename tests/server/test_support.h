@@ -1,15 +1,18 @@
 #pragma once
 // Helpers for the server unit tests: small images and
 // a test double of the engine (tests only; the shipped daemon uses the real one).
+#include <atomic>
 #include <filesystem>
 #include <functional>
 #include <memory>
 #include <optional>
 #include <string>
+#include <thread>
 
 #include "core/image.h"
 #include "core/tet_mesh.h"
 #include "server/case_store.h"
+#include "server/daemon.h"
 #include "server/engine_port.h"
 #include "server/server_core.h"
 #include "server/server_settings.h"
@@ -65,6 +68,24 @@ class FakeEngine : public server::EnginePort {
   bool ready_ = false;
   bool report_due_ = false;
   TetMesh mesh_;
+};
+
+// run_daemon (the real sockets and request loop) in a thread; options must
+// name a ready_file (endpoints "tcp://127.0.0.1:*" let the OS pick ports).
+// Stopped, if still running, when destroyed.
+class DaemonThread {
+ public:
+  DaemonThread(const server::DaemonOptions& options, server::EnginePort& engine);
+  ~DaemonThread();
+  int join();  // waits until run_daemon returns (e.g. after a shutdown request); its exit code
+  const std::string& endpoint() const { return endpoint_; }
+  const std::string& events() const { return events_; }
+
+ private:
+  std::atomic<bool> stop_{false};
+  std::atomic<int> exit_code_{-1};
+  std::thread thread_;
+  std::string endpoint_, events_;
 };
 
 // A started ServerCore over an empty store and the engine double, with no
