@@ -6,12 +6,12 @@
 #include <memory>
 #include <unistd.h>
 
-#include "temp_dir.h"
 #include "atlas/default_atlas.h"
 #include "core/labels.h"
 #include "core/timer.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
+#include "temp_dir.h"  // tests/support
 
 namespace brainshift {
 namespace {

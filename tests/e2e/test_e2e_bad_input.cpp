@@ -22,6 +22,7 @@
 #include "bad_images.h"
 #include "image/nifti_io.h"
 #include "process.h"
+#include "temp_dir.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
 #include "protocol/transport.h"
@@ -41,7 +42,8 @@ namespace {
 constexpr std::size_t kMaxFrameBytes = std::size_t{1} << 20;  // configured below; hard cap 2 MiB
 
 struct Env {
-  fs::path dir, config, store;
+  test::TempDir tmp{"bad-input"};
+  fs::path dir = tmp.path(), config, store;
   std::unique_ptr<Process> daemon;
   std::string endpoint;
 };
@@ -149,8 +151,6 @@ class BadInputE2E : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     g = new Env;
-    g->dir = fs::temp_directory_path() / ("bs-bad-input-" + std::to_string(::getpid()));
-    fs::create_directories(g->dir);
     g->config = g->dir / "test.toml";
     g->store = g->dir / "store";
     std::ofstream(g->config) << config_text();
@@ -196,9 +196,7 @@ class BadInputE2E : public ::testing::Test {
       EXPECT_EQ(g->daemon->wait(30).value_or(-1), 0) << "the daemon did not stop cleanly: " << daemon_log();
     }
     g->daemon.reset();  // SIGKILL if it is somehow still running
-    std::error_code ec;
-    if (::testing::UnitTest::GetInstance()->failed_test_count() == 0) fs::remove_all(g->dir, ec);
-    else std::printf("bad-input e2e files kept in %s\n", g->dir.c_str());
+    if (::testing::UnitTest::GetInstance()->failed_test_count() > 0) g->tmp.keep();
     delete g;
   }
 

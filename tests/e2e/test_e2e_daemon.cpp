@@ -16,6 +16,7 @@
 
 #include "image/nifti_io.h"
 #include "process.h"
+#include "temp_dir.h"
 #include "protocol/timing_log.h"
 #include "synthetic_case.h"
 
@@ -30,7 +31,8 @@ const std::vector<std::string> kParts = {"field", "field_h5", "warped_image", "w
                                          "models", "metrics", "timings"};
 
 struct Case {
-  fs::path dir;
+  test::TempDir tmp{"e2e"};
+  fs::path dir = tmp.path();
   fs::path config;
 };
 Case* g_case = nullptr;
@@ -123,8 +125,6 @@ class DaemonE2E : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     g_case = new Case;
-    g_case->dir = fs::temp_directory_path() / ("bs-e2e-" + std::to_string(::getpid()));
-    fs::create_directories(g_case->dir);
     g_case->config = g_case->dir / "test.toml";
     std::ofstream(g_case->config) << config_text();
     write_synthetic_preop(g_case->dir);
@@ -141,10 +141,8 @@ class DaemonE2E : public ::testing::Test {
     ASSERT_EQ(r.code, 0) << r.err;
   }
   static void TearDownTestSuite() {
-    std::error_code ec;
     // Kept for a post-mortem when anything failed.
-    if (::testing::UnitTest::GetInstance()->failed_test_count() == 0) fs::remove_all(g_case->dir, ec);
-    else std::printf("e2e files kept in %s\n", g_case->dir.c_str());
+    if (::testing::UnitTest::GetInstance()->failed_test_count() > 0) g_case->tmp.keep();
     delete g_case;
   }
   static fs::path path(const std::string& name) { return g_case->dir / name; }

@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 
 #include "process.h"
+#include "temp_dir.h"
 
 using namespace brainshift::e2e;
 namespace fs = std::filesystem;
@@ -23,15 +24,8 @@ namespace {
 
 class SecurityE2E : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("bs-e2e-sec-" + std::to_string(::getpid()) + "-" +
-                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-    fs::create_directories(dir_);
-  }
   void TearDown() override {
-    if (!HasFailure()) fs::remove_all(dir_);
-    else std::printf("files kept in %s\n", dir_.c_str());
+    if (HasFailure()) tmp_.keep();
   }
   fs::path path(const std::string& name) const { return dir_ / name; }
 
@@ -66,7 +60,8 @@ class SecurityE2E : public ::testing::Test {
     return run(argv, dir_, 60);
   }
 
-  fs::path dir_;
+  brainshift::test::TempDir tmp_{"e2e-security"};
+  const fs::path& dir_ = tmp_.path();
 };
 
 TEST_F(SecurityE2E, KeygenKeysWorkThroughARealCurveHandshake) {

@@ -10,11 +10,11 @@
 #include <string>
 #include <vector>
 
-#include "temp_dir.h"
 #include "box_mesh.h"
 #include "core/errors.h"
 #include "field/itk_transform_io.h"
 #include "field/lps.h"
+#include "temp_dir.h"  // tests/support
 
 namespace brainshift {
 namespace {

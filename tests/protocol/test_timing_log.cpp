@@ -5,8 +5,8 @@
 #include <filesystem>
 #include <fstream>
 
-#include "temp_dir.h"
 #include "protocol/timing_log.h"
+#include "temp_dir.h"  // tests/support
 
 namespace bp = brainshift::protocol;
 using nlohmann::json;
