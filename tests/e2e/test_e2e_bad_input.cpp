@@ -20,6 +20,7 @@
 #include <zmq.hpp>
 
 #include "bad_images.h"
+#include "client/exit_codes.h"
 #include "image/nifti_io.h"
 #include "process.h"
 #include "temp_dir.h"
@@ -36,6 +37,8 @@ namespace tp = brainshift::protocol::transport;
 using bp::ErrorCode;
 using nlohmann::json;
 using namespace std::chrono_literals;
+
+namespace cli = brainshift::cli;
 
 namespace {
 
@@ -428,7 +431,7 @@ TEST_F(BadInputE2E, BrokenImagesThroughRegisterExitWithAClearError) {
       argv.insert(argv.end(), {"--intraop-image", image.string()});
     }
     const RunResult r = run(argv, g->dir, 600);
-    EXPECT_EQ(r.code, 1) << k.what << ": " << r.err;
+    EXPECT_EQ(r.code, cli::kExitError) << k.what << ": " << r.err;
     EXPECT_NE(r.err.find("error: "), std::string::npos) << k.what << ": " << r.err;
     EXPECT_NE(r.err.find(k.fragment), std::string::npos) << k.what << ": " << r.err;
     EXPECT_FALSE(fs::exists(path("register_bad_" + std::to_string(n)))) << k.what << ": outputs written";
@@ -446,7 +449,7 @@ TEST_F(BadInputE2E, ARefusedNonRigidResultIsExit4AndMarkedAffineOnlyInMetrics) {
                            path("preop_t1.nii.gz").string(), "--preop-labels", path("preop_labels.nii.gz").string(),
                            "--intraop-labels", path("scan_a_labels.nii.gz").string(), "--out", out.string()},
                           g->dir, 600);
-  EXPECT_EQ(r.code, 4) << r.err;
+  EXPECT_EQ(r.code, cli::kExitFallback) << r.err;
   EXPECT_NE(r.err.find("AFFINE-ONLY"), std::string::npos) << r.err;
   const json metrics = json::parse(read_file(out / "metrics.json"));
   EXPECT_EQ(metrics.at("result"), "affine_only_fallback");

@@ -1,7 +1,8 @@
 // The exit-code table of client/exit_codes.h, through the real `brainshift`
 // binary talking over loopback sockets to run_daemon (real request loop and
 // store) with the engine double: each code for the case it names, so a code
-// cannot mean two things in two commands again.
+// cannot mean two things in two commands again. (3, unreachable, is checked
+// by tests/e2e/test_e2e_daemon.cpp and test_e2e_security.cpp.)
 #include <gtest/gtest.h>
 
 #include <fstream>
@@ -83,14 +84,6 @@ TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
   const std::string failed_id = r.out.substr(0, r.out.find('\n'));
   r = d.client({"pull", "--scan", failed_id, "--out", (d.dir.path() / "pulled").string(), "--parts", "metrics"});
   EXPECT_EQ(r.code, cli::kExitScanFailed) << r.err;
-}
-
-TEST(ClientExitCodes, NoServerIsUnreachable) {
-  test::TempDir dir;
-  // Port 1 on loopback: nothing listens there.
-  const e2e::RunResult r =
-      e2e::run({BRAINSHIFT_BIN, "--server", "tcp://127.0.0.1:1", "--timeout", "0.5", "status"}, dir.path(), 30);
-  EXPECT_EQ(r.code, cli::kExitUnreachable) << r.err;
 }
 
 }  // namespace
