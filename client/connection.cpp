@@ -66,7 +66,7 @@ protocol::Message Connection::call_raw(const protocol::Message& request) {
       // In slices, so that a refused handshake ends the wait early.
       reply = t::receive_reply(*socket_, protocol::Limits::client_inbound(), std::min(left, kMonitorSlice));
     } catch (const protocol::ProtocolError& e) {
-      throw CommandError(kExitServerError, std::string("unreadable reply from the server: ") + e.what());
+      throw CommandError(kExitError, std::string("unreadable reply from the server: ") + e.what());
     }
     if (!reply) continue;
     // A late reply to an earlier, timed-out request is not ours.
@@ -83,7 +83,7 @@ protocol::Message Connection::call(const protocol::Message& request) {
   protocol::Message reply = call_raw(request);
   if (reply.type() == protocol::MessageType::kError) {
     const protocol::ErrorInfo e = protocol::parse_error_reply(reply);
-    throw CommandError(e.code == protocol::ErrorCode::kScanFailed ? kExitScanFailed : kExitServerError,
+    throw CommandError(e.code == protocol::ErrorCode::kScanFailed ? kExitScanFailed : kExitError,
                        "server error " + std::string(protocol::to_string(e.code)) + ": " + e.message);
   }
   return reply;

@@ -10,18 +10,12 @@
 
 #include <zmq.hpp>
 
+#include "exit_codes.h"
 #include "handshake_monitor.h"
 #include "protocol/curve_keys.h"
 #include "protocol/message.h"
 
 namespace brainshift::cli {
-
-// Exit codes of the network commands (also in `brainshift --help`).
-inline constexpr int kExitOk = 0;
-inline constexpr int kExitServerError = 1;  // the server answered with an error
-inline constexpr int kExitUsage = 2;        // bad command line or local input file
-inline constexpr int kExitUnreachable = 3;  // no answer within the timeout
-inline constexpr int kExitScanFailed = 4;   // the scan's registration failed
 
 // Carries the exit code the command should end with.
 class CommandError : public std::runtime_error {
@@ -43,7 +37,7 @@ class Connection {
   ~Connection();
 
   // Sends the request and returns the reply. Throws CommandError: kExitUnreachable
-  // on timeout, kExitServerError for an error reply (its code and message).
+  // on timeout, kExitError for an error reply (its code and message).
   protocol::Message call(const protocol::Message& request);
   // As call() but returns error replies instead of throwing on them.
   protocol::Message call_raw(const protocol::Message& request);

@@ -4,7 +4,7 @@
 
 #include <CLI/CLI.hpp>
 
-#include "connection.h"
+#include "exit_codes.h"
 #include "network_commands.h"
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
 #include "offline_commands.h"
@@ -12,9 +12,7 @@
 
 int main(int argc, char** argv) {
   CLI::App app{"brainshift: client of the brainshiftd registration daemon"};
-  app.footer(
-      "Exit codes: 0 ok; 1 the server answered with an error; 2 usage or unreadable local file; "
-      "3 timeout or server unreachable; 4 the scan's registration failed.");
+  app.footer(brainshift::cli::kExitCodesHelp);
   app.require_subcommand(1);
   brainshift::cli::NetworkOptions options;
   app.add_option("--server", options.server, "request endpoint of brainshiftd")->capture_default_str();

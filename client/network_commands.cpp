@@ -2,6 +2,7 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cmath>
 #include <csignal>
@@ -11,6 +12,8 @@
 #include <iostream>
 #include <sstream>
 #include <thread>
+
+#include <nlohmann/json.hpp>
 
 #include "config_file.h"
 #include "core/errors.h"
@@ -76,7 +79,7 @@ void run(int* exit_code, Fn&& fn) {
     *exit_code = e.exit_code();
   } catch (const std::exception& e) {
     std::cerr << "brainshift: " << e.what() << '\n';
-    *exit_code = kExitServerError;
+    *exit_code = kExitError;
   }
 }
 
@@ -172,7 +175,7 @@ int wait_preop_ready(Connection& c, const std::string& preop_id, double wait_s) 
       std::cerr << '\n';
       return kExitOk;
     } else {
-      throw CommandError(kExitServerError, "preop " + preop_id + " failed: " +
+      throw CommandError(kExitError, "preop " + preop_id + " failed: " +
                                                (s.last_error ? s.last_error->message : std::string("no detail")));
     }
     std::this_thread::sleep_for(250ms);
@@ -212,9 +215,41 @@ struct PushArgs {
   double wait_s = 600;
 };
 
+void announce_result(const ScanResultReply& r) {
+  if (const Frame* t = r.find("timings")) {
+    try {
+      std::cerr << "result ready: intraop " << parse_timings_json(t->bytes).intraop.total << " s\n";
+      return;
+    } catch (const std::exception&) {
+    }
+  }
+  std::cerr << "result ready\n";
+}
+
+bool still_pending(const ScanResultReply& r, std::string_view part) {
+  return std::any_of(r.unavailable.begin(), r.unavailable.end(),
+                     [&](const UnavailablePart& u) { return u.part == part && u.pending; });
+}
+
+// metrics.result is "nonrigid" or "affine_only_fallback" (PROTOCOL.md 16).
+int exit_code_of_metrics(const std::string& metrics_json) {
+  try {
+    const auto metrics = nlohmann::json::parse(metrics_json);
+    if (metrics.value("result", "") == "affine_only_fallback") {
+      std::cerr << "WARNING: non-rigid registration refused (" << metrics.value("fallback_reason", "no reason given")
+                << "); the result is the AFFINE-ONLY fallback\n";
+      return kExitFallback;
+    }
+  } catch (const std::exception& e) {
+    throw CommandError(kExitError, std::string("unreadable metrics from the server: ") + e.what());
+  }
+  return kExitOk;
+}
+
 int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, double wait_s) {
   const auto deadline = std::chrono::steady_clock::now() + as_ms(wait_s);
   auto next_poll = std::chrono::steady_clock::now();
+  bool announced = false;
   while (std::chrono::steady_clock::now() < deadline && !g_interrupted) {
     // Events give live progress; the poll decides (an event can be missed).
     if (auto e = events.next(100ms)) {
@@ -226,22 +261,25 @@ int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, do
     }
     if (std::chrono::steady_clock::now() < next_poll) continue;
     next_poll = std::chrono::steady_clock::now() + 200ms;
-    const Message reply = c.call_raw(make_scan_result_request(c.next_request_id(), {scan_id, {ResultPart::kTimings}, {}}));
+    const Message reply = c.call_raw(
+        make_scan_result_request(c.next_request_id(), {scan_id, {ResultPart::kTimings, ResultPart::kMetrics}, {}}));
     if (reply.type() != MessageType::kError) {
       const auto r = parse_scan_result_reply(reply);
-      if (const Frame* t = r.find("timings")) {
-        try {
-          std::cerr << "result ready: intraop " << parse_timings_json(t->bytes).intraop.total << " s\n";
-        } catch (const std::exception&) {
-          std::cerr << "result ready\n";
-        }
+      if (!announced) {
+        announced = true;
+        announce_result(r);
       }
+      // metrics is deferred (PROTOCOL.md 5.4): it says whether the result is
+      // the affine-only fallback, so wait for it too.
+      if (const Frame* m = r.find("metrics")) return exit_code_of_metrics(m->bytes);
+      if (still_pending(r, "metrics")) continue;
+      std::cerr << "note: " << scan_id << " has no metrics; cannot tell a non-rigid result from the fallback\n";
       return kExitOk;
     }
     const ErrorInfo err = parse_error_reply(reply);
     if (err.code == ErrorCode::kScanFailed) throw CommandError(kExitScanFailed, err.message);
     if (err.code != ErrorCode::kNotReady)
-      throw CommandError(kExitServerError, "server error " + std::string(to_string(err.code)) + ": " + err.message);
+      throw CommandError(kExitError, "server error " + std::string(to_string(err.code)) + ": " + err.message);
   }
   throw CommandError(kExitUnreachable, scan_id + ": no result within " + std::to_string(static_cast<int>(wait_s)) + " s");
 }
@@ -485,7 +523,7 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   push->add_option("--labels", pa->labels, "intraop labels (1 brain, 2 ventricles), NIfTI")->required();
   push->add_option("--image", pa->image, "intraop T1 on the labels' grid, NIfTI");
   push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");
-  push->add_flag("--wait", pa->wait, "return once the result is ready (exit 4 if the scan failed)");
+  push->add_flag("--wait", pa->wait, "return once the result is ready (exit 4: affine-only fallback, 5: the scan failed)");
   push->add_option("--wait-timeout", pa->wait_s, "seconds to wait with --wait");
   push->callback([&o, exit_code, pa] { run(exit_code, [&] { return cmd_push(o, *pa); }); });
 

@@ -10,6 +10,7 @@
 
 #include "atlas/default_atlas.h"
 #include "config_file.h"
+#include "exit_codes.h"
 #include "core/errors.h"
 #include "core/timer.h"
 #include "fem/petsc_session.h"
@@ -20,10 +21,6 @@
 namespace brainshift::cli {
 namespace fs = std::filesystem;
 namespace {
-
-constexpr int kExitOk = 0;
-constexpr int kExitError = 1;
-constexpr int kExitFallback = 4;
 
 fs::path default_atlas_cache() {
   if (const char* xdg = std::getenv("XDG_CACHE_HOME"); xdg && *xdg) return fs::path(xdg) / "brainshift" / "atlas";
@@ -71,7 +68,7 @@ int run_register_rank0(const RegisterOptions& o) {
   Stopwatch read_clock;
   IntraopInput intraop{read_label_image(o.intraop_labels, params.max_image_bytes), std::nullopt};
   if (!o.intraop_image.empty()) intraop.t1 = read_scalar_image(o.intraop_image, params.max_image_bytes);
-  if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid, 1e-3))
+  if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid))
     throw InputError(o.intraop_image + ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
   const double read_seconds = read_clock.seconds();
 

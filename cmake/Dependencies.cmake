@@ -17,14 +17,11 @@ find_package(CLI11 REQUIRED)
 find_package(ZLIB REQUIRED)
 find_package(Threads REQUIRED)
 
-# Debian's NIFTIConfig.cmake points NIFTI::znz at a file that does not exist,
-# so niftilib is located by hand (still without hard-coded paths).
-find_path(NIFTI_INCLUDE_DIR nifti1_io.h PATH_SUFFIXES nifti REQUIRED)
-find_library(NIFTI_IO_LIBRARY niftiio REQUIRED)
-find_library(NIFTI_ZNZ_LIBRARY NAMES znz libznz.so.3 REQUIRED)
-add_library(brainshift_nifti INTERFACE)
-target_include_directories(brainshift_nifti SYSTEM INTERFACE ${NIFTI_INCLUDE_DIR})
-target_link_libraries(brainshift_nifti INTERFACE ${NIFTI_IO_LIBRARY} ${NIFTI_ZNZ_LIBRARY} ZLIB::ZLIB m)
+# NIfTI: only the reference header layouts (nifti1.h, nifti2.h of
+# libnifti2-dev), included as <nifti/nifti2.h>; niftilib itself is not linked
+# (docs/DESIGN.md, "NIfTI I/O"). Its NIFTIConfig.cmake is not used: it points
+# NIFTI::znz at a file Debian does not ship.
+find_path(NIFTI_HEADERS_DIR nifti/nifti2.h REQUIRED)
 
 # OpenIGTLink 1.11 (protocol version 2: IMAGE, POLYDATA, STATUS), for the
 # gateway to 3D Slicer. Debian installs OpenIGTLinkConfig.cmake under

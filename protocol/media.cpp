@@ -15,15 +15,19 @@ bool has_gzip_magic(std::string_view b) {
          static_cast<unsigned char>(b[1]) == 0x8b;
 }
 
-// NIfTI-1 single file: sizeof_hdr == 348 (either byte order) and magic "n+1\0"
-// at byte 344; the data start at vox_offset >= 352.
-bool has_nifti1_header(std::string_view b) {
+// Single-file NIfTI: sizeof_hdr 348 (either byte order) with magic "n+1\0" at
+// byte 344 and data at vox_offset >= 352 (NIfTI-1), or sizeof_hdr 540 with
+// magic "n+2\0" at byte 4 and data at vox_offset >= 544 (NIfTI-2). The full
+// header is checked by the engine's reader; this only refuses frames whose
+// bytes contradict their media type.
+bool has_nifti_header(std::string_view b) {
   if (b.size() < 352) return false;
   std::uint32_t sizeof_hdr = 0;
   std::memcpy(&sizeof_hdr, b.data(), 4);
   const std::uint32_t swapped = __builtin_bswap32(sizeof_hdr);
-  if (sizeof_hdr != 348 && swapped != 348) return false;
-  return b.substr(344, 4) == std::string_view("n+1\0", 4);
+  if (sizeof_hdr == 348 || swapped == 348) return b.substr(344, 4) == std::string_view("n+1\0", 4);
+  if (sizeof_hdr == 540 || swapped == 540) return b.size() >= 544 && b.substr(4, 4) == std::string_view("n+2\0", 4);
+  return false;
 }
 
 bool has_hdf5_signature(std::string_view b) {
@@ -61,7 +65,7 @@ void check_content(const Frame& f) {
   if (f.media_type == kNiftiGz) {
     if (!has_gzip_magic(b)) refuse(f, "not gzip data (no 1f 8b magic)");
   } else if (f.media_type == kNifti) {
-    if (!has_nifti1_header(b)) refuse(f, "not a NIfTI-1 file (sizeof_hdr 348, magic n+1)");
+    if (!has_nifti_header(b)) refuse(f, "not a single-file NIfTI-1 or NIfTI-2 (sizeof_hdr 348 with magic n+1, or 540 with n+2)");
   } else if (f.media_type == kItkH5) {
     if (!has_hdf5_signature(b)) refuse(f, "no HDF5 signature");
   } else if (f.media_type == kVtp) {

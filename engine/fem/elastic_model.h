@@ -32,7 +32,7 @@ enum class DirichletMethod {
   // Default. Solve the reduced SPD system on the free dofs,
   //   A_ff u_f = f_f - A_fb u_b,
   // with A_ff and A_fb extracted once. Its Cholesky factor is ~1.7x smaller
-  // than that of the row/column-zeroed full matrix (FACTS.md).
+  // than that of the row/column-zeroed full matrix (docs/DESIGN.md, "Measured facts").
   symmetric_elimination,
   // The published approach: replace each fixed row by the identity row and
   // put the value in the rhs. The matrix is no longer symmetric, so only LU

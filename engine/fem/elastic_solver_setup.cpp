@@ -100,7 +100,8 @@ void configure_gmres_sub_solvers(ElasticModel::Impl& m, PC pc) {
     BS_PETSC(KSPGetPC(sub[b], &sub_pc));
     BS_PETSC(PCSetType(sub_pc, PCILU));
     BS_PETSC(PCFactorSetLevels(sub_pc, 0));
-    // ILU(0) of this matrix breaks down at nu = 0.49 without a shift (FACTS.md).
+    // ILU(0) of this matrix broke down at nu = 0.49 without a shift (docs/DESIGN.md,
+    // "Measured facts").
     BS_PETSC(PCFactorSetShiftType(sub_pc, MAT_SHIFT_POSITIVE_DEFINITE));
     BS_PETSC(KSPSetFromOptions(sub[b]));  // -fem_sub_* may still override
   }

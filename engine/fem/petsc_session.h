@@ -37,8 +37,8 @@ struct BlasInfo {
 
 // Which shared library provides dgemm_ in this process. Debian's PETSc links
 // libblas.so.3, which the alternatives system may point at the reference BLAS:
-// FACTS.md measured MUMPS at 82 s with it vs 8 s with OpenBLAS, so start-up
-// should warn when kind == reference.
+// MUMPS took 82 s with it vs 8.4 s with OpenBLAS (docs/DESIGN.md, "Measured
+// facts"), so start-up should warn when kind == reference.
 BlasInfo loaded_blas();
 const char* to_string(BlasKind kind);
 

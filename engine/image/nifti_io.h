@@ -1,16 +1,23 @@
 #pragma once
-// NIfTI-1 (.nii, .nii.gz) reading and writing, from files and from in-memory bytes.
+// NIfTI reading (NIfTI-1 and NIfTI-2, .nii and .nii.gz) and NIfTI-1 writing,
+// from files and from in-memory bytes.
 //
 // Geometry: world_from_voxel maps voxel indices to world RAS+ mm. It is taken
 // from the sform when sform_code > 0, else from the qform when qform_code > 0,
 // else (old ANALYZE-style files) it is diag(pixdim[1..3]) with no offset.
+// NIfTI-2 headers (540 bytes, int64 dims, double sform/qform) read into the
+// same image types; their double geometry is kept as it is.
 // Writers store the same affine in the sform and, when its 3x3 part is a rotation
 // times a positive diagonal scale, also in the qform (both with code
 // NIFTI_XFORM_SCANNER_ANAT = 1), so other tools (FSL, ITK, nibabel) agree.
 //
-// The header is parsed here (nifti1.h is not shipped by Debian's libniftiio-dev);
-// both byte orders are accepted, only single-file NIfTI-1 ("n+1") is supported.
+// The header layouts are the reference ones (nifti1.h, nifti2.h from Debian's
+// libnifti2-dev); the reading itself is ours, because it must bound memory
+// before allocating and read from memory (docs/DESIGN.md, "NIfTI I/O").
+// Both byte orders are accepted; only single-file NIfTI ("n+1", "n+2").
 // Every error is an InputError whose message starts with the file/stream name.
+// Sources: nifti_header.cpp (headers, geometry), nifti_read.cpp, nifti_write.cpp,
+// nifti_gzip.cpp (bounded inflate, deflate).
 #include <cstddef>
 #include <filesystem>
 #include <string>

@@ -45,7 +45,7 @@ void validate_preop_input(const PreopInput& input, const LabelTable& table) {
   table.validate();
   require_nonempty_grid(input.labels.grid, "preop labels");
   require_nonempty_grid(input.t1.grid, "preop image");
-  if (!input.t1.grid.same_geometry(input.labels.grid, 1e-3))
+  if (!input.t1.grid.same_geometry(input.labels.grid))
     throw InputError("preop image and preop labels are on different grids (dimensions or world affine differ)");
   require_known_labels(input.labels, table, "preop labels");
   require_brain(input.labels, table.brain_label(), "preop labels");
@@ -56,7 +56,7 @@ void validate_intraop_input(const IntraopInput& input, const LabelTable& table) 
   require_known_labels(input.labels, table, "intraop labels");
   require_brain(input.labels, table.brain_label(), "intraop labels");
   if (input.t1) {
-    if (!input.t1->grid.same_geometry(input.labels.grid, 1e-3))
+    if (!input.t1->grid.same_geometry(input.labels.grid))
       throw InputError("intraop image and intraop labels are on different grids (dimensions or world affine differ)");
   }
 }

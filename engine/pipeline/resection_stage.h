@@ -4,8 +4,9 @@
 // shows an enclosed cavity next to where the first solve put the structure,
 // its wall is matched to the cavity (like a ventricle wall) and the elastic
 // problem is solved again in that system: the tissue around the cavity then
-// follows its collapse instead of being held by nothing (FACTS: "tissue next
-// to a resection cavity has no boundary data if the cavity is ignored").
+// follows its collapse instead of being held by nothing: with the cavity
+// ignored, no boundary condition reaches the tissue next to it (docs/DESIGN.md,
+// "Resection").
 #include <Eigen/Dense>
 #include <string>
 #include <vector>

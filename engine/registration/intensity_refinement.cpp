@@ -810,11 +810,11 @@ void check_inputs(const VectorImage3& u, const IntensityRefinementInput& in) {
   const Grid3& g = u.grid;
   if (g.dims[0] < 2 || g.dims[1] < 2 || g.dims[2] < 2 || u.vectors.size() != g.voxel_count())
     throw InputError("intensity refinement: the displacement field needs at least 2 voxels per axis");
-  if (!in.intraop_t1.grid.same_geometry(g, 1e-3) || in.intraop_t1.voxels.size() != g.voxel_count())
+  if (!in.intraop_t1.grid.same_geometry(g) || in.intraop_t1.voxels.size() != g.voxel_count())
     throw InputError("intensity refinement: the intraop image is not on the field's grid");
-  if (!in.intraop_labels.grid.same_geometry(g, 1e-3) || in.intraop_labels.voxels.size() != g.voxel_count())
+  if (!in.intraop_labels.grid.same_geometry(g) || in.intraop_labels.voxels.size() != g.voxel_count())
     throw InputError("intensity refinement: the intraop labels are not on the field's grid");
-  if (!in.brain_sdf_mm.grid.same_geometry(g, 1e-3) || in.brain_sdf_mm.voxels.size() != g.voxel_count())
+  if (!in.brain_sdf_mm.grid.same_geometry(g) || in.brain_sdf_mm.voxels.size() != g.voxel_count())
     throw InputError("intensity refinement: the brain distance map is not on the field's grid");
   if (in.preop_t1.grid.voxel_count() == 0 || in.preop_t1.voxels.size() != in.preop_t1.grid.voxel_count())
     throw InputError("intensity refinement: the preop image is empty");

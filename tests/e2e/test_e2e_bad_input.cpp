@@ -20,8 +20,10 @@
 #include <zmq.hpp>
 
 #include "bad_images.h"
+#include "client/exit_codes.h"
 #include "image/nifti_io.h"
 #include "process.h"
+#include "temp_dir.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
 #include "protocol/transport.h"
@@ -36,12 +38,15 @@ using bp::ErrorCode;
 using nlohmann::json;
 using namespace std::chrono_literals;
 
+namespace cli = brainshift::cli;
+
 namespace {
 
 constexpr std::size_t kMaxFrameBytes = std::size_t{1} << 20;  // configured below; hard cap 2 MiB
 
 struct Env {
-  fs::path dir, config, store;
+  test::TempDir tmp{"bad-input"};
+  fs::path dir = tmp.path(), config, store;
   std::unique_ptr<Process> daemon;
   std::string endpoint;
 };
@@ -149,8 +154,6 @@ class BadInputE2E : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     g = new Env;
-    g->dir = fs::temp_directory_path() / ("bs-bad-input-" + std::to_string(::getpid()));
-    fs::create_directories(g->dir);
     g->config = g->dir / "test.toml";
     g->store = g->dir / "store";
     std::ofstream(g->config) << config_text();
@@ -196,9 +199,7 @@ class BadInputE2E : public ::testing::Test {
       EXPECT_EQ(g->daemon->wait(30).value_or(-1), 0) << "the daemon did not stop cleanly: " << daemon_log();
     }
     g->daemon.reset();  // SIGKILL if it is somehow still running
-    std::error_code ec;
-    if (::testing::UnitTest::GetInstance()->failed_test_count() == 0) fs::remove_all(g->dir, ec);
-    else std::printf("bad-input e2e files kept in %s\n", g->dir.c_str());
+    if (::testing::UnitTest::GetInstance()->failed_test_count() > 0) g->tmp.keep();
     delete g;
   }
 
@@ -430,7 +431,7 @@ TEST_F(BadInputE2E, BrokenImagesThroughRegisterExitWithAClearError) {
       argv.insert(argv.end(), {"--intraop-image", image.string()});
     }
     const RunResult r = run(argv, g->dir, 600);
-    EXPECT_EQ(r.code, 1) << k.what << ": " << r.err;
+    EXPECT_EQ(r.code, cli::kExitError) << k.what << ": " << r.err;
     EXPECT_NE(r.err.find("error: "), std::string::npos) << k.what << ": " << r.err;
     EXPECT_NE(r.err.find(k.fragment), std::string::npos) << k.what << ": " << r.err;
     EXPECT_FALSE(fs::exists(path("register_bad_" + std::to_string(n)))) << k.what << ": outputs written";
@@ -448,7 +449,7 @@ TEST_F(BadInputE2E, ARefusedNonRigidResultIsExit4AndMarkedAffineOnlyInMetrics) {
                            path("preop_t1.nii.gz").string(), "--preop-labels", path("preop_labels.nii.gz").string(),
                            "--intraop-labels", path("scan_a_labels.nii.gz").string(), "--out", out.string()},
                           g->dir, 600);
-  EXPECT_EQ(r.code, 4) << r.err;
+  EXPECT_EQ(r.code, cli::kExitFallback) << r.err;
   EXPECT_NE(r.err.find("AFFINE-ONLY"), std::string::npos) << r.err;
   const json metrics = json::parse(read_file(out / "metrics.json"));
   EXPECT_EQ(metrics.at("result"), "affine_only_fallback");

@@ -15,8 +15,10 @@
 #include <nlohmann/json.hpp>
 
 #include "image/nifti_io.h"
+#include "client/exit_codes.h"
 #include "mesh/vtk_io.h"
 #include "process.h"
+#include "temp_dir.h"
 #include "protocol/timing_log.h"
 #include "synthetic_case.h"
 
@@ -25,13 +27,16 @@ using namespace brainshift::e2e;
 namespace fs = std::filesystem;
 using nlohmann::json;
 
+namespace cli = brainshift::cli;
+
 namespace {
 
 const std::vector<std::string> kParts = {"field", "field_h5", "warped_image", "warped_labels",
                                          "models", "metrics", "timings"};
 
 struct Case {
-  fs::path dir;
+  test::TempDir tmp{"e2e"};
+  fs::path dir = tmp.path();
   fs::path config;
 };
 Case* g_case = nullptr;
@@ -124,8 +129,6 @@ class DaemonE2E : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     g_case = new Case;
-    g_case->dir = fs::temp_directory_path() / ("bs-e2e-" + std::to_string(::getpid()));
-    fs::create_directories(g_case->dir);
     g_case->config = g_case->dir / "test.toml";
     std::ofstream(g_case->config) << config_text();
     write_synthetic_preop(g_case->dir);
@@ -142,10 +145,8 @@ class DaemonE2E : public ::testing::Test {
     ASSERT_EQ(r.code, 0) << r.err;
   }
   static void TearDownTestSuite() {
-    std::error_code ec;
     // Kept for a post-mortem when anything failed.
-    if (::testing::UnitTest::GetInstance()->failed_test_count() == 0) fs::remove_all(g_case->dir, ec);
-    else std::printf("e2e files kept in %s\n", g_case->dir.c_str());
+    if (::testing::UnitTest::GetInstance()->failed_test_count() > 0) g_case->tmp.keep();
     delete g_case;
   }
   static fs::path path(const std::string& name) { return g_case->dir / name; }
@@ -171,7 +172,7 @@ TEST_F(DaemonE2E, SingleProcessFullCycleConcurrencyAndRestart) {
     Daemon d(store, false, "single");
     EXPECT_EQ(d.status().at("state"), "idle");
     const RunResult push_early = d.client({"push", "--labels", path("scan_a_labels.nii.gz").string()});
-    EXPECT_EQ(push_early.code, 1) << "no preop yet: a server error (not_ready)";
+    EXPECT_EQ(push_early.code, cli::kExitError) << "no preop yet: a server error (not_ready)";
 
     const RunResult load = d.client({"load-preop", "--image", path("preop_t1.nii.gz").string(), "--labels",
                                      path("preop_labels.nii.gz").string(), "--wait"});
@@ -320,8 +321,9 @@ TEST_F(DaemonE2E, SigtermStopsCleanlyAndBadRequestsAreTypedErrors) {
   std::ofstream(path("garbage.nii")) << std::string(400, 'x');
   const RunResult bad = d.client({"push", "--labels", path("garbage.nii").string()});
   EXPECT_NE(bad.code, 0);
-  EXPECT_EQ(d.client({"pull", "--scan", "scan-424242", "--out", path("nothing").string()}).code, 1);
-  EXPECT_EQ(d.client({"pull", "--scan", "x", "--out", path("nothing").string(), "--parts", "bogus"}).code, 2);
+  EXPECT_EQ(d.client({"pull", "--scan", "scan-424242", "--out", path("nothing").string()}).code, cli::kExitError);
+  EXPECT_EQ(d.client({"pull", "--scan", "x", "--out", path("nothing").string(), "--parts", "bogus"}).code,
+            cli::kExitUsage);
   EXPECT_EQ(d.status().at("state"), "idle");
   d.process().signal(SIGTERM);
   const auto code = d.process().wait(30);
@@ -330,12 +332,13 @@ TEST_F(DaemonE2E, SigtermStopsCleanlyAndBadRequestsAreTypedErrors) {
 }
 
 TEST(ClientE2E, UnreachableServerTimesOutWithExitCode3) {
-  const fs::path dir = fs::temp_directory_path();
-  const RunResult r = run({BRAINSHIFT_BIN, "--server", "tcp://127.0.0.1:9", "--timeout", "0.5", "status"}, dir, 30);
-  EXPECT_EQ(r.code, 3) << r.err;
+  const test::TempDir dir("e2e-client");
+  const RunResult r =
+      run({BRAINSHIFT_BIN, "--server", "tcp://127.0.0.1:9", "--timeout", "0.5", "status"}, dir.path(), 30);
+  EXPECT_EQ(r.code, cli::kExitUnreachable) << r.err;
   EXPECT_NE(r.err.find("no reply"), std::string::npos) << r.err;
   EXPECT_LT(r.seconds, 5.0);
-  EXPECT_EQ(run({BRAINSHIFT_BIN, "push"}, dir, 30).code, 2);
+  EXPECT_EQ(run({BRAINSHIFT_BIN, "push"}, dir.path(), 30).code, cli::kExitUsage);
 }
 
 }  // namespace

@@ -16,6 +16,7 @@
 
 #include <atomic>
 #include <cstdlib>
+#include <memory>
 #include <fstream>
 #include <random>
 #include <set>
@@ -26,6 +27,7 @@
 #include "daemon_harness.h"
 #include "protocol/media.h"
 #include "protocol/transport.h"
+#include "temp_dir.h"  // tests/support
 
 using namespace brainshift;
 using namespace brainshift::e2e;
@@ -37,38 +39,35 @@ using nlohmann::json;
 namespace {
 
 struct Inputs {
-  fs::path dir;
+  test::TempDir tmp{"faults"};
+  fs::path dir = tmp.path();
   fs::path config;
   std::string preop_t1, preop_labels;
   std::vector<ScanBytes> scans;
 };
 
+std::unique_ptr<Inputs> g_inputs;
+
 // Made once for all tests (the synthetic images take a moment).
 Inputs& inputs() {
-  static Inputs* in = [] {
-    auto* i = new Inputs;
-    i->dir = fs::temp_directory_path() / ("bs-faults-" + std::to_string(::getpid()));
-    fs::create_directories(i->dir);
+  if (!g_inputs) {
+    g_inputs = std::make_unique<Inputs>();
+    Inputs* i = g_inputs.get();
     i->config = i->dir / "test.toml";
     std::ofstream(i->config) << test_config_text(8);
     i->scans = write_synthetic_inputs(i->dir, 3);
     i->preop_t1 = read_file(i->dir / "preop_t1.nii.gz");
     i->preop_labels = read_file(i->dir / "preop_labels.nii.gz");
-    return i;
-  }();
-  return *in;
+  }
+  return *g_inputs;
 }
 
 // Removes the work folder unless a test failed (then it is kept for a post-mortem).
 class CleanUp : public ::testing::Environment {
  public:
   void TearDown() override {
-    if (::testing::UnitTest::GetInstance()->failed_test_count() > 0) {
-      std::printf("fault test files kept in %s\n", inputs().dir.c_str());
-      return;
-    }
-    std::error_code ec;
-    fs::remove_all(inputs().dir, ec);
+    if (g_inputs && ::testing::UnitTest::GetInstance()->failed_test_count() > 0) g_inputs->tmp.keep();
+    g_inputs.reset();
   }
 };
 const auto* const g_cleanup = ::testing::AddGlobalTestEnvironment(new CleanUp);

@@ -13,25 +13,22 @@
 
 #include <nlohmann/json.hpp>
 
+#include "client/exit_codes.h"
 #include "process.h"
+#include "temp_dir.h"
 
 using namespace brainshift::e2e;
 namespace fs = std::filesystem;
 using namespace std::chrono_literals;
 
+namespace cli = brainshift::cli;
+
 namespace {
 
 class SecurityE2E : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("bs-e2e-sec-" + std::to_string(::getpid()) + "-" +
-                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-    fs::create_directories(dir_);
-  }
   void TearDown() override {
-    if (!HasFailure()) fs::remove_all(dir_);
-    else std::printf("files kept in %s\n", dir_.c_str());
+    if (HasFailure()) tmp_.keep();
   }
   fs::path path(const std::string& name) const { return dir_ / name; }
 
@@ -66,7 +63,8 @@ class SecurityE2E : public ::testing::Test {
     return run(argv, dir_, 60);
   }
 
-  fs::path dir_;
+  brainshift::test::TempDir tmp_{"e2e-security"};
+  const fs::path& dir_ = tmp_.path();
 };
 
 TEST_F(SecurityE2E, KeygenKeysWorkThroughARealCurveHandshake) {
@@ -79,7 +77,7 @@ TEST_F(SecurityE2E, KeygenKeysWorkThroughARealCurveHandshake) {
   EXPECT_EQ(st.st_mode & 0777, 0600u);
   EXPECT_NE(read_file(path("admin.key")).find(admin), std::string::npos);
   const RunResult again = run({BRAINSHIFT_BIN, "keygen", "--out", path("admin").string()}, dir_, 30);
-  EXPECT_EQ(again.code, 2);
+  EXPECT_EQ(again.code, cli::kExitUsage);
   EXPECT_NE(again.err.find("never overwritten"), std::string::npos) << again.err;
 
   // Relative key paths are read beside the configuration file; the viewer
@@ -99,10 +97,10 @@ TEST_F(SecurityE2E, KeygenKeysWorkThroughARealCurveHandshake) {
 
   // No key, or a key the server does not list: a timeout whose message names authentication.
   const RunResult plain = client(endpoint, "", {"status"}, "1");
-  EXPECT_EQ(plain.code, 3);
+  EXPECT_EQ(plain.code, cli::kExitUnreachable);
   EXPECT_NE(plain.err.find("--key and --server-key"), std::string::npos) << plain.err;
   const RunResult stranger = client(endpoint, "stranger", {"status"}, "1");
-  EXPECT_EQ(stranger.code, 3);
+  EXPECT_EQ(stranger.code, cli::kExitUnreachable);
   EXPECT_NE(stranger.err.find("allow-list"), std::string::npos) << stranger.err;
   // watch is refused the same way and says so instead of waiting silently.
   for (const std::string who : {"stranger", ""}) {
@@ -110,12 +108,12 @@ TEST_F(SecurityE2E, KeygenKeysWorkThroughARealCurveHandshake) {
     if (!who.empty()) argv.insert(argv.end(), {"--key", path(who).string(), "--server-key", path("server.key").string()});
     argv.insert(argv.end(), {"watch", "--for", "30"});
     const RunResult w = run(argv, dir_, 60);
-    EXPECT_EQ(w.code, 3) << who << ": " << w.err;
+    EXPECT_EQ(w.code, cli::kExitUnreachable) << who << ": " << w.err;
     EXPECT_NE(w.err.find(who.empty() ? "--key and --server-key" : "allow-list"), std::string::npos) << w.err;
   }
   // A role that may not: a typed server error.
   const RunResult viewer_stop = client(endpoint, "viewer", {"shutdown"});
-  EXPECT_EQ(viewer_stop.code, 1);
+  EXPECT_EQ(viewer_stop.code, cli::kExitError);
   EXPECT_NE(viewer_stop.err.find("unauthorised"), std::string::npos) << viewer_stop.err;
 
   // watch over CURVE: the viewer sees the shutdown event.
@@ -162,7 +160,7 @@ TEST_F(SecurityE2E, UnsafeConfigurationsAreRefusedAtStartUp) {
   // The client checks its own keys the same way, before any connection.
   keygen("client");
   const RunResult half = run({BRAINSHIFT_BIN, "--key", path("client").string(), "status"}, dir_, 30);
-  EXPECT_EQ(half.code, 2);
+  EXPECT_EQ(half.code, cli::kExitUsage);
   EXPECT_NE(half.err.find("both --key"), std::string::npos) << half.err;
   fs::permissions(path("client.key_secret"), fs::perms::group_read, fs::perm_options::add);
   const RunResult open_key = run({BRAINSHIFT_BIN, "--key", path("client").string(), "--server-key",

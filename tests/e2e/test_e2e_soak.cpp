@@ -21,6 +21,7 @@
 #include <nlohmann/json.hpp>
 
 #include "daemon_harness.h"
+#include "temp_dir.h"  // tests/support
 
 using namespace brainshift;
 using namespace brainshift::e2e;
@@ -62,8 +63,8 @@ struct Sample {
 TEST(DaemonSoak, TwoHundredScansBackToBack) {
   const int total = env_int("BRAINSHIFT_SOAK_SCANS", 200);
   const int ranks = env_int("BRAINSHIFT_SOAK_RANKS", 1);
-  const fs::path dir = fs::temp_directory_path() / ("bs-soak-" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  test::TempDir tmp("soak");
+  const fs::path dir = tmp.path();
   const fs::path config = dir / "soak.toml";
   // Resident memory is compared at idle, after the daemon has returned its
   // free heap pages (idle_release_ms): while scans run, the heap's high-water
@@ -212,8 +213,7 @@ TEST(DaemonSoak, TwoHundredScansBackToBack) {
   // SIGTERM to rank 0 (under mpirun, a signal to mpirun itself is reported as a failure).
   ::kill(pid, SIGTERM);
   EXPECT_EQ(d.process().wait(120).value_or(-1), 0) << d.log();
-  std::error_code ec;
-  if (!::testing::Test::HasFailure()) fs::remove_all(dir, ec);
+  if (::testing::Test::HasFailure()) tmp.keep();
 }
 
 }  // namespace

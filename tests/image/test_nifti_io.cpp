@@ -8,6 +8,7 @@
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
+#include "temp_dir.h"
 #include "test_util.h"
 
 namespace brainshift {
@@ -61,8 +62,8 @@ void expect_input_error_naming(Fn&& fn, const std::string& name, const std::stri
 
 class NiftiFiles : public ::testing::Test {
  protected:
-  std::filesystem::path dir = test::temp_dir("nifti");
-  void TearDown() override { std::filesystem::remove_all(dir); }
+  test::TempDir tmp{"nifti"};
+  const std::filesystem::path& dir = tmp.path();
 };
 
 TEST_F(NiftiFiles, ScalarFloat32RoundTripFileAndGzip) {
@@ -270,11 +271,11 @@ TEST_F(BadFiles, HugeClaimInSmallFileIsTruncationNotAllocation) {
 }
 
 TEST_F(BadFiles, GarbageAndBadMagic) {
-  expect_rejected("garbage.nii", std::string(1000, 'x'), "not a NIfTI-1 file");
+  expect_rejected("garbage.nii", std::string(1000, 'x'), "not a NIfTI-1 or NIfTI-2 file");
   std::string raw = good_raw();
   raw[344] = 'X';
   expect_rejected("magic.nii", raw, "bad magic");
-  expect_rejected("empty.nii.gz", "", "not a NIfTI-1 file");
+  expect_rejected("empty.nii.gz", "", "not a NIfTI file");
 }
 
 TEST_F(BadFiles, FourDimensionalWhereThreeExpected) {

@@ -1,10 +1,10 @@
 #include "test_util.h"
 
+#include <nifti2_io.h>  // niftilib (libnifti2): the reference conversion
 #include <zlib.h>
 
 #include <fstream>
 #include <stdexcept>
-#include <unistd.h>
 
 namespace brainshift::test {
 
@@ -47,11 +47,35 @@ void write_bytes(const std::filesystem::path& path, const std::string& bytes) {
   if (!out) throw std::runtime_error("cannot write " + path.string());
 }
 
-std::filesystem::path temp_dir(const std::string& name) {
-  const auto dir = std::filesystem::temp_directory_path() /
-                   ("brainshift_" + name + "_" + std::to_string(::getpid()));
-  std::filesystem::create_directories(dir);
-  return dir;
+nifti_2_header nifti2_header_of(const std::string& nifti1_raw) {
+  nifti_1_header a;
+  if (nifti1_raw.size() < sizeof a) throw std::runtime_error("nifti2_header_of: not a NIfTI-1 file");
+  std::memcpy(&a, nifti1_raw.data(), sizeof a);
+  // The reference library converts (NIfTI-1 header -> nifti_image -> NIfTI-2
+  // header), so the tests do not check our reader against our own widening.
+  nifti_image* nim = nifti_convert_n1hdr2nim(a, nullptr);
+  if (nim == nullptr) throw std::runtime_error("nifti2_header_of: niftilib refused the NIfTI-1 header");
+  nim->nifti_type = NIFTI_FTYPE_NIFTI2_1;
+  nifti_2_header b{};
+  const int rc = nifti_convert_nim2n2hdr(nim, &b);
+  nifti_image_free(nim);
+  if (rc != 0) throw std::runtime_error("nifti2_header_of: niftilib cannot make a NIfTI-2 header");
+  std::memcpy(b.magic, "n+2\0\r\n\032\n", 8);
+  b.vox_offset = sizeof b + 4;  // niftilib sets it only when it writes a file
+  return b;
+}
+
+std::string_view nifti1_voxels(const std::string& nifti1_raw) {
+  nifti_1_header a;
+  std::memcpy(&a, nifti1_raw.data(), sizeof a);
+  return std::string_view(nifti1_raw).substr(static_cast<std::size_t>(a.vox_offset));
+}
+
+std::string nifti2_file(const nifti_2_header& h, std::string_view voxels) {
+  std::string out(sizeof h + 4, '\0');
+  std::memcpy(out.data(), &h, sizeof h);
+  out += voxels;
+  return out;
 }
 
 }  // namespace brainshift::test

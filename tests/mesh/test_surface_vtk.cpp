@@ -12,6 +12,7 @@
 #include "mesh/mesh_quality.h"
 #include "mesh/surface_extraction.h"
 #include "mesh/vtk_io.h"
+#include "temp_dir.h"
 
 namespace brainshift {
 namespace {
@@ -177,10 +178,10 @@ TEST(VtkIo, VtpRoundTripsExactly) {
   SurfaceAttributes attrs;
   attrs.scalars.push_back({"distance_mm", std::vector<double>(s.vertices_mm.size(), 0.25)});
   attrs.vectors.push_back({"displacement_mm", s.vertices_mm});
-  const auto path = std::filesystem::temp_directory_path() / "brainshift_test_surface.vtp";
+  const test::TempDir dir("vtk");
+  const auto path = dir / "surface.vtp";
   write_vtp(path, s, attrs);
   const TriSurface back = read_vtp(path);
-  std::filesystem::remove(path);
   ASSERT_EQ(back.vertices_mm.size(), s.vertices_mm.size());
   for (std::size_t v = 0; v < s.vertices_mm.size(); ++v) EXPECT_EQ(back.vertices_mm[v], s.vertices_mm[v]);
   EXPECT_EQ(back.triangles, s.triangles);
@@ -201,11 +202,10 @@ TEST(VtkIo, EveryFileNamesItsFrame) {
   EXPECT_NE(vtu.find("<UnstructuredGrid>\n" + field + "<Piece"), std::string::npos) << vtu.substr(0, 300);
   EXPECT_EQ(vtk_space(vtp), "RAS");
   EXPECT_EQ(vtk_space(vtu), "RAS");
-  const auto path = std::filesystem::temp_directory_path() / "brainshift_test_space.vtp";
-  write_vtp(path, s);
-  std::ifstream in(path);
+  const test::TempDir dir("vtk");
+  write_vtp(dir / "space.vtp", s);
+  std::ifstream in(dir / "space.vtp");
   const std::string on_disk((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  std::filesystem::remove(path);
   EXPECT_EQ(vtk_space(on_disk), "RAS");
 }
 

@@ -19,6 +19,7 @@
 #include "mesh/vtk_io.h"
 #include "pipeline/engine_session.h"
 #include "synthetic_head.h"
+#include "temp_dir.h"  // tests/support
 
 using namespace brainshift;
 namespace fs = std::filesystem;
@@ -154,7 +155,8 @@ TEST_F(PipelineTest, AFailedPreopLoadKeepsTheWarmState) {
 TEST_F(PipelineTest, OutputsAreWrittenCompletelyOrNotAtAll) {
   const IntraopInput scan = translated_scan(*preop_, {2, 0, 0});
   const ScanResult r = session_->register_scan(scan, nullptr);
-  const fs::path dir = fs::temp_directory_path() / ("brainshift-out-" + std::to_string(::getpid()));
+  const test::TempDir tmp("pipeline-out");
+  const fs::path dir = tmp / "out";
   write_scan_outputs(r, &*scan.t1, dir);
   for (const char* f : {"field.nii.gz", "field.h5", "warped_image.nii.gz", "warped_labels.nii.gz", "metrics.json",
                         "timings.json", "report.png", "models/brain.vtp", "models/ventricles.vtp"})
@@ -166,12 +168,10 @@ TEST_F(PipelineTest, OutputsAreWrittenCompletelyOrNotAtAll) {
     EXPECT_EQ(vtk_space(bytes), "RAS") << name;
     EXPECT_EQ(read_vtp_bytes(bytes).vertices_mm, model.vertices_mm) << name;
   }
-  fs::remove_all(dir);
-  const fs::path blocked = fs::temp_directory_path() / ("brainshift-file-" + std::to_string(::getpid()));
+  const fs::path blocked = tmp / "a-file";
   { std::ofstream(blocked) << "a file, not a folder"; }
   EXPECT_ANY_THROW(write_scan_outputs(r, &*scan.t1, blocked / "out"));
   EXPECT_FALSE(fs::exists(blocked / "out"));
-  fs::remove(blocked);
 }
 
 TEST(PipelineSession, RegisteringBeforeAPreopIsLoadedIsAnInputError) {

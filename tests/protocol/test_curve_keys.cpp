@@ -9,6 +9,7 @@
 #include <fstream>
 
 #include "protocol/curve_keys.h"
+#include "temp_dir.h"
 #include "protocol/requests.h"
 #include "protocol/transport.h"
 
@@ -22,13 +23,6 @@ namespace {
 
 class KeyDir : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("bs-keys-" + std::to_string(::getpid()) + "-" +
-                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
   std::string prefix(const std::string& name) const { return (dir_ / name).string(); }
   fs::path write(const std::string& name, const std::string& text, fs::perms perms = fs::perms::owner_read |
                                                                                    fs::perms::owner_write) const {
@@ -47,7 +41,8 @@ class KeyDir : public ::testing::Test {
     }
     return "";
   }
-  fs::path dir_;
+  brainshift::test::TempDir tmp_{"keys"};
+  const fs::path& dir_ = tmp_.path();
 };
 
 unsigned mode_of(const fs::path& p) {

@@ -6,6 +6,7 @@
 #include <fstream>
 
 #include "protocol/timing_log.h"
+#include "temp_dir.h"  // tests/support
 
 namespace bp = brainshift::protocol;
 using nlohmann::json;
@@ -72,8 +73,8 @@ TEST(TimingLog, KnownStages) {
 }
 
 TEST(TimingLog, FileGetsOneLinePerStage) {
-  const auto path = std::filesystem::temp_directory_path() / "brainshift_timing_test.jsonl";
-  std::filesystem::remove(path);
+  const brainshift::test::TempDir dir("timing");
+  const auto path = dir / "timing.jsonl";
   {
     bp::TimingLogFile log(path.string());
     log.write({bp::StageScope::kIntraop, "s-1", "", "read", 0.01, bp::utc_now()});
@@ -84,7 +85,6 @@ TEST(TimingLog, FileGetsOneLinePerStage) {
   std::vector<std::string> stages;
   while (std::getline(in, line)) stages.push_back(bp::parse_stage_log_line(line).stage);
   EXPECT_EQ(stages, (std::vector<std::string>{"read", "affine"}));
-  std::filesystem::remove(path);
   EXPECT_THROW(bp::TimingLogFile("/nonexistent-dir/x.jsonl"), std::runtime_error);
 }
 

@@ -46,7 +46,8 @@ TEST(CaseStore, PreopRoundTripKeepsVoxelsAndGeometry) {
   EXPECT_EQ(q.preop_id, "preop-a");
   EXPECT_EQ(q.source, "upload");
   EXPECT_EQ(q.label_table_json, p.label_table_json);
-  EXPECT_TRUE(q.t1.grid.same_geometry(p.t1.grid, 0.0));
+  EXPECT_EQ(q.t1.grid.dims, p.t1.grid.dims);
+  EXPECT_EQ(q.t1.grid.world_from_voxel, p.t1.grid.world_from_voxel);
   EXPECT_EQ(q.t1.voxels, p.t1.voxels);
   EXPECT_EQ(q.labels.voxels, p.labels.voxels);
 }

@@ -56,22 +56,9 @@ class CurveDaemon {
                                    {"it-admin", Role::admin, keys_.admin.public_z85}};
     validate_endpoints(o.settings);
     o.ready_file = dir_.path() / "ready.json";
-    thread_ = std::thread([this, o] { exit_code_ = run_daemon(o, engine_, stop_); });
-    for (int i = 0; i < 1000 && !fs::exists(o.ready_file) && exit_code_ < 0; ++i) std::this_thread::sleep_for(10ms);
-    if (!fs::exists(o.ready_file)) throw std::runtime_error("run_daemon did not start");
-    std::ifstream in(o.ready_file);
-    const nlohmann::json r = nlohmann::json::parse(in);
-    endpoint_ = r.at("endpoint").get<std::string>();
-    events_ = r.at("events").get<std::string>();
+    daemon_ = std::make_unique<test::DaemonThread>(o, engine_);
   }
-  ~CurveDaemon() {
-    stop_ = true;
-    if (thread_.joinable()) thread_.join();
-  }
-  int join() {
-    thread_.join();
-    return exit_code_;
-  }
+  int join() { return daemon_->join(); }
 
   std::unique_ptr<zmq::socket_t> socket(zmq::socket_type type, const curve::KeyPair* own) {
     auto s = std::make_unique<zmq::socket_t>(ctx_, type);
@@ -83,7 +70,7 @@ class CurveDaemon {
   std::optional<Message> call(const curve::KeyPair* own, const Message& request,
                               std::chrono::milliseconds wait = 10s) {
     auto s = socket(zmq::socket_type::dealer, own);
-    s->connect(endpoint_);
+    s->connect(endpoint());
     tp::send_request(*s, request);
     return tp::receive_reply(*s, Limits::client_inbound(), wait);
   }
@@ -100,18 +87,15 @@ class CurveDaemon {
   }
 
   const Keys& keys() const { return keys_; }
-  const std::string& endpoint() const { return endpoint_; }
-  const std::string& events() const { return events_; }
+  const std::string& endpoint() const { return daemon_->endpoint(); }
+  const std::string& events() const { return daemon_->events(); }
 
  private:
   test::TempDir dir_;
   Keys keys_;
   test::FakeEngine engine_;
-  std::atomic<bool> stop_{false};
-  std::atomic<int> exit_code_{-1};
-  std::thread thread_;
   zmq::context_t ctx_{1};
-  std::string endpoint_, events_;
+  std::unique_ptr<test::DaemonThread> daemon_;
 };
 
 Message push_request(const std::string& rid) {

@@ -1,22 +1,16 @@
 #include "test_support.h"
 
-#include <random>
+
+#include <chrono>
+#include <fstream>
+
+#include <nlohmann/json.hpp>
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
 
 namespace brainshift::test {
 namespace fs = std::filesystem;
-
-TempDir::TempDir() {
-  std::random_device rd;
-  path_ = fs::temp_directory_path() / ("bs-server-test-" + std::to_string(rd()) + std::to_string(rd()));
-  fs::create_directories(path_);
-}
-TempDir::~TempDir() {
-  std::error_code ec;
-  fs::remove_all(path_, ec);
-}
 
 Grid3 small_grid(int n) {
   Grid3 g;
@@ -103,6 +97,12 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
   progress("solve", 1.0, 0.003);
   server::EngineScanOutput out;
   out.files = files_for(labels, image.has_value());
+  if (fallback_next_scan) {
+    fallback_next_scan = false;
+    out.kind = "affine_only_fallback";
+    out.fallback_reason = "fake: surface match diverged";
+    out.files["metrics.json"] = R"({"result": "affine_only_fallback", "fallback_reason": "fake: surface match diverged"})";
+  }
   report_due_ = image.has_value();
   return out;
 }
@@ -117,6 +117,31 @@ void FakeEngine::render_deferred(const std::string& /*scan_id*/, const DeferredO
   report_due_ = false;
   if (while_rendering_report) while_rendering_report();
   add("report.png", kReportPng);
+}
+
+DaemonThread::DaemonThread(const server::DaemonOptions& options, server::EnginePort& engine) {
+  thread_ = std::thread([this, options, &engine] { exit_code_ = server::run_daemon(options, engine, stop_); });
+  for (int i = 0; i < 1000 && !fs::exists(options.ready_file) && exit_code_ < 0; ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  if (!fs::exists(options.ready_file)) {
+    stop_ = true;
+    thread_.join();
+    throw std::runtime_error("run_daemon did not start");
+  }
+  std::ifstream in(options.ready_file);
+  const nlohmann::json r = nlohmann::json::parse(in);
+  endpoint_ = r.at("endpoint").get<std::string>();
+  events_ = r.at("events").get<std::string>();
+}
+
+DaemonThread::~DaemonThread() {
+  stop_ = true;
+  if (thread_.joinable()) thread_.join();
+}
+
+int DaemonThread::join() {
+  if (thread_.joinable()) thread_.join();
+  return exit_code_;
 }
 
 IdleServer::IdleServer() {

@@ -1,30 +1,24 @@
 #pragma once
-// Helpers for the server unit tests: temporary directories, small images, and
+// Helpers for the server unit tests: small images and
 // a test double of the engine (tests only; the shipped daemon uses the real one).
+#include <atomic>
 #include <filesystem>
 #include <functional>
 #include <memory>
 #include <optional>
 #include <string>
+#include <thread>
 
 #include "core/image.h"
 #include "core/tet_mesh.h"
 #include "server/case_store.h"
+#include "server/daemon.h"
 #include "server/engine_port.h"
 #include "server/server_core.h"
 #include "server/server_settings.h"
+#include "temp_dir.h"  // tests/support: TempDir
 
 namespace brainshift::test {
-
-class TempDir {
- public:
-  TempDir();
-  ~TempDir();
-  const std::filesystem::path& path() const { return path_; }
-
- private:
-  std::filesystem::path path_;
-};
 
 // An oblique 1.5 mm grid of n^3 voxels.
 Grid3 small_grid(int n);
@@ -62,6 +56,8 @@ class FakeEngine : public server::EnginePort {
   std::function<void()> while_rendering_report;  // called inside render_deferred
 
   bool fail_next_scan = false;   // ComputeError from the next register_scan
+  // The next scan's result is the affine-only fallback (metrics.json says so).
+  bool fallback_next_scan = false;
   bool fail_preop = false;       // InputError from load_preop
   std::optional<TetMesh> last_stored_mesh;
   server::PreopImages last_preop;
@@ -72,6 +68,24 @@ class FakeEngine : public server::EnginePort {
   bool ready_ = false;
   bool report_due_ = false;
   TetMesh mesh_;
+};
+
+// run_daemon (the real sockets and request loop) in a thread; options must
+// name a ready_file (endpoints "tcp://127.0.0.1:*" let the OS pick ports).
+// Stopped, if still running, when destroyed.
+class DaemonThread {
+ public:
+  DaemonThread(const server::DaemonOptions& options, server::EnginePort& engine);
+  ~DaemonThread();
+  int join();  // waits until run_daemon returns (e.g. after a shutdown request); its exit code
+  const std::string& endpoint() const { return endpoint_; }
+  const std::string& events() const { return events_; }
+
+ private:
+  std::atomic<bool> stop_{false};
+  std::atomic<int> exit_code_{-1};
+  std::thread thread_;
+  std::string endpoint_, events_;
 };
 
 // A started ServerCore over an empty store and the engine double, with no

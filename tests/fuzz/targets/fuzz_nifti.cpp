@@ -1,4 +1,4 @@
-// libFuzzer target: the NIfTI-1 reader on in-memory bytes (raw or gzip), as
+// libFuzzer target: the NIfTI-1/NIfTI-2 reader on in-memory bytes (raw or gzip), as
 // brainshiftd uses it for pushed scans and uploaded preops.
 //
 // Oracles, besides ASan/UBSan/LeakSanitizer:

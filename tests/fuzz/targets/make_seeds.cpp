@@ -11,6 +11,7 @@
 #include <limits>
 
 #include "image/nifti_io.h"
+#include "test_util.h"  // tests/image: NIfTI-2 from the nifti2.h layout
 #include "protocol/events.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
@@ -69,6 +70,21 @@ void poke(std::string& bytes, std::size_t offset, T value) {
 // Header offsets (nifti1.h).
 constexpr std::size_t kDim = 40, kDatatype = 70, kBitpix = 72, kPixdim = 76, kVoxOffset = 108,
                       kSclSlope = 112, kQformCode = 252, kSformCode = 254, kSrowX = 280, kMagic = 344;
+
+// NIfTI-2 versions of valid seeds and its own header defects.
+void nifti2_seeds(const std::string& labels) {
+  auto as_nifti2 = [](const std::string& n1) { return test::nifti2_file(test::nifti2_header_of(n1), test::nifti1_voxels(n1)); };
+  save("nifti", "nifti2_labels_u8.nii", as_nifti2(labels));
+  save("nifti", "nifti2_image_f32.nii.gz", test::gzip(as_nifti2(scalar_image_to_bytes(small_image(), VoxelType::float32, false))));
+  save("nifti", "nifti2_field_5d.nii", as_nifti2(displacement_field_to_bytes(small_field(), false)));
+  nifti_2_header h = test::nifti2_header_of(labels);
+  h.magic[4] = '\n';
+  save("nifti", "edge_nifti2_damaged_magic.nii", test::nifti2_file(h, test::nifti1_voxels(labels)));
+  h = test::nifti2_header_of(labels);
+  h.dim[1] = std::int64_t{1} << 40;
+  save("nifti", "edge_nifti2_huge_dim.nii", test::nifti2_file(h, test::nifti1_voxels(labels)));
+  save("nifti", "edge_nifti2_truncated_header.nii", as_nifti2(labels).substr(0, 400));
+}
 
 void nifti_seeds() {
   const std::string labels = label_image_to_bytes(small_labels(), false);
@@ -132,6 +148,7 @@ void nifti_seeds() {
   corrupt[gz.size() / 2] ^= 0x55;
   save("nifti", "edge_gzip_corrupt.nii.gz", corrupt);
   save("nifti", "edge_gzip_two_members.nii.gz", gz + gz);
+  nifti2_seeds(labels);
 }
 
 Frame nifti(const std::string& name, const std::string& bytes) { return media::nifti_frame(name, bytes); }

@@ -1,0 +1,89 @@
+// The exit-code table of client/exit_codes.h, through the real `brainshift`
+// binary talking over loopback sockets to run_daemon (real request loop and
+// store) with the engine double: each code for the case it names, so a code
+// cannot mean two things in two commands again. (3, unreachable, is checked
+// by tests/e2e/test_e2e_daemon.cpp and test_e2e_security.cpp.)
+#include <gtest/gtest.h>
+
+#include <fstream>
+
+#include "client/exit_codes.h"
+#include "image/nifti_io.h"
+#include "server/daemon.h"
+#include "tests/e2e/process.h"
+#include "test_support.h"
+
+using namespace brainshift;
+using namespace brainshift::server;
+using namespace std::chrono_literals;
+namespace fs = std::filesystem;
+namespace cli = brainshift::cli;
+
+namespace {
+
+class LoopbackDaemon {
+ public:
+  LoopbackDaemon() {
+    DaemonOptions o;
+    o.settings.endpoint = "tcp://127.0.0.1:*";
+    o.settings.events = "tcp://127.0.0.1:*";
+    o.settings.store = dir.path() / "store";
+    o.settings.preop.kind = DefaultPreop::Kind::none;
+    o.ready_file = dir.path() / "ready.json";
+    daemon_ = std::make_unique<test::DaemonThread>(o, engine);
+  }
+  e2e::RunResult client(std::vector<std::string> args) {
+    std::vector<std::string> argv{BRAINSHIFT_BIN, "--server", daemon_->endpoint(), "--events", daemon_->events(),
+                                  "--timeout", "10"};
+    argv.insert(argv.end(), args.begin(), args.end());
+    return e2e::run(argv, dir.path(), 60);
+  }
+  fs::path write(const std::string& name, const std::string& bytes) {
+    const fs::path p = dir.path() / name;
+    std::ofstream(p, std::ios::binary) << bytes;
+    return p;
+  }
+
+  test::TempDir dir;
+  test::FakeEngine engine;
+
+ private:
+  std::unique_ptr<test::DaemonThread> daemon_;
+};
+
+TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
+  LoopbackDaemon d;
+  const LabelImage labels = test::ball_labels(10);
+  const fs::path labels_file = d.write("labels.nii.gz", label_image_to_bytes(labels, true)).string();
+  const fs::path t1_file = d.write("t1.nii.gz", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
+
+  // 1: the server answered with an error (no preop yet: not_ready).
+  e2e::RunResult r = d.client({"push", "--labels", labels_file.string()});
+  EXPECT_EQ(r.code, cli::kExitError) << r.err;
+  // 2: usage; and a local file the command cannot read.
+  EXPECT_EQ(d.client({"push"}).code, cli::kExitUsage);
+  EXPECT_EQ(d.client({"push", "--labels", (d.dir.path() / "missing.nii.gz").string()}).code, cli::kExitUsage);
+
+  r = d.client({"load-preop", "--image", t1_file.string(), "--labels", labels_file.string(), "--wait"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+
+  // 0: a non-rigid result.
+  r = d.client({"push", "--labels", labels_file.string(), "--id", "scan-ok", "--wait", "--wait-timeout", "30"});
+  EXPECT_EQ(r.code, cli::kExitOk) << r.err;
+
+  // 4: the affine-only fallback, as register says it.
+  d.engine.fallback_next_scan = true;
+  r = d.client({"push", "--labels", labels_file.string(), "--id", "scan-fallback", "--wait", "--wait-timeout", "30"});
+  EXPECT_EQ(r.code, cli::kExitFallback) << r.err;
+  EXPECT_NE(r.err.find("AFFINE-ONLY"), std::string::npos) << r.err;
+
+  // 5: the daemon's registration failed; pulling that scan says the same.
+  d.engine.fail_next_scan = true;
+  r = d.client({"push", "--labels", labels_file.string(), "--id", "scan-failed", "--wait", "--wait-timeout", "30"});
+  EXPECT_EQ(r.code, cli::kExitScanFailed) << r.err;
+  const std::string failed_id = r.out.substr(0, r.out.find('\n'));
+  r = d.client({"pull", "--scan", failed_id, "--out", (d.dir.path() / "pulled").string(), "--parts", "metrics"});
+  EXPECT_EQ(r.code, cli::kExitScanFailed) << r.err;
+}
+
+}  // namespace
