@@ -13,17 +13,45 @@
 namespace brainshift {
 namespace {
 
-// Non-tissue voxels enclosed by the intraop brain, within the box: resection
-// cavity candidates. An internal cavity is filled in the outline
-// (brain_region) but carries no label; sulcal CSF open to the outside is not
-// in the outline. Only the box is scanned: this runs on every scan.
-Mask enclosed_non_tissue(const LabelImage& labels, const Mask& brain_region, const VoxelBox& box) {
+// Generalised winding number of a closed surface with outward triangles at p
+// (1 inside, 0 outside): the solid angles of its triangles (Van Oosterom and
+// Strackee) over 4 pi.
+double winding_number(const TriSurface& s, const Eigen::Vector3d& p) {
+  double sum = 0;
+  for (const auto& t : s.triangles) {
+    const Eigen::Vector3d a = s.vertices_mm[t[0]] - p, b = s.vertices_mm[t[1]] - p, c = s.vertices_mm[t[2]] - p;
+    const double la = a.norm(), lb = b.norm(), lc = c.norm();
+    sum += 2 * std::atan2(a.dot(b.cross(c)), la * lb * lc + a.dot(b) * lc + a.dot(c) * lb + b.dot(c) * la);
+  }
+  return sum / (4 * 3.14159265358979323846);
+}
+
+// Resection cavity candidates within the box: non-tissue voxels enclosed by
+// the intraop brain (an internal cavity is filled in the outline,
+// brain_region, but carries no label; sulcal CSF open to the outside is not
+// in the outline), and non-tissue voxels inside the structure's wall where
+// the first solve put it, enclosed or not: a cavity open to the surface
+// through the surgical corridor is still where the structure was. Only the
+// box is scanned: this runs on every scan.
+Mask cavity_candidates(const LabelImage& labels, const Mask& brain_region, const VoxelBox& box,
+                       const TriSurface& wall_now) {
   Mask m = crop_to_box(brain_region, box);
+  const Grid3& g = labels.grid;
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e300), hi = -lo;  // the wall's own extent
+  for (const auto& p : wall_now.vertices_mm) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
   std::size_t v = 0;
   for (int k = box.lo[2]; k <= box.hi[2]; ++k)
     for (int j = box.lo[1]; j <= box.hi[1]; ++j)
-      for (int i = box.lo[0]; i <= box.hi[0]; ++i, ++v)
-        if (labels.at(i, j, k) != 0) m.voxels[v] = 0;
+      for (int i = box.lo[0]; i <= box.hi[0]; ++i, ++v) {
+        if (labels.at(i, j, k) != 0) {
+          m.voxels[v] = 0;
+          continue;
+        }
+        if (m.voxels[v]) continue;
+        const Eigen::Vector3d x = g.world_mm(i, j, k);
+        if ((x.array() >= lo.array()).all() && (x.array() <= hi.array()).all() && winding_number(wall_now, x) > 0.5)
+          m.voxels[v] = 1;
+      }
   return m;
 }
 
@@ -104,7 +132,7 @@ ResectionMatch match_resection(const WarmState& warm, const IntraopInput& input,
     nlohmann::json& m = out.metrics["structures"][r.name];
     m = {{"preop_volume_ml", r.volume_ml}, {"cavity_ml", 0.0}, {"resected", false}};
     if (box.empty) continue;
-    c.cavity = enclosed_non_tissue(input.labels, brain_region, box);
+    c.cavity = cavity_candidates(input.labels, brain_region, box, c.start);
     c.cavity_ml = volume_ml(c.cavity);
     m["cavity_ml"] = c.cavity_ml;
     if (c.cavity_ml >= params.min_resection_cavity_ml && c.cavity_ml > best.cavity_ml) best = std::move(c);

@@ -1,7 +1,9 @@
 #pragma once
 // Resection. A structure marked resectable (the tumor) has its wall meshed and
 // a system of its own in which that wall is fixed too. When the intraop scan
-// shows an enclosed cavity next to where the first solve put the structure,
+// shows a cavity where the first solve put the structure (non-tissue voxels
+// enclosed by the brain next to it, or inside its wall even when the cavity
+// is open to the surface through the surgical corridor),
 // its wall is matched to the cavity (like a ventricle wall) and the elastic
 // problem is solved again in that system: the tissue around the cavity then
 // follows its collapse instead of being held by nothing: with the cavity
