@@ -96,18 +96,25 @@ DefaultAtlas build_default_atlas(const std::filesystem::path& dir) {
   const Mask brain = brain_mask(on_grid(read_scalar_image(dir / "ch2bet.nii.gz"), grid));
   const ImageF better = on_grid(read_scalar_image(dir / "ch2better.nii.gz"), grid);
   const Mask ventricles = ventricle_mask(atlas.t1, better, brain, VentricleParams{});
+  atlas.labels = compose_atlas_labels(brain, ventricles, jhu_corticospinal_tract(dir, grid));
+  return atlas;
+}
+
+Mask jhu_corticospinal_tract(const std::filesystem::path& dir, const Grid3& grid) {
   const LabelImage jhu_src = read_label_image(dir / "JHU-WhiteMatter-labels-1mm.nii.gz");
   const LabelImage jhu = jhu_src.grid.same_geometry(grid) ? jhu_src : resample_nearest(jhu_src, grid);
-  const Mask cst = mask_of_labels(jhu, kJhuCstLabels);
+  return mask_of_labels(jhu, kJhuCstLabels);
+}
 
-  atlas.labels = LabelImage(grid, labels::background);
-  for (std::size_t i = 0; i < atlas.labels.voxels.size(); ++i) {
+LabelImage compose_atlas_labels(const Mask& brain, const Mask& ventricles, const Mask& cst) {
+  LabelImage labels(brain.grid, labels::background);
+  for (std::size_t i = 0; i < labels.voxels.size(); ++i) {
     if (!brain.voxels[i]) continue;
-    atlas.labels.voxels[i] = ventricles.voxels[i] ? labels::ventricles
-                             : cst.voxels[i]      ? labels::corticospinal_tract
-                                                  : labels::brain;
+    labels.voxels[i] = ventricles.voxels[i] ? labels::ventricles
+                       : cst.voxels[i]      ? labels::corticospinal_tract
+                                            : labels::brain;
   }
-  return atlas;
+  return labels;
 }
 
 namespace {

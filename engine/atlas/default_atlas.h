@@ -26,6 +26,7 @@
 #include <filesystem>
 
 #include "core/image.h"
+#include "image/morphology.h"
 
 namespace brainshift {
 
@@ -33,6 +34,12 @@ struct DefaultAtlas {
   ImageF t1;           // ch2 T1 on its native grid
   LabelImage labels;   // same grid: 0 background, 1 brain, 2 ventricles, 3 CST
 };
+
+// The pieces, for other label maps of the same head (phantom/independent_labels.h):
+// the JHU corticospinal-tract labels on `grid`, and the label map of a brain
+// mask with its ventricles and tract (ventricles win over the tract).
+Mask jhu_corticospinal_tract(const std::filesystem::path& templates_dir, const Grid3& grid);
+LabelImage compose_atlas_labels(const Mask& brain, const Mask& ventricles, const Mask& cst);
 
 DefaultAtlas build_default_atlas(
     const std::filesystem::path& templates_dir = "/usr/share/mricron/templates");

@@ -5,6 +5,7 @@
 #include <deque>
 #include <limits>
 
+#include "atlas/default_atlas.h"
 #include "core/errors.h"
 #include "core/labels.h"
 #include "image/image_stats.h"
@@ -75,16 +76,7 @@ IndependentLabels build_independent_labels(const ImageF& t1, const std::filesyst
                      " ml (is " + (dir / "ch2.nii.gz").string() + " the Colin27 T1?)");
   connected_components(ventricles, 6, &out.ventricle_components);
 
-  const LabelImage jhu_src = read_label_image(dir / "JHU-WhiteMatter-labels-1mm.nii.gz");
-  const LabelImage jhu = jhu_src.grid.same_geometry(g) ? jhu_src : resample_nearest(jhu_src, g);
-  const Mask cst = mask_of_labels(jhu, {7, 8, 15, 16, 19, 20, 25, 26});
-  out.labels = LabelImage(g, labels::background);
-  for (std::size_t v = 0; v < out.labels.voxels.size(); ++v) {
-    if (!brain.voxels[v]) continue;
-    out.labels.voxels[v] = ventricles.voxels[v] ? labels::ventricles
-                           : cst.voxels[v]      ? labels::corticospinal_tract
-                                                : labels::brain;
-  }
+  out.labels = compose_atlas_labels(brain, ventricles, jhu_corticospinal_tract(dir, g));
   out.brain_ml = volume_ml(brain);
   out.cst_ml = volume_ml(mask_of_labels(out.labels, {labels::corticospinal_tract}));
   return out;

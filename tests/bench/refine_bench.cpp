@@ -22,6 +22,7 @@
 #include <random>
 
 #include "atlas/default_atlas.h"
+#include "bench_session.h"
 #include "config_file.h"
 #include "core/timer.h"
 #include "fem/petsc_session.h"
@@ -119,12 +120,7 @@ int main(int argc, char** argv) {
   if (variants.empty()) variants.push_back("");
 
   PetscSession petsc;
-  int rank = 0;
-  MPI_Comm_rank(MPI_COMM_WORLD, &rank);
-  if (rank != 0) {
-    run_worker_loop(MPI_COMM_WORLD);
-    return 0;
-  }
+  if (!bench::drive_from_this_rank()) return 0;
   PipelineParameters params = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
   params.intensity.enabled = false;
   EngineSession session(MPI_COMM_WORLD, params);

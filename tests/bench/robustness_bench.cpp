@@ -12,6 +12,7 @@
 #include <memory>
 #include <set>
 
+#include "bench_session.h"
 #include "config_file.h"
 #include "core/timer.h"
 #include "fem/petsc_session.h"
@@ -63,15 +64,8 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
 
   PetscSession petsc;
-  int rank = 0;
-  MPI_Comm_rank(MPI_COMM_WORLD, &rank);
-  if (rank != 0) {
-    run_worker_loop(MPI_COMM_WORLD);
-    return 0;
-  }
-  const PipelineParameters params = config_path.empty()
-      ? config::pipeline_parameters_from_text(config::default_config_text(), "built-in")
-      : config::pipeline_parameters_from_file(config_path);
+  if (!bench::drive_from_this_rank()) return 0;
+  const PipelineParameters params = bench::parameters(config_path);
   const evaluation::RobustnessInputs inputs = evaluation::load_robustness_inputs(atlas_cache);
   std::vector<RobustnessSpec> suite = robustness_suite();
   if (!only.empty()) {
