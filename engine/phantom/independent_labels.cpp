@@ -63,6 +63,8 @@ IndependentLabels build_independent_labels(const ImageF& t1, const std::filesyst
         const std::size_t v = g.index(i, j, k);
         const Eigen::Vector3d x = g.world_mm(i, j, k);
         if (!deep.voxels[v] || !(t1.voxels[v] < p.csf_max) || x.z() < p.z_floor_mm) continue;
+        // The third ventricle and the cisterns below the bodies, on the midline.
+        if (std::abs(x.x()) < p.midline_half_width_mm && x.z() < p.midline_top_mm) continue;
         candidates.voxels[v] = 1;
         // The bodies of the lateral ventricles, beside the midline above the thalamus.
         seeds.voxels[v] = std::abs(x.x()) > 2 && std::abs(x.x()) < p.seed_box_half_width_mm && x.y() > -30 &&

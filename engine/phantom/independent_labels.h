@@ -9,8 +9,11 @@
 //   dark voxels (T1 below csf_max) of the brain eroded by erosion_mm, grown
 //   26-connected from seeds in the ventricle bodies, so the thin temporal and
 //   occipital horns that leave the atlas's central box are kept. Candidates
-//   below z_floor_mm (brainstem, cerebellum, fourth ventricle) are dropped;
-//   what remains connected to the bodies is kept, whatever its shape.
+//   below z_floor_mm (brainstem, cerebellum, fourth ventricle) and on the
+//   midline below the bodies (third ventricle, cisterns) are dropped; what
+//   remains connected to the bodies is kept, whatever its shape. On Colin27:
+//   about 23 ml in a main part and many specks (the horns, 1-3 mm thin, are
+//   connected diagonally or not at all at 1 mm).
 // - Corticospinal tract: JHU white-matter labels 7/8, 15/16, 19/20, 25/26,
 //   as in the atlas (the tract is carried, not matched).
 // Labels: 1 brain, 2 lateral ventricles, 3 CST (same table as the atlas).
@@ -21,10 +24,14 @@
 namespace brainshift {
 
 struct IndependentLabelParameters {
-  float csf_max = 58.f;          // ch2: CSF ~30, grey matter ~80, white matter ~110
+  float csf_max = 45.f;          // ch2: CSF ~30, grey matter ~80, white matter ~110
   double erosion_mm = 2.0;       // keeps cortical sulci out of the candidates
   double seed_box_half_width_mm = 20;  // seeds: |x| below this, in the bodies' box
   double z_floor_mm = -30;       // candidates below this (brainstem, cerebellum) are dropped
+  // Candidates on the midline below midline_top_mm (the third ventricle, the
+  // basal cisterns) are dropped: the lateral ventricles only.
+  double midline_half_width_mm = 6;
+  double midline_top_mm = 5;
   double min_ml = 10;            // growth must reach at least this (else a clear error)
 };
 
