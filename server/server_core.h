@@ -2,6 +2,10 @@
 // The daemon's logic without sockets: request handling (socket thread), the
 // job loop (engine thread), shared state for status, events and the timing
 // log. daemon.cpp wires it to ZeroMQ and MPI; tests drive it directly.
+// One class, in four files along its threads: request_handlers.cpp (socket
+// thread), job_runner.cpp (engine thread: warm-up, scans, deferred outputs),
+// crash_recovery.cpp (start-up: warm state, re-queued scans, repairs) and
+// server_core.cpp (construction, status, events, the job loop's step).
 //
 // Threads: handle_*() run on the socket thread and never wait for the engine
 // (they read a snapshot under a short mutex). start()/step() run on the engine
