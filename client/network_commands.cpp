@@ -209,11 +209,16 @@ int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, do
   const auto deadline = std::chrono::steady_clock::now() + as_ms(wait_s);
   auto next_poll = std::chrono::steady_clock::now();
   while (std::chrono::steady_clock::now() < deadline && !g_interrupted) {
-    // Events give live progress; the poll decides (an event can be missed).
-    if (auto e = events.next(100ms)) {
+    // Events give live progress and end the wait: this scan's scan.done or
+    // scan.failed is followed by a pull at once. The poll every 200 ms only
+    // covers an event that was missed (a PUB drops what a slow SUB misses).
+    if (auto e = events.next(50ms)) {
       try {
         const std::string text = describe_event(*e);
         if (text.find(scan_id) != std::string::npos) std::cerr << text << '\n';
+        if ((e->type() == MessageType::kEventScanDone && parse_scan_done_event(*e).scan_id == scan_id) ||
+            (e->type() == MessageType::kEventScanFailed && parse_scan_failed_event(*e).scan_id == scan_id))
+          next_poll = std::chrono::steady_clock::now();
       } catch (const std::exception&) {
       }
     }

@@ -1,6 +1,7 @@
 // ServerCore's socket side: decoding, the role check and one handler per
 // request type. Runs on the socket thread; never waits for the engine.
 #include <algorithm>
+#include <functional>
 
 #include <spdlog/spdlog.h>
 
@@ -21,13 +22,16 @@ namespace {
 // `unavailable` (e.g. no warped_image when the engine wrote none).
 // deferred_pending: metrics.json, field.h5 and report.png are still being made (they follow
 // scan.done, see ServerCore::add_deferred_outputs).
-ScanResultReply collect_result_frames(const CaseStore& store, const ScanResultRequest& request,
+// read_file: a result file's bytes by name, nullopt when absent (from the
+// store, or from memory while the result is not yet written).
+using ResultFileReader = std::function<std::optional<std::string>(const std::string& name)>;
+ScanResultReply collect_result_frames(const ResultFileReader& read_file, const ScanResultRequest& request,
                                       const ScanRecord& record, bool deferred_pending) {
   ScanResultReply reply;
   reply.scan_id = request.scan_id;
   auto add = [&](const std::string& frame, const std::vector<std::string>& files, const char* why_missing) {
     for (const auto& file : files) {
-      auto bytes = store.read_result_file(request.scan_id, file);
+      auto bytes = read_file(file);
       if (!bytes) continue;
       const std::string media = result_media_type(file, *bytes);
       reply.frames.push_back(Frame{frame, media, std::move(*bytes)});
@@ -203,6 +207,22 @@ Message ServerCore::on_scan_push(const Message& m) {
 Message ServerCore::on_scan_result(const Message& m) {
   ScanResultRequest req = parse_scan_result_request(m);
   const std::string rid = m.request_id();
+  std::shared_ptr<const UnwrittenResult> unwritten;
+  bool deferred_pending = false;
+  {
+    std::lock_guard lock(mutex_);
+    if (auto it = unwritten_results_.find(req.scan_id); it != unwritten_results_.end()) unwritten = it->second;
+    deferred_pending = deferred_pending_.count(req.scan_id) > 0;
+  }
+  if (unwritten) {
+    const auto& files = unwritten->files;
+    const ResultFileReader from_memory = [&files](const std::string& name) -> std::optional<std::string> {
+      const auto it = files.find(name);
+      return it == files.end() ? std::nullopt : std::optional<std::string>(it->second);
+    };
+    return make_scan_result_reply(rid, collect_result_frames(from_memory, req, unwritten->record, deferred_pending));
+  }
+  // Looked up after the unwritten results: a result leaves them only once the store has it.
   const auto record = store_.find(req.scan_id);
   if (!record) return make_error_reply(rid, ErrorCode::kNotFound, "no scan \"" + req.scan_id + "\"");
   if (record->state == StoredScanState::failed)
@@ -210,25 +230,31 @@ Message ServerCore::on_scan_result(const Message& m) {
                             req.scan_id + " failed in stage " + record->error_stage + ": " + record->error_message);
   if (record->state != StoredScanState::done)
     return make_error_reply(rid, ErrorCode::kNotReady, req.scan_id + " is not processed yet");
-  bool deferred_pending = false;
   {
     std::lock_guard lock(mutex_);
     deferred_pending = deferred_pending_.count(req.scan_id) > 0;
   }
-  ScanResultReply reply = collect_result_frames(store_, req, *record, deferred_pending);
+  const ResultFileReader from_store = [&](const std::string& name) {
+    return store_.read_result_file(req.scan_id, name);
+  };
+  ScanResultReply reply = collect_result_frames(from_store, req, *record, deferred_pending);
   return make_scan_result_reply(rid, reply);
 }
 
 Message ServerCore::on_scan_list(const Message& m) {
   ScanListRequest req = parse_scan_list_request(m);
   std::optional<std::string> running, stage;
+  std::map<std::string, std::shared_ptr<const UnwrittenResult>> unwritten;
   {
     std::lock_guard lock(mutex_);
     running = current_scan_;
     stage = current_stage_;
+    unwritten = unwritten_results_;
   }
   ScanListReply reply;
-  for (const auto& r : store_.list_newest_first(req.limit)) {
+  for (const auto& stored : store_.list_newest_first(req.limit)) {
+    const auto it = unwritten.find(stored.scan_id);
+    const ScanRecord& r = it != unwritten.end() ? it->second->record : stored;
     ScanSummary s;
     s.scan_id = r.scan_id;
     s.client_scan_id = r.client_scan_id;

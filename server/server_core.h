@@ -23,6 +23,7 @@
 
 #include "protocol/message.h"
 #include "protocol/requests.h"
+#include "core/fault_injection.h"
 #include "protocol/timing_log.h"
 #include "server/case_store.h"
 #include "server/engine_port.h"
@@ -68,6 +69,7 @@ class ServerCore {
  private:
   struct PreopJob;
   struct DecodedScan;
+  struct UnwrittenResult;
 
   protocol::Message on_status(const protocol::Message& m);
   protocol::Message on_preop_load(const protocol::Message& m);
@@ -78,6 +80,15 @@ class ServerCore {
 
   void run_preop_job(PreopJob job);
   void run_scan(const std::string& scan_id);
+  // The one place where a scan's result becomes available: from here on it
+  // is pulled (from memory until write_result has stored it) and scan.done
+  // is out. A gateway that forwards results (e.g. to a navigation system)
+  // hooks in here.
+  std::shared_ptr<const UnwrittenResult> publish_result(const ScanRecord& record, EngineScanOutput out,
+                                                        double seconds);
+  // Makes a published result durable; a refused write (StoreWriteError)
+  // withdraws it and reports the scan failed until it is computed again.
+  void write_result(const UnwrittenResult& result, const std::string& preop_id);
   void add_deferred_outputs(const std::string& scan_id, const std::string& preop_id);
   void fail_scan(const ScanRecord& record, protocol::ErrorCode code, const std::string& message,
                  const std::string& stage);
@@ -112,9 +123,14 @@ class ServerCore {
   std::unique_ptr<PreopJob> pending_preop_;
   std::map<std::string, std::shared_ptr<DecodedScan>> decoded_;  // pushed, not yet run
   std::set<std::string> deferred_pending_;  // done; field.h5/report.png still being made
+  // Published, not yet in the store: served from memory. A crash before the
+  // write leaves the scan acknowledged without a result, so a restart
+  // computes it again from its stored input.
+  std::map<std::string, std::shared_ptr<const UnwrittenResult>> unwritten_results_;
   std::vector<std::string> unstored_results_;  // computed, refused by the store; retried
   std::vector<std::string> repairs_;  // engine thread: done scans missing deferred outputs
   int ranks_ = 1;
+  FaultPoint result_write_fault_{"result_write"};  // BRAINSHIFT_INJECT_FAULT, see core/fault_injection.h
 };
 
 }  // namespace brainshift::server

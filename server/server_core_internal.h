@@ -3,6 +3,7 @@
 // job_runner.cpp, crash_recovery.cpp): the jobs' types and two helpers.
 // Not for use outside ServerCore.
 #include <chrono>
+#include <map>
 #include <optional>
 #include <string>
 
@@ -31,6 +32,13 @@ struct ServerCore::DecodedScan {
   LabelImage labels;
   std::optional<ImageF> image;
   double read_seconds = 0.0;
+};
+
+// A result between publish_result and write_result: the record as it will
+// be stored (state done) and the files the engine made.
+struct ServerCore::UnwrittenResult {
+  ScanRecord record;
+  std::map<std::string, std::string> files;
 };
 
 }  // namespace brainshift::server

@@ -1,12 +1,17 @@
 #!/usr/bin/env bash
-# The daemon latency benchmark of issue 4 (results: docs/PERFORMANCE.md, section 4).
-# For each NP: starts brainshiftd on a fresh store with no preop, times
-# preop.load of the default atlas (published mesh size), pushes SCANS copies of
-# a `brainshift phantom` scan (256x256x60 intraop grid) one at a time, and
-# reports push->result-ready p50/p95 and VmRSS of every rank after the scans.
+# The daemon latency benchmark of issues 4 and 12 (results: docs/PERFORMANCE.md,
+# section 4). For each NP: starts brainshiftd on a fresh store with no preop,
+# times preop.load of the default atlas (published mesh size), then SCANS times
+# runs the user's command `brainshift push --labels L --image I --wait` on a
+# `brainshift phantom` scan (256x256x60 intraop grid) once the daemon is idle,
+# timed from the command's start to its exit, beside the daemon's stage table;
+# reports VmRSS and VmHWM (peak) of every rank after the scans; then pushes
+# RESTART_SCANS (default 2) scans without waiting, kill -9s the daemon and
+# times the restart from the stored preop: launch -> ready -> all processed.
 # Prints one JSON object per NP, as a JSON array.
-# Usage: [PRESET=name] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
-#        (default 20 scans, NP 1 2, phantom preset left_frontal_sinking_12mm)
+# Usage: [PRESET=name] [DIRECT=1] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
+#        (default 20 scans, NP 1 2, phantom preset left_frontal_sinking_12mm;
+#        DIRECT=1: the benchmark pushes itself, scan.push sent -> scan.done)
 set -euo pipefail
 BUILD=$(cd "${1:?usage: $0 BUILD_DIR [SCANS] [NP...]}" && pwd)
 SCANS=${2:-20}
@@ -39,6 +44,8 @@ echo "bench: making the phantom scan" >&2
 "$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --preset "${PRESET:-left_frontal_sinking_12mm}" --out "$WORK/phantom" >/dev/null
 
 json_field() { sed -n "s/.*\"$1\":\"\([^\"]*\)\".*/\1/p" "$2"; }
+client_args=(--client "$CLIENT")
+[[ -n ${DIRECT:-} ]] && client_args=()
 echo "[" 
 first=1
 for np in "${NPS[@]}"; do
@@ -68,8 +75,28 @@ for np in "${NPS[@]}"; do
   [[ $first -eq 1 ]] || echo ","
   first=0
   "$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$WORK/phantom/intraop_labels.nii.gz" \
-    --image "$WORK/phantom/intraop_t1.nii.gz" --scans "$SCANS" --load-preop --pids "$pids" |
+    --image "$WORK/phantom/intraop_t1.nii.gz" --scans "$SCANS" --load-preop --pids "$pids" \
+    "${client_args[@]}" |
     sed "1s/^{/{\n  \"np\": $np,/"
+  # Restart after kill -9 with the preop in the store and RESTART_SCANS
+  # acknowledged scans not yet processed: launch -> ready, -> all processed.
+  for _ in $(seq 1 "${RESTART_SCANS:-2}"); do
+    "$CLIENT" --server "$SERVER" push --labels "$WORK/phantom/intraop_labels.nii.gz" \
+      --image "$WORK/phantom/intraop_t1.nii.gz" >/dev/null
+  done
+  kill -9 "$(sed -n 's/.*"pid":\([0-9]*\).*/\1/p' "$run/ready.json")"
+  wait "$DAEMON_PID" 2>/dev/null || true
+  rm -f "$run/ready.json"
+  t_restart=$(date +%s%N)
+  "${launch[@]}" --config "$run/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \
+    --ready-file "$run/ready.json" >>"$run/daemon.out" 2>>"$run/daemon.log" &
+  DAEMON_PID=$!
+  for _ in $(seq 1 3000); do [[ -f $run/ready.json ]] && break; sleep 0.01; done
+  SERVER=$(json_field endpoint "$run/ready.json")
+  EVENTS=$(json_field events "$run/ready.json")
+  echo ","
+  "$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$WORK/phantom/intraop_labels.nii.gz" \
+    --restarted-at "$t_restart" | sed "1s/^{/{\n  \"np\": $np, \"restart_after_kill9\": true,/"
   stop_daemon
 done
 echo "]"
