@@ -1,5 +1,8 @@
 // brainshift: the command-line client of brainshiftd, plus the offline
 // commands (register, phantom) that run the engine in this process.
+// Built twice: brainshift-offline with the offline commands, and brainshift
+// without the engine, which hands register and phantom to brainshift-offline
+// (offline_forwarding.h: the per-scan `brainshift push` starts in ms).
 #include <iostream>
 
 #include <CLI/CLI.hpp>
@@ -8,6 +11,8 @@
 #include "network_commands.h"
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
 #include "offline_commands.h"
+#else
+#include "offline_forwarding.h"
 #endif
 
 int main(int argc, char** argv) {
@@ -31,6 +36,8 @@ int main(int argc, char** argv) {
   brainshift::cli::add_network_commands(app, options, &exit_code);
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
   brainshift::cli::add_offline_commands(app, &exit_code);
+#else
+  brainshift::cli::add_offline_forwarding(app, argc, argv, &exit_code);
 #endif
   try {
     app.parse(argc, argv);
