@@ -9,7 +9,7 @@
 # RESTART_SCANS (default 2) scans without waiting, kill -9s the daemon and
 # times the restart from the stored preop: launch -> ready -> all processed.
 # Prints one JSON object per NP, as a JSON array.
-# Usage: [PRESET=name] [DIRECT=1] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
+# Usage: [PRESET=name] [DIRECT=1] [KEEP=1] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
 #        (default 20 scans, NP 1 2, phantom preset left_frontal_sinking_12mm;
 #        DIRECT=1: the benchmark pushes itself, scan.push sent -> scan.done)
 set -euo pipefail
@@ -38,7 +38,7 @@ stop_daemon() {
   wait "$DAEMON_PID" 2>/dev/null || true
   DAEMON_PID=""
 }
-trap 'stop_daemon; rm -rf "$WORK"' EXIT
+trap 'stop_daemon; [[ -n ${KEEP:-} ]] && echo "bench: kept $WORK" >&2 || rm -rf "$WORK"' EXIT
 
 echo "bench: making the phantom scan" >&2
 "$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --preset "${PRESET:-left_frontal_sinking_12mm}" --out "$WORK/phantom" >/dev/null
