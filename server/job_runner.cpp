@@ -178,7 +178,7 @@ std::shared_ptr<const ServerCore::UnwrittenResult> ServerCore::publish_result(co
   return result;
 }
 
-void ServerCore::write_result(const UnwrittenResult& result, const std::string& preop_id) {
+bool ServerCore::write_result(const UnwrittenResult& result, const std::string& preop_id) {
   const ScanRecord& r = result.record;
   const auto t0 = Clock::now();
   try {
@@ -190,14 +190,14 @@ void ServerCore::write_result(const UnwrittenResult& result, const std::string& 
       deferred_pending_.erase(r.scan_id);
     }
     result_not_stored(r, e.what());
-    return;
+    return false;
   }
   {
     std::lock_guard lock(mutex_);
     unwritten_results_.erase(r.scan_id);  // the store serves it from now on
   }
   log_stage(StageTiming{StageScope::kIntraop, r.scan_id, preop_id, "store", seconds_since(t0), ""});
-  add_deferred_outputs(r.scan_id, preop_id);
+  return true;
 }
 
 void ServerCore::run_scan(const std::string& scan_id) {
@@ -249,8 +249,8 @@ void ServerCore::run_scan(const std::string& scan_id) {
     if (result_write_fault_.fires(0)) {
       spdlog::warn("BRAINSHIFT_INJECT_FAULT: the result of scan {} is served from memory and never written",
                    scan_id);
-    } else {
-      write_result(*result, preop_id);
+    } else if (write_result(*result, preop_id)) {
+      add_deferred_outputs(scan_id, preop_id);
     }
   } catch (const InputError& e) {
     fail_scan(*record, ErrorCode::kInvalidRequest, e.what(), stage);

@@ -86,9 +86,10 @@ class ServerCore {
   // hooks in here.
   std::shared_ptr<const UnwrittenResult> publish_result(const ScanRecord& record, EngineScanOutput out,
                                                         double seconds);
-  // Makes a published result durable; a refused write (StoreWriteError)
-  // withdraws it and reports the scan failed until it is computed again.
-  void write_result(const UnwrittenResult& result, const std::string& preop_id);
+  // Makes a published result durable and returns true; a refused write
+  // withdraws it, reports the scan failed until it is computed again and
+  // returns false.
+  bool write_result(const UnwrittenResult& result, const std::string& preop_id);
   void add_deferred_outputs(const std::string& scan_id, const std::string& preop_id);
   void fail_scan(const ScanRecord& record, protocol::ErrorCode code, const std::string& message,
                  const std::string& stage);
