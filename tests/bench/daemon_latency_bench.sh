@@ -18,59 +18,21 @@ SCANS=${2:-20}
 shift $(( $# >= 2 ? 2 : 1 ))
 NPS=("$@")
 [[ ${#NPS[@]} -gt 0 ]] || NPS=(1 2)
-SRC=$(cd "$(dirname "$0")/../.." && pwd)
-DAEMON="$BUILD/server/brainshiftd"
-CLIENT="$BUILD/client/brainshift"
-BENCH="$BUILD/tests/bench/brainshift_daemon_latency_bench"
-for bin in "$DAEMON" "$CLIENT" "$BENCH"; do
-  [[ -x $bin ]] || { echo "bench: $bin is missing: build it first" >&2; exit 2; }
-done
-export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OPENBLAS_NUM_THREADS=1
-ATLAS_CACHE="${XDG_CACHE_HOME:-$HOME/.cache}/brainshift/atlas"
-WORK=$(mktemp -d /tmp/brainshift-latency.XXXXXX)
-DAEMON_PID=""
-
-stop_daemon() {
-  [[ -n $DAEMON_PID ]] || return 0
-  [[ -n ${SERVER:-} ]] && "$CLIENT" --server "$SERVER" --timeout 5 shutdown --reason "bench done" >/dev/null 2>&1 || true
-  for _ in $(seq 1 150); do kill -0 "$DAEMON_PID" 2>/dev/null || break; sleep 0.2; done
-  kill -TERM "$DAEMON_PID" 2>/dev/null || true
-  wait "$DAEMON_PID" 2>/dev/null || true
-  DAEMON_PID=""
-}
-trap 'stop_daemon; [[ -n ${KEEP:-} ]] && echo "bench: kept $WORK" >&2 || rm -rf "$WORK"' EXIT
+# shellcheck source=daemon_bench_lib.sh
+source "$(dirname "$0")/daemon_bench_lib.sh"
+trap bench_cleanup EXIT
 
 echo "bench: making the phantom scan" >&2
 "$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --preset "${PRESET:-left_frontal_sinking_12mm}" --out "$WORK/phantom" >/dev/null
 
-json_field() { sed -n "s/.*\"$1\":\"\([^\"]*\)\".*/\1/p" "$2"; }
 client_args=(--client "$CLIENT")
 [[ -n ${DIRECT:-} ]] && client_args=()
 echo "[" 
 first=1
 for np in "${NPS[@]}"; do
   run="$WORK/np$np"
-  mkdir -p "$run"
-  cp "$SRC/config/brainshiftd.toml" "$SRC/config/labels.toml" "$run/"
-  # No preop at start-up: the benchmark times preop.load itself.
-  sed -i -e "s|^atlas_cache = .*|atlas_cache = \"$ATLAS_CACHE\"|" -e "s|^store = .*|store = \"$run/store\"|" \
-         -e "s|^preop = .*|preop = \"none\"|" \
-         -e "s|^allow_unauthenticated_shutdown = .*|allow_unauthenticated_shutdown = true|" "$run/brainshiftd.toml"
-  launch=("$DAEMON")
-  [[ $np -gt 1 ]] && launch=(mpirun -np "$np" --oversubscribe "$DAEMON")
-  "${launch[@]}" --config "$run/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \
-    --ready-file "$run/ready.json" >"$run/daemon.out" 2>"$run/daemon.log" &
-  DAEMON_PID=$!
-  for _ in $(seq 1 300); do [[ -f $run/ready.json ]] && break; sleep 0.1; done
-  [[ -f $run/ready.json ]] || { echo "bench: daemon (np $np) did not start; see $run/daemon.log" >&2; exit 1; }
-  SERVER=$(json_field endpoint "$run/ready.json")
-  EVENTS=$(json_field events "$run/ready.json")
-  # Every rank: the brainshiftd processes under mpirun, or the daemon itself.
-  if [[ $np -gt 1 ]]; then
-    pids=$(pgrep -d, -P "$DAEMON_PID" -x brainshiftd || true)
-  else
-    pids=$DAEMON_PID
-  fi
+  bench_config "$run" "$np"
+  start_daemon "$run" "$np"
   echo "bench: np $np, daemon pids $pids" >&2
   [[ $first -eq 1 ]] || echo ","
   first=0
@@ -84,16 +46,9 @@ for np in "${NPS[@]}"; do
     "$CLIENT" --server "$SERVER" push --labels "$WORK/phantom/intraop_labels.nii.gz" \
       --image "$WORK/phantom/intraop_t1.nii.gz" >/dev/null
   done
-  kill -9 "$(sed -n 's/.*"pid":\([0-9]*\).*/\1/p' "$run/ready.json")"
-  wait "$DAEMON_PID" 2>/dev/null || true
-  rm -f "$run/ready.json"
+  kill9_daemon "$run"
   t_restart=$(date +%s%N)
-  "${launch[@]}" --config "$run/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \
-    --ready-file "$run/ready.json" >>"$run/daemon.out" 2>>"$run/daemon.log" &
-  DAEMON_PID=$!
-  for _ in $(seq 1 3000); do [[ -f $run/ready.json ]] && break; sleep 0.01; done
-  SERVER=$(json_field endpoint "$run/ready.json")
-  EVENTS=$(json_field events "$run/ready.json")
+  start_daemon "$run" "$np"
   echo ","
   "$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$WORK/phantom/intraop_labels.nii.gz" \
     --restarted-at "$t_restart" | sed "1s/^{/{\n  \"np\": $np, \"restart_after_kill9\": true,/"

@@ -15,29 +15,10 @@ SCANS=${2:-3}
 shift $(( $# >= 2 ? 2 : 1 ))
 NPS=("$@")
 [[ ${#NPS[@]} -gt 0 ]] || NPS=(1 2)
-SRC=$(cd "$(dirname "$0")/../.." && pwd)
-DAEMON="$BUILD/server/brainshiftd"
-CLIENT="$BUILD/client/brainshift"
-BENCH="$BUILD/tests/bench/brainshift_daemon_latency_bench"
-for bin in "$DAEMON" "$CLIENT" "$BENCH"; do
-  [[ -x $bin ]] || { echo "bench: $bin is missing: build it first" >&2; exit 2; }
-done
-export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OPENBLAS_NUM_THREADS=1
-ATLAS_CACHE="${XDG_CACHE_HOME:-$HOME/.cache}/brainshift/atlas"
-WORK=$(mktemp -d /tmp/brainshift-warmup.XXXXXX)
-DAEMON_PID=""
-stop_daemon() {
-  [[ -n $DAEMON_PID ]] || return 0
-  "$CLIENT" --server "$SERVER" --timeout 5 shutdown --reason "bench done" >/dev/null 2>&1 || true
-  for _ in $(seq 1 150); do kill -0 "$DAEMON_PID" 2>/dev/null || break; sleep 0.2; done
-  kill -TERM "$DAEMON_PID" 2>/dev/null || true
-  wait "$DAEMON_PID" 2>/dev/null || true
-  DAEMON_PID=""
-}
-trap 'stop_daemon; rm -rf "$WORK"' EXIT
+# shellcheck source=daemon_bench_lib.sh
+source "$(dirname "$0")/daemon_bench_lib.sh"
+trap bench_cleanup EXIT
 now() { date +%s.%N; }
-json_field() { sed -n "s/.*\"$1\":\"\([^\"]*\)\".*/\1/p" "$2"; }
-hwm_kib() { local total=0; for p in ${1//,/ }; do total=$((total + $(awk '/VmHWM/ {print $2}' "/proc/$p/status"))); done; echo "$total"; }
 hwm_each() { local out=""; for p in ${1//,/ }; do out+="${out:+,}$(awk '/VmHWM/ {print $2}' "/proc/$p/status")"; done; echo "[$out]"; }
 
 echo "bench: making the tumour phantom" >&2
@@ -47,25 +28,8 @@ echo "["
 first=1
 for np in "${NPS[@]}"; do
   run="$WORK/np$np"
-  mkdir -p "$run"
-  cp "$SRC/config/brainshiftd.toml" "$SRC/config/labels.toml" "$run/"
-  sed -i -e "s|^atlas_cache = .*|atlas_cache = \"$ATLAS_CACHE\"|" -e "s|^store = .*|store = \"$run/store\"|" \
-         -e "s|^preop = .*|preop = \"none\"|" \
-         -e "s|^allow_unauthenticated_shutdown = .*|allow_unauthenticated_shutdown = true|" "$run/brainshiftd.toml"
-  launch=("$DAEMON")
-  [[ $np -gt 1 ]] && launch=(mpirun -np "$np" --oversubscribe "$DAEMON")
-  start_daemon() {
-    rm -f "$run/ready.json"
-    "${launch[@]}" --config "$run/brainshiftd.toml" --endpoint 'tcp://127.0.0.1:*' --events 'tcp://127.0.0.1:*' \
-      --ready-file "$run/ready.json" >>"$run/daemon.out" 2>>"$run/daemon.log" &
-    DAEMON_PID=$!
-    for _ in $(seq 1 3000); do [[ -f $run/ready.json ]] && break; sleep 0.01; done
-    [[ -f $run/ready.json ]] || { echo "bench: daemon (np $np) did not start; see $run/daemon.log" >&2; exit 1; }
-    SERVER=$(json_field endpoint "$run/ready.json")
-    EVENTS=$(json_field events "$run/ready.json")
-    if [[ $np -gt 1 ]]; then pids=$(pgrep -d, -P "$DAEMON_PID" -x brainshiftd || true); else pids=$DAEMON_PID; fi
-  }
-  start_daemon
+  bench_config "$run" "$np"
+  start_daemon "$run" "$np"
   t0=$(now)
   "$CLIENT" --server "$SERVER" --events "$EVENTS" load-preop --image "$C/preop_t1.nii.gz" \
     --labels "$C/preop_labels.nii.gz" --wait >/dev/null 2>"$run/load.err"
@@ -80,10 +44,9 @@ for np in "${NPS[@]}"; do
   for _ in $(seq 1 "${RESTART_SCANS:-2}"); do
     "$CLIENT" --server "$SERVER" push --labels "$C/intraop_labels.nii.gz" --image "$C/intraop_t1.nii.gz" >/dev/null
   done
-  kill -9 "$(sed -n 's/.*"pid":\([0-9]*\).*/\1/p' "$run/ready.json")"
-  wait "$DAEMON_PID" 2>/dev/null || true
+  kill9_daemon "$run"
   t_restart=$(date +%s%N)
-  start_daemon
+  start_daemon "$run" "$np"
   restart=$("$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$C/intraop_labels.nii.gz" --restarted-at "$t_restart")
   [[ $first -eq 1 ]] || echo ","
   first=0
