@@ -1,5 +1,8 @@
 // brainshift: the command-line client of brainshiftd, plus the offline
 // commands (register, phantom) that run the engine in this process.
+// Built twice: brainshift-offline with the offline commands, and brainshift
+// without the engine, which hands register and phantom to brainshift-offline
+// (offline_forwarding.h: the per-scan `brainshift push` starts in ms).
 #include <iostream>
 
 #include <CLI/CLI.hpp>
@@ -8,9 +11,17 @@
 #include "network_commands.h"
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
 #include "offline_commands.h"
+#include "scene_labels.h"
+#else
+#include "offline_forwarding.h"
 #endif
 
 int main(int argc, char** argv) {
+#ifndef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
+  // The Slicer scene needs the label-table reader (the configuration, which
+  // links the engine): that pull runs in brainshift-offline.
+  if (brainshift::cli::is_scene_pull(argc, argv)) return brainshift::cli::exec_offline(argc, argv);
+#endif
   CLI::App app{"brainshift: client of the brainshiftd registration daemon"};
   app.footer(brainshift::cli::kExitCodesHelp);
   app.require_subcommand(1);
@@ -25,10 +36,15 @@ int main(int argc, char** argv) {
       ->envname("BRAINSHIFT_KEY");
   app.add_option("--server-key", options.server_key_file, "CURVE: the server's public key file")
       ->envname("BRAINSHIFT_SERVER_KEY");
+#ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
+  options.scene_labels = brainshift::cli::scene_labels_from_toml;
+#endif
   int exit_code = 0;
   brainshift::cli::add_network_commands(app, options, &exit_code);
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
   brainshift::cli::add_offline_commands(app, &exit_code);
+#else
+  brainshift::cli::add_offline_forwarding(app, argc, argv, &exit_code);
 #endif
   try {
     app.parse(argc, argv);

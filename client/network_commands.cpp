@@ -15,7 +15,6 @@
 
 #include <nlohmann/json.hpp>
 
-#include "config_file.h"
 #include "core/errors.h"
 #include "connection.h"
 #include "pulled_files.h"
@@ -251,11 +250,16 @@ int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, do
   auto next_poll = std::chrono::steady_clock::now();
   bool announced = false;
   while (std::chrono::steady_clock::now() < deadline && !g_interrupted) {
-    // Events give live progress; the poll decides (an event can be missed).
-    if (auto e = events.next(100ms)) {
+    // Events give live progress and end the wait: this scan's scan.done or
+    // scan.failed is followed by a pull at once. The poll every 200 ms only
+    // covers an event that was missed (a PUB drops what a slow SUB misses).
+    if (auto e = events.next(50ms)) {
       try {
         const std::string text = describe_event(*e);
         if (text.find(scan_id) != std::string::npos) std::cerr << text << '\n';
+        if ((e->type() == MessageType::kEventScanDone && parse_scan_done_event(*e).scan_id == scan_id) ||
+            (e->type() == MessageType::kEventScanFailed && parse_scan_failed_event(*e).scan_id == scan_id))
+          next_poll = std::chrono::steady_clock::now();
       } catch (const std::exception&) {
       }
     }
@@ -340,20 +344,10 @@ std::vector<ResultPart> write_pulled(const ScanResultReply& r, const fs::path& o
   return pending;
 }
 
-// The label table the scene names and colours with: the file the daemon was
-// configured with, or the shipped labels.toml.
-std::vector<SceneLabel> scene_labels(const std::string& toml_file) {
-  try {
-    const brainshift::LabelTable table =
-        toml_file.empty()
-            ? config::pipeline_parameters_from_text(config::default_config_text(), "built-in").label_table
-            : config::label_table_from_text(read_file(toml_file), toml_file);
-    std::vector<SceneLabel> out;
-    for (const auto& e : table.entries) out.push_back({e.value, e.name, e.colour, e.role == LabelRole::parenchyma});
-    return out;
-  } catch (const InputError& e) {
-    throw CommandError(kExitUsage, e.what());
-  }
+// The label table the scene names and colours with (NetworkOptions::scene_labels).
+std::vector<SceneLabel> scene_labels(const NetworkOptions& o, const std::string& toml_file) {
+  if (!o.scene_labels) throw CommandError(kExitUsage, "pull --scene: this build cannot read label tables");
+  return o.scene_labels(toml_file);
 }
 
 // A local image copied into the result folder (the scene refers to it there,
@@ -368,10 +362,10 @@ std::string copy_into(const fs::path& out, const std::string& file, const std::s
   return name;
 }
 
-void write_scene(const PullArgs& a) {
+void write_scene(const NetworkOptions& o, const PullArgs& a) {
   const fs::path out = a.out;
   SceneContents contents;
-  contents.labels = scene_labels(a.scene_labels);
+  contents.labels = scene_labels(o, a.scene_labels);
   if (!a.preop_image.empty()) contents.preop_image = copy_into(out, a.preop_image, "preop_image");
   if (!a.intraop_image.empty()) contents.intraop_image = copy_into(out, a.intraop_image, "intraop_image");
   try {
@@ -396,7 +390,7 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
     if (std::find(req.parts.begin(), req.parts.end(), *p) == req.parts.end()) req.parts.push_back(*p);
   }
   if (req.parts.empty()) return kExitOk;
-  if (a.scene) scene_labels(a.scene_labels);  // a bad table fails before anything is pulled
+  if (a.scene) scene_labels(o, a.scene_labels);  // a bad table fails before anything is pulled
   const double timeout_s = std::max(o.timeout_s, 30.0);  // a field is tens of MB
   Connection c(o.server, as_ms(timeout_s), curve_keys(o));
   req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
@@ -410,7 +404,7 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
     std::this_thread::sleep_for(200ms);
     req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
   }
-  if (a.scene) write_scene(a);
+  if (a.scene) write_scene(o, a);
   return kExitOk;
 }
 

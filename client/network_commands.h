@@ -3,7 +3,12 @@
 // push, pull, list, watch, shutdown; and keygen, which makes CURVE keys.
 #include <CLI/CLI.hpp>
 
+#include <functional>
+#include <string>
+#include <vector>
+
 #include "connection.h"
+#include "slicer_scene.h"
 
 namespace brainshift::cli {
 
@@ -14,6 +19,11 @@ struct NetworkOptions {
   // CURVE (PROTOCOL.md section 13): both or neither.
   std::string key_prefix;       // this client's PREFIX.key / PREFIX.key_secret
   std::string server_key_file;  // the server's public key file
+  // Reads the label table `pull --scene` names and colours with (a
+  // labels.toml, or the shipped one for ""). Set by brainshift-offline, which
+  // links the configuration reader; the engine-free brainshift hands
+  // `pull --scene` to brainshift-offline instead (offline_forwarding.h).
+  std::function<std::vector<SceneLabel>(const std::string& labels_toml)> scene_labels;
 };
 
 // The CURVE keys the options name (nullopt: plain TCP). Throws

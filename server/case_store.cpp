@@ -445,9 +445,11 @@ void CaseStore::write_result_file(const std::string& scan_id, const std::string&
 }
 
 void CaseStore::save_result(const std::string& scan_id, const std::map<std::string, std::string>& files,
-                            const std::string& kind, const std::string& fallback_reason) {
+                            const std::string& kind, const std::string& fallback_reason,
+                            const std::string& finished_at) {
   if (!find(scan_id)) throw std::invalid_argument("store: unknown scan " + scan_id);
-  json meta{{"format", kStoreFormat}, {"state", "done"}, {"finished_at", protocol::utc_now()},
+  json meta{{"format", kStoreFormat}, {"state", "done"},
+            {"finished_at", finished_at.empty() ? protocol::utc_now() : finished_at},
             {"kind", kind}, {"fallback_reason", fallback_reason}, {"files", json::array()}};
   std::size_t i = 0;
   for (const auto& [name, bytes] : files)

@@ -104,9 +104,11 @@ class CaseStore {
   ScanInput load_scan_input(const std::string& scan_id) const;
 
   // Stores the result files (name -> bytes, names like "field.nii.gz" or
-  // "models/brain.vtp") and marks the scan done.
+  // "models/brain.vtp") and marks the scan done, finished at finished_at
+  // (ISO-8601 UTC; now when empty).
   void save_result(const std::string& scan_id, const std::map<std::string, std::string>& files,
-                   const std::string& kind, const std::string& fallback_reason);
+                   const std::string& kind, const std::string& fallback_reason,
+                   const std::string& finished_at = "");
   void save_failure(const std::string& scan_id, const std::string& error_code,
                     const std::string& message, const std::string& stage);
   // A result or failure that could not be written: the index shows the scan

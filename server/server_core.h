@@ -2,6 +2,10 @@
 // The daemon's logic without sockets: request handling (socket thread), the
 // job loop (engine thread), shared state for status, events and the timing
 // log. daemon.cpp wires it to ZeroMQ and MPI; tests drive it directly.
+// One class, in four files along its threads: request_handlers.cpp (socket
+// thread), job_runner.cpp (engine thread: warm-up, scans, deferred outputs),
+// crash_recovery.cpp (start-up: warm state, re-queued scans, repairs) and
+// server_core.cpp (construction, status, events, the job loop's step).
 //
 // Threads: handle_*() run on the socket thread and never wait for the engine
 // (they read a snapshot under a short mutex). start()/step() run on the engine
@@ -19,6 +23,7 @@
 
 #include "protocol/message.h"
 #include "protocol/requests.h"
+#include "core/fault_injection.h"
 #include "protocol/timing_log.h"
 #include "server/case_store.h"
 #include "server/engine_port.h"
@@ -70,6 +75,7 @@ class ServerCore {
  private:
   struct PreopJob;
   struct DecodedScan;
+  struct UnwrittenResult;
 
   protocol::Message on_status(const protocol::Message& m);
   protocol::Message on_preop_load(const protocol::Message& m);
@@ -80,6 +86,16 @@ class ServerCore {
 
   void run_preop_job(PreopJob job);
   void run_scan(const std::string& scan_id);
+  // The one place where a scan's result becomes available: from here on it
+  // is pulled (from memory until write_result has stored it) and scan.done
+  // is out. A gateway that forwards results (e.g. to a navigation system)
+  // hooks in here.
+  std::shared_ptr<const UnwrittenResult> publish_result(const ScanRecord& record, EngineScanOutput out,
+                                                        double seconds);
+  // Makes a published result durable and returns true; a refused write
+  // withdraws it, reports the scan failed until it is computed again and
+  // returns false.
+  bool write_result(const UnwrittenResult& result, const std::string& preop_id);
   void add_deferred_outputs(const std::string& scan_id, const std::string& preop_id);
   void fail_scan(const ScanRecord& record, protocol::ErrorCode code, const std::string& message,
                  const std::string& stage);
@@ -115,9 +131,14 @@ class ServerCore {
   std::unique_ptr<PreopJob> pending_preop_;
   std::map<std::string, std::shared_ptr<DecodedScan>> decoded_;  // pushed, not yet run
   std::set<std::string> deferred_pending_;  // done; field.h5/report.png still being made
+  // Published, not yet in the store: served from memory. A crash before the
+  // write leaves the scan acknowledged without a result, so a restart
+  // computes it again from its stored input.
+  std::map<std::string, std::shared_ptr<const UnwrittenResult>> unwritten_results_;
   std::vector<std::string> unstored_results_;  // computed, refused by the store; retried
   std::vector<std::string> repairs_;  // engine thread: done scans missing deferred outputs
   int ranks_ = 1;
+  FaultPoint result_write_fault_{"result_write"};  // BRAINSHIFT_INJECT_FAULT, see core/fault_injection.h
 };
 
 }  // namespace brainshift::server

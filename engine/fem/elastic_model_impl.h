@@ -22,7 +22,7 @@ struct ElasticModel::Impl {
   PetscInt node_begin = 0, node_end = 0;  // owned node range (PETSc's split)
   std::vector<PetscInt> owned_free, owned_fixed;  // ascending node ids
 
-  Mat stiffness = nullptr;      // full K, 3N x 3N, block size 3
+  Mat stiffness = nullptr;      // full K, 3N x 3N, block size 3 (freed after set-up with elimination)
   Mat free_free = nullptr;      // A_ff (symmetric elimination)
   Mat free_fixed = nullptr;     // A_fb (symmetric elimination)
   Mat row_replaced = nullptr;   // K with fixed rows replaced by identity rows

@@ -3,7 +3,7 @@
 #include <malloc.h>
 
 #include "core/errors.h"
-#include "pipeline/fault_injection.h"
+#include "core/fault_injection.h"
 #include "pipeline/mpi_commands.h"
 #include "pipeline/warm_state.h"
 

@@ -14,7 +14,7 @@
 
 #include "core/tet_mesh.h"
 #include "fem/elastic_model.h"
-#include "pipeline/fault_injection.h"
+#include "core/fault_injection.h"
 
 namespace brainshift {
 

@@ -1,21 +1,35 @@
-// Latency of a running brainshiftd as the scanner sees it (issue 4 benchmark):
+// Latency of a running brainshiftd as the scanner sees it (issues 4 and 12):
 //   * preop.load of the default atlas: request sent -> event.preop.ready;
-//   * per scan: scan.push sent -> event.scan.done received ("result ready"),
-//     p50/p95 over --scans scans, pushed one at a time once the server is
-//     idle again (OR scans come minutes apart; report.png, rendered after
-//     scan.done, is therefore never in the way of the next scan);
+//   * per scan, pushed one at a time once the server is idle again (OR scans
+//     come minutes apart; the deferred outputs after scan.done are therefore
+//     never in the way of the next scan), p50/p95 over --scans scans:
+//     with --client, the user's command `brainshift push --labels L --image I
+//     --wait` from its start to its exit (client_push_wait_s), and, from the
+//     same start, this benchmark's own receipt of event.scan.done
+//     (client_start_to_done_event_s); without it, scan.push sent by this
+//     process -> event.scan.done received (push_to_result_ready_s);
 //   * the daemon's own stage timings (p50 per stage, from event.stage);
-//   * resident memory (VmRSS) of the given daemon processes after the scans.
+//   * resident memory (VmRSS, and the peak VmHWM) of the given daemon
+//     processes after the scans;
+//   * with --restarted-at: a daemon restarted (after kill -9) at that time
+//     (ns since the epoch): seconds until it is ready (warm, state ready) and
+//     until every acknowledged scan is processed (no scan queued or running).
 // Prints one JSON object. Driven by daemon_latency_bench.sh, which starts the
 // daemon (np 1 or 2) and makes the phantom scan.
 #include <algorithm>
 #include <cmath>
 #include <chrono>
+#include <cstring>
 #include <fstream>
+#include <optional>
 #include <iostream>
 #include <map>
 #include <sstream>
 #include <thread>
+
+#include <fcntl.h>
+#include <spawn.h>
+#include <sys/wait.h>
 
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
@@ -56,11 +70,37 @@ nlohmann::json summary(const std::vector<double>& v) {
           {"max", v.empty() ? 0.0 : *std::max_element(v.begin(), v.end())}, {"n", v.size()}};
 }
 
-long vm_rss_kib(int pid) {
+// A field of /proc/<pid>/status in KiB (VmRSS now, VmHWM the peak), -1 if gone.
+long status_kib(int pid, const std::string& field) {
   std::ifstream in("/proc/" + std::to_string(pid) + "/status");
   for (std::string line; std::getline(in, line);)
-    if (line.rfind("VmRSS:", 0) == 0) return std::stol(line.substr(6));
+    if (line.rfind(field + ":", 0) == 0) return std::stol(line.substr(field.size() + 1));
   return -1;
+}
+
+extern "C" char** environ;
+
+// Starts argv (stdout and stderr to /dev/null, as a script would discard them).
+pid_t spawn(const std::vector<std::string>& argv) {
+  std::vector<char*> args;
+  for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
+  args.push_back(nullptr);
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, 1, "/dev/null", O_WRONLY, 0);
+  posix_spawn_file_actions_addopen(&actions, 2, "/dev/null", O_WRONLY, 0);
+  pid_t pid = -1;
+  const int rc = posix_spawn(&pid, args[0], &actions, nullptr, args.data(), environ);
+  posix_spawn_file_actions_destroy(&actions);
+  if (rc != 0) throw std::runtime_error(argv[0] + ": cannot start: " + std::strerror(rc));
+  return pid;
+}
+
+// Exit code once the child ended, nullopt while it runs.
+std::optional<int> exited(pid_t pid) {
+  int status = 0;
+  if (::waitpid(pid, &status, WNOHANG) != pid) return std::nullopt;
+  return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
 }
 
 class Bench {
@@ -86,6 +126,13 @@ class Bench {
 
   // Waits for an event accepted by `done` (returns true to stop); stage
   // events are collected on the way.
+  // One event within `wait` (recorded), or nullopt.
+  std::optional<Message> next_event(std::chrono::milliseconds wait) {
+    auto e = transport::receive_event(sub_, Limits::client_inbound(), wait);
+    if (e) record(*e);
+    return e;
+  }
+
   template <class Done>
   void wait_event(Done&& done, std::chrono::seconds limit) {
     const auto deadline = Clock::now() + limit;
@@ -130,7 +177,7 @@ class Bench {
 
 int main(int argc, char** argv) {
   CLI::App app{"brainshiftd push-to-result latency benchmark (prints JSON)"};
-  std::string server, events, labels_path, image_path;
+  std::string server, events, labels_path, image_path, client;
   int scans = 20;
   bool load_preop = false;
   std::vector<int> pids;
@@ -140,10 +187,44 @@ int main(int argc, char** argv) {
   app.add_option("--image", image_path, "intraop T1 NIfTI");
   app.add_option("--scans", scans, "scans to push");
   app.add_flag("--load-preop", load_preop, "send preop.load (default atlas) first and time the warm-up");
+  std::int64_t restarted_at_ns = 0;
+  app.add_option("--restarted-at", restarted_at_ns, "time a restarted daemon: ns since the epoch of its launch");
+  app.add_option("--client", client, "the brainshift CLI: time `brainshift push --wait` as the user runs it");
   app.add_option("--pids", pids, "daemon processes (every MPI rank) whose VmRSS is reported")->delimiter(',');
   CLI11_PARSE(app, argc, argv);
 
   try {
+    if (restarted_at_ns > 0) {
+      Bench b(server, events);
+      const auto epoch_s = [restarted_at_ns] {
+        const auto now = std::chrono::system_clock::now().time_since_epoch();
+        return std::chrono::duration<double>(now).count() - restarted_at_ns * 1e-9;
+      };
+      nlohmann::json out;
+      for (;; std::this_thread::sleep_for(20ms)) {
+        const StatusReply st = parse_status_reply(b.call(make_status_request(b.rid())));
+        if (st.state == ServerState::kReady || st.state == ServerState::kProcessing) {
+          out["restart_to_ready_s"] = epoch_s();
+          if (st.mesh) out["mesh"] = {{"nodes", st.mesh->nodes}, {"tets", st.mesh->tets}};
+          break;
+        }
+        if (epoch_s() > 600) throw std::runtime_error("the restarted daemon was not ready within 600 s");
+      }
+      std::size_t scans_listed = 0;
+      for (;; std::this_thread::sleep_for(50ms)) {
+        const ScanListReply list = parse_scan_list_reply(b.call(make_scan_list_request(b.rid(), {kMaxScanListLimit})));
+        bool busy = false;
+        for (const auto& sc : list.scans) busy |= sc.state == ScanState::kQueued || sc.state == ScanState::kProcessing;
+        scans_listed = list.scans.size();
+        if (!busy) break;
+        if (epoch_s() > 900) throw std::runtime_error("acknowledged scans not processed within 900 s");
+      }
+      out["restart_to_all_scans_processed_s"] = epoch_s();
+      out["scans_listed"] = scans_listed;
+      out["preop_stages_s"] = b.preop_stages_;
+      std::cout << out.dump(2) << '\n';
+      return 0;
+    }
     Bench b(server, events);
     nlohmann::json out;
     out["scans"] = scans;
@@ -172,39 +253,75 @@ int main(int argc, char** argv) {
     out["mpi_ranks"] = status.mpi_ranks;
     if (status.mesh) out["mesh"] = {{"nodes", status.mesh->nodes}, {"tets", status.mesh->tets}};
 
-    ScanPushRequest push;
-    push.labels = media::nifti_frame("labels", read_file(labels_path));
-    if (!image_path.empty()) push.image = media::nifti_frame("image", read_file(image_path));
-    std::vector<double> latency, ack, server_total;
+    std::vector<double> latency, ack, server_total, client_wait, client_to_event;
     b.stages_.clear();
-    for (int i = 0; i < scans; ++i) {
-      b.wait_idle();
-      const auto t0 = Clock::now();
-      const ScanPushReply reply = parse_scan_push_reply(b.call(make_scan_push_request(b.rid(), push)));
-      ack.push_back(since(t0));
-      b.wait_event(
-          [&](const Message& e) {
-            if (e.type() == MessageType::kEventScanFailed && parse_scan_failed_event(e).scan_id == reply.scan_id)
-              throw std::runtime_error(reply.scan_id + " failed");
-            if (e.type() != MessageType::kEventScanDone) return false;
-            const auto done = parse_scan_done_event(e);
-            if (done.scan_id != reply.scan_id) return false;
-            latency.push_back(since(t0));
-            server_total.push_back(done.seconds);
-            return true;
-          },
-          600s);
-      std::cerr << reply.scan_id << ": " << latency.back() << " s\n";
+    if (client.empty()) {
+      ScanPushRequest push;
+      push.labels = media::nifti_frame("labels", read_file(labels_path));
+      if (!image_path.empty()) push.image = media::nifti_frame("image", read_file(image_path));
+      for (int i = 0; i < scans; ++i) {
+        b.wait_idle();
+        const auto t0 = Clock::now();
+        const ScanPushReply reply = parse_scan_push_reply(b.call(make_scan_push_request(b.rid(), push)));
+        ack.push_back(since(t0));
+        b.wait_event(
+            [&](const Message& e) {
+              if (e.type() == MessageType::kEventScanFailed && parse_scan_failed_event(e).scan_id == reply.scan_id)
+                throw std::runtime_error(reply.scan_id + " failed");
+              if (e.type() != MessageType::kEventScanDone) return false;
+              const auto done = parse_scan_done_event(e);
+              if (done.scan_id != reply.scan_id) return false;
+              latency.push_back(since(t0));
+              server_total.push_back(done.seconds);
+              return true;
+            },
+            600s);
+        std::cerr << reply.scan_id << ": " << latency.back() << " s\n";
+      }
+    } else {
+      std::vector<std::string> argv{client, "--server", server, "--events", events, "push", "--labels", labels_path};
+      if (!image_path.empty()) argv.insert(argv.end(), {"--image", image_path});
+      argv.push_back("--wait");
+      for (int i = 0; i < scans; ++i) {
+        b.wait_idle();
+        b.drain_events();
+        const auto t0 = Clock::now();
+        const pid_t pid = spawn(argv);
+        std::optional<int> code;
+        std::optional<double> done_at;
+        while (!(code = exited(pid))) {
+          if (since(t0) > 600) throw std::runtime_error("brainshift push --wait did not end within 600 s");
+          auto e = b.next_event(5ms);
+          if (!e || done_at) continue;
+          if (e->type() == MessageType::kEventScanDone) {
+            done_at = since(t0);
+            server_total.push_back(parse_scan_done_event(*e).seconds);
+          } else if (e->type() == MessageType::kEventScanFailed) {
+            throw std::runtime_error("a scan failed: " + parse_scan_failed_event(*e).error.message);
+          }
+        }
+        if (*code != 0) throw std::runtime_error("brainshift push --wait exited with " + std::to_string(*code));
+        client_wait.push_back(since(t0));
+        if (done_at) client_to_event.push_back(*done_at);
+        std::cerr << "scan " << i + 1 << ": client " << client_wait.back() << " s, scan.done at "
+                  << done_at.value_or(-1) << " s\n";
+      }
     }
     b.wait_idle();  // report.png of the last scan, so its stage is counted too
-    out["push_to_result_ready_s"] = summary(latency);
-    out["push_ack_s"] = summary(ack);
+    if (client.empty()) {
+      out["push_to_result_ready_s"] = summary(latency);
+      out["push_ack_s"] = summary(ack);
+    } else {
+      out["client_push_wait_s"] = summary(client_wait);
+      out["client_start_to_done_event_s"] = summary(client_to_event);
+    }
     out["server_scan_total_s"] = summary(server_total);
     nlohmann::json stages;
     for (const auto& [name, v] : b.stages_) stages[name] = percentile(v, 50);
     out["stage_p50_s"] = stages;
     nlohmann::json rss = nlohmann::json::array();
-    for (int pid : pids) rss.push_back({{"pid", pid}, {"vm_rss_kib", vm_rss_kib(pid)}});
+    for (int pid : pids)
+      rss.push_back({{"pid", pid}, {"vm_rss_kib", status_kib(pid, "VmRSS")}, {"vm_hwm_kib", status_kib(pid, "VmHWM")}});
     out["rss_after_scans"] = rss;
     std::cout << out.dump(2) << '\n';
     return 0;

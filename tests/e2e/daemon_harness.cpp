@@ -26,14 +26,13 @@ Daemon::Daemon(DaemonSpec spec) : spec_(std::move(spec)) {
   fs::remove(ready);
   std::vector<std::string> argv;
   std::vector<std::string> exported;
-  if (spec_.mpi_ranks > 0) {
+  if (spec_.mpi_ranks > 0)
     argv = {MPIEXEC_BIN, "--allow-run-as-root", "--oversubscribe", "-np", std::to_string(spec_.mpi_ranks)};
-    for (const auto& kv : spec_.mpi_env) {
-      const std::string name = kv.substr(0, kv.find('='));
-      ::setenv(name.c_str(), kv.substr(kv.find('=') + 1).c_str(), 1);
-      exported.push_back(name);
-      argv.insert(argv.end(), {"-x", name});
-    }
+  for (const auto& kv : spec_.env) {
+    const std::string name = kv.substr(0, kv.find('='));
+    ::setenv(name.c_str(), kv.substr(kv.find('=') + 1).c_str(), 1);
+    exported.push_back(name);
+    if (spec_.mpi_ranks > 0) argv.insert(argv.end(), {"-x", name});
   }
   // By hand: BRAINSHIFT_DAEMON_WRAPPER="/usr/bin/heaptrack -o /tmp/bs" runs
   // the daemon under a memory profiler (space-separated, absolute path first).

@@ -31,7 +31,7 @@ struct DaemonSpec {
   std::filesystem::path store;
   std::string name;       // prefix of the log files
   int mpi_ranks = 0;      // 0: no mpirun
-  std::vector<std::string> mpi_env;  // NAME=VALUE pairs exported to every rank (mpirun -x)
+  std::vector<std::string> env;  // NAME=VALUE pairs for the daemon (every rank: mpirun -x)
   std::vector<std::string> extra_args;  // appended to brainshiftd's command line
 };
 

@@ -1,4 +1,4 @@
-#include "pipeline/fault_injection.h"
+#include "core/fault_injection.h"
 
 #include <cstdlib>
 #include <regex>
@@ -14,8 +14,8 @@ InjectedFault parse_injected_fault(const std::string& text) {
     throw InputError("BRAINSHIFT_INJECT_FAULT=\"" + text + "\": expected <stage>@<rank>[#<n>], e.g. solve@1#1");
   InjectedFault f;
   f.stage = m[1].str();
-  if (f.stage != "solve")
-    throw InputError("BRAINSHIFT_INJECT_FAULT: unknown stage \"" + f.stage + "\" (known: solve)");
+  if (f.stage != "solve" && f.stage != "result_write")
+    throw InputError("BRAINSHIFT_INJECT_FAULT: unknown stage \"" + f.stage + "\" (known: solve, result_write)");
   f.rank = std::stoi(m[2].str());
   f.nth = m[4].matched ? std::stoi(m[4].str()) : 0;
   return f;

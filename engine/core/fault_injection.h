@@ -1,14 +1,18 @@
 #pragma once
-// A documented fault-injection switch for the reliability tests: makes one
-// collective stage fail on one MPI rank, to prove that a failure on any rank
-// is agreed on by all ranks and reported instead of hanging the job.
+// A documented fault-injection switch for the reliability tests:
 //
 //   BRAINSHIFT_INJECT_FAULT=<stage>@<rank>[#<n>]
 //
-// stage: "solve" (the per-scan elastic solve); rank: the MPI rank that fails;
-// n: fail only the n-th time that rank runs the stage (1-based; default: every
-// time). Read once per process at start-up; unset (the normal case) costs
-// nothing. A malformed value is refused at start-up rather than ignored.
+// stage "solve": the per-scan elastic solve fails on that MPI rank, to prove
+// that a failure on any rank is agreed on by all ranks and reported instead
+// of hanging the job. stage "result_write" (rank 0, the daemon): a scan's
+// result is announced and served from memory but never written to the store,
+// as when the daemon dies between scan.done and the write; a restart must
+// then compute it again from the stored scan.
+// rank: the MPI rank; n: fire only the n-th time that rank reaches the stage
+// (1-based; default: every time). Read once per process at start-up; unset
+// (the normal case) costs nothing. A malformed value is refused at start-up
+// rather than ignored.
 #include <optional>
 #include <string>
 

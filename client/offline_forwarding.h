@@ -1,0 +1,29 @@
+#pragma once
+// The `brainshift` the scanner runs for every scan links no engine: its
+// start-up is a few ms instead of ~0.05-0.15 s (the engine's ~100 shared
+// libraries and their initialisers, measured in docs/PERFORMANCE.md section
+// 4). The offline commands (register, phantom) run the engine in-process, so
+// `brainshift register ...`, `brainshift phantom ...` and `brainshift pull
+// --scene ...` (the scene reads a label table with the configuration reader)
+// execute the full CLI, brainshift-offline, installed beside it, with the
+// same arguments.
+#include <CLI/CLI.hpp>
+
+namespace brainshift::cli {
+
+// The name of the full CLI beside this executable.
+inline constexpr const char* kOfflineExecutable = "brainshift-offline";
+
+// Adds register and phantom as subcommands that hand the whole command line
+// to brainshift-offline (exec; its exit code is the command's). Sets
+// *exit_code to kExitUsage with a message when that executable is missing.
+void add_offline_forwarding(CLI::App& app, int argc, char** argv, int* exit_code);
+
+// Replaces this process with brainshift-offline and the same arguments;
+// returns kExitUsage (with a message) only when that fails.
+int exec_offline(int argc, char** argv);
+
+// `pull ... --scene`: the scene's label table is read by brainshift-offline.
+bool is_scene_pull(int argc, char** argv);
+
+}  // namespace brainshift::cli

@@ -1,0 +1,115 @@
+// ServerCore's crash recovery, on the engine thread at start-up: the warm
+// state from the store, acknowledged scans without a result re-queued, done
+// scans missing deferred outputs repaired.
+#include <algorithm>
+#include <limits>
+
+#include <spdlog/spdlog.h>
+
+#include "core/errors.h"
+#include "server/server_core_internal.h"
+
+namespace brainshift::server {
+namespace fs = std::filesystem;
+using namespace protocol;
+
+void ServerCore::start() {
+  {
+    std::lock_guard lock(mutex_);
+    ranks_ = engine_.ranks();
+  }
+  auto job = std::make_unique<PreopJob>();
+  if (store_.has_preop()) {
+    PreopRecord p = store_.load_preop();
+    job->preop_id = p.preop_id;
+    job->source = "store";
+    job->label_table_json = p.label_table_json;
+    job->stored_mesh = store_.load_mesh(p.preop_id);
+    job->images = PreopImages{std::move(p.t1), std::move(p.labels)};
+    spdlog::info("store holds preop {} ({} mesh); warming up from it", job->preop_id,
+                 job->stored_mesh ? "with its" : "without a");
+  } else if (settings_.preop.kind == DefaultPreop::Kind::atlas) {
+    job->preop_id = new_preop_id();
+    job->source = "atlas";
+  } else if (settings_.preop.kind == DefaultPreop::Kind::files) {
+    job->preop_id = new_preop_id();
+    job->source = "files";
+  } else {
+    job.reset();
+  }
+  for (const auto& r : store_.queued_oldest_first()) {
+    spdlog::info("re-queueing acknowledged scan {} (no result yet)", r.scan_id);
+    queue_.restore(r.scan_id);
+  }
+  find_incomplete_results();
+  std::lock_guard lock(mutex_);
+  if (job) {
+    loading_preop_id_ = job->preop_id;
+    state_ = ServerState::kLoadingPreop;
+    progress_ = Progress{"queued", 0.0};
+    pending_preop_ = std::move(job);
+  }
+}
+
+// The deferred outputs (metrics.json, field.h5, report.png) are stored after
+// the result; a daemon killed in between leaves a done scan without some of
+// them. field.h5 is the stored field.nii re-encoded, so it is made again here,
+// exactly. metrics.json and report.png need the registration's images: the
+// scan is registered again from its stored input (repair_scan) and only the
+// missing files are added; result.h5 is never touched.
+void ServerCore::find_incomplete_results() {
+  for (const auto& r : store_.list_newest_first(std::numeric_limits<std::size_t>::max())) {
+    if (r.state != StoredScanState::done) continue;
+    const auto names = store_.result_file_names(r.scan_id);
+    auto has = [&](const char* n) { return std::find(names.begin(), names.end(), n) != names.end(); };
+    if (!has("field.h5") && has("field.nii")) {
+      try {
+        const auto h5 = engine_.itk_field_from_nifti(store_.read_result_file(r.scan_id, "field.nii").value());
+        if (h5) {
+          store_.add_result_file(r.scan_id, "field.h5", *h5);
+          spdlog::warn("scan {}: field.h5 was missing (stopped before it was stored); made again from field.nii",
+                       r.scan_id);
+        }
+      } catch (const std::exception& e) {
+        spdlog::error("scan {}: field.h5 missing and could not be made again: {}", r.scan_id, e.what());
+      }
+    }
+    if (!has("metrics.json") || (r.has_image && !has("report.png"))) {
+      repairs_.push_back(r.scan_id);
+      std::lock_guard lock(mutex_);
+      deferred_pending_.insert(r.scan_id);  // pulls answer "pending" until the repair ends
+    }
+  }
+}
+
+void ServerCore::repair_scan(const std::string& scan_id) {
+  const fs::path scratch = store_.dir() / "scans" / scan_id / "repair.tmp";
+  try {
+    const auto record = store_.find(scan_id);
+    std::string preop_id;
+    {
+      std::lock_guard lock(mutex_);
+      preop_id = ready_preop_id_;
+    }
+    if (!record || record->preop_id != preop_id)
+      throw InputError("it was registered against another preop than the one loaded");
+    const auto names = store_.result_file_names(scan_id);
+    const DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
+    fs::create_directories(scratch);
+    engine_.register_scan(d.labels, d.image, d.read_seconds, scratch, [](const std::string&, double, double) {});
+    engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
+      if (std::find(names.begin(), names.end(), name) != names.end()) return;
+      store_.add_result_file(scan_id, name, bytes);
+      spdlog::warn("scan {}: {} was missing (stopped before it was stored); made again by registering the stored "
+                   "scan again", scan_id, name);
+    });
+  } catch (const std::exception& e) {
+    spdlog::error("scan {}: missing deferred outputs could not be made again: {}", scan_id, e.what());
+  }
+  std::error_code ec;
+  fs::remove_all(scratch, ec);
+  std::lock_guard lock(mutex_);
+  deferred_pending_.erase(scan_id);
+}
+
+}  // namespace brainshift::server

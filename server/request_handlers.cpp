@@ -1,0 +1,289 @@
+// ServerCore's socket side: decoding, the role check and one handler per
+// request type. Runs on the socket thread; never waits for the engine.
+#include <algorithm>
+#include <functional>
+
+#include <spdlog/spdlog.h>
+
+#include "core/errors.h"
+#include "image/nifti_io.h"
+#include "protocol/media.h"
+#include "server/preop_labels.h"
+#include "server/result_files.h"
+#include "server/server_core_internal.h"
+
+namespace brainshift::server {
+namespace fs = std::filesystem;
+using namespace protocol;
+
+namespace {
+
+// Frames of the requested parts of a done scan, with every missing part in
+// `unavailable` (e.g. no warped_image when the engine wrote none).
+// deferred_pending: metrics.json, field.h5 and report.png are still being made (they follow
+// scan.done, see ServerCore::add_deferred_outputs).
+// read_file: a result file's bytes by name, nullopt when absent (from the
+// store, or from memory while the result is not yet written).
+using ResultFileReader = std::function<std::optional<std::string>(const std::string& name)>;
+ScanResultReply collect_result_frames(const ResultFileReader& read_file, const ScanResultRequest& request,
+                                      const ScanRecord& record, bool deferred_pending) {
+  ScanResultReply reply;
+  reply.scan_id = request.scan_id;
+  auto add = [&](const std::string& frame, const std::vector<std::string>& files, const char* why_missing) {
+    for (const auto& file : files) {
+      auto bytes = read_file(file);
+      if (!bytes) continue;
+      const std::string media = result_media_type(file, *bytes);
+      reply.frames.push_back(Frame{frame, media, std::move(*bytes)});
+      return true;
+    }
+    reply.unavailable.push_back({frame, why_missing});
+    return false;
+  };
+  for (ResultPart part : request.parts) {
+    if (part == ResultPart::kReport) {
+      const char* why = !record.has_image ? "no intraop image was pushed (the report draws on it)"
+                        : deferred_pending ? "report.png is being rendered; ask again shortly"
+                                           : "report.png was not rendered (see the server log)";
+      if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending && record.has_image)
+        reply.unavailable.back().pending = true;
+    } else if (part == ResultPart::kDisplacementItk || part == ResultPart::kMetrics) {
+      const char* why = deferred_pending ? "being written just after the field; ask again shortly" : "not in this result";
+      if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending)
+        reply.unavailable.back().pending = true;
+    } else if (part != ResultPart::kModels) {
+      add(frame_name(part), stored_file_names(part),
+          part == ResultPart::kWarpedImage ? "the engine wrote no warped image" : "not in this result");
+    } else {
+      const auto& wanted = request.structures.empty() ? all_structures() : request.structures;
+      for (Structure s : wanted)
+        add(model_frame_name(s), {model_file_name(s)}, "no model of this structure (label absent from the preop)");
+    }
+  }
+  return reply;
+}
+
+}  // namespace
+
+Message ServerCore::handle_wire(std::vector<std::string> wire, const Peer& peer) {
+  try {
+    return handle(decode(std::move(wire), limits_), peer);
+  } catch (const ProtocolError& e) {
+    spdlog::warn("refused a request: {} ({})", e.what(), to_string(e.code()));
+    return make_error_reply(e);
+  } catch (const std::exception& e) {
+    spdlog::error("request could not be decoded: {}", e.what());
+    return make_error_reply("", ErrorCode::kInternal, e.what());
+  }
+}
+
+Message ServerCore::handle(const Message& m, const Peer& peer) {
+  const std::string rid = m.request_id();
+  try {
+    if (auto why = refusal(peer, m.type(), settings_.security.allow_unauthenticated_shutdown)) {
+      spdlog::warn("refused {} {} from {}: {}", to_string(m.type()), rid, peer.describe(), *why);
+      return make_error_reply(rid, ErrorCode::kUnauthorised, *why);
+    }
+    switch (m.type()) {
+      case MessageType::kStatus: return on_status(m);
+      case MessageType::kPreopLoad: return on_preop_load(m);
+      case MessageType::kScanPush: return on_scan_push(m);
+      case MessageType::kScanResult: return on_scan_result(m);
+      case MessageType::kScanList: return on_scan_list(m);
+      case MessageType::kShutdown: return on_shutdown(m);
+      default:
+        return make_error_reply(rid, ErrorCode::kUnknownType,
+                                "\"" + std::string(to_string(m.type())) + "\" is not a request");
+    }
+  } catch (const ProtocolError& e) {
+    return make_error_reply(e, rid);
+  } catch (const InputError& e) {
+    return make_error_reply(rid, ErrorCode::kInvalidRequest, e.what());
+  } catch (const std::exception& e) {
+    spdlog::error("request {} failed: {}", rid, e.what());
+    return make_error_reply(rid, ErrorCode::kInternal, e.what());
+  }
+}
+
+Message ServerCore::on_status(const Message& m) {
+  parse_status_request(m);
+  StatusReply r = status();
+  if (status_extension_) status_extension_(r);  // outside mutex_
+  return make_status_reply(m.request_id(), r);
+}
+
+Message ServerCore::on_preop_load(const Message& m) {
+  PreopLoadRequest req = parse_preop_load_request(m);
+  auto job = std::make_unique<PreopJob>();
+  if (req.use_default_atlas) {
+    job->source = "atlas";
+  } else {
+    const std::size_t max_bytes = engine_.max_image_bytes();
+    PreopImages images;
+    images.t1 = scalar_image_from_bytes(req.t1->bytes, "t1", max_bytes);
+    images.labels = label_image_from_bytes(req.labels->bytes, "labels", max_bytes);
+    if (!images.t1.grid.same_geometry(images.labels.grid))
+      throw InputError("labels: grid differs from t1's (dims or world_from_voxel)");
+    std::optional<LabelTable> table;
+    if (req.label_table) {
+      table = parse_label_table_json(req.label_table->bytes);
+      job->label_table_json = req.label_table->bytes;
+    }
+    remap_preop_labels(images.labels, table ? &*table : nullptr);
+    job->images = std::move(images);
+    job->source = "upload";
+  }
+  std::lock_guard lock(mutex_);
+  if (state_ == ServerState::kLoadingPreop || state_ == ServerState::kProcessing || pending_preop_ ||
+      queue_.size() > 0)
+    return make_error_reply(m.request_id(), ErrorCode::kBusy,
+                            "a preop warm-up or scans are in progress; retry when the server is ready or idle");
+  job->preop_id = new_preop_id();
+  const std::string id = job->preop_id;
+  loading_preop_id_ = id;
+  state_ = ServerState::kLoadingPreop;
+  progress_ = Progress{"queued", 0.0};
+  pending_preop_ = std::move(job);
+  spdlog::info("preop.load accepted: {} ({})", id, pending_preop_->source);
+  return make_preop_load_reply(m.request_id(), {id});
+}
+
+Message ServerCore::on_scan_push(const Message& m) {
+  ScanPushRequest req = parse_scan_push_request(m);
+  const std::string rid = m.request_id();
+  std::string preop_id;
+  {
+    std::lock_guard lock(mutex_);
+    preop_id = !loading_preop_id_.empty() ? loading_preop_id_ : ready_preop_id_;
+  }
+  if (preop_id.empty())
+    return make_error_reply(rid, ErrorCode::kNotReady, "no preop is loaded: send preop.load first");
+
+  ScanInput input{req.labels.bytes, req.image ? std::optional<std::string>(req.image->bytes) : std::nullopt};
+  const std::string digest = content_digest(input);
+  if (req.client_scan_id) {
+    if (auto seen = store_.find_by_client_id(*req.client_scan_id)) {
+      if (seen->digest != digest)
+        return make_error_reply(rid, ErrorCode::kConflict,
+                                "client_scan_id \"" + *req.client_scan_id + "\" was used for different data (" +
+                                    seen->scan_id + ")");
+      return make_scan_push_reply(rid, {seen->scan_id, true});
+    }
+  }
+  // Checked before storing: a refused scan is never acknowledged nor kept.
+  if (!queue_.has_room())
+    return make_error_reply(rid, ErrorCode::kBusy,
+                            "scan queue full (" + std::to_string(queue_.capacity()) + " waiting); retry later");
+  auto decoded = std::make_shared<DecodedScan>(decode_scan(input));
+
+  ScanRecord record;
+  try {
+    record = store_.add_scan(input, req.client_scan_id, digest, preop_id);
+  } catch (const StoreWriteError& e) {
+    spdlog::error("could not store a pushed scan: {}", e.what());
+    return make_error_reply(rid, ErrorCode::kInternal,
+                            std::string("the scan was NOT stored and is not queued (the store refused the write: ") +
+                                e.what() + "); push it again once the store has space");
+  } catch (const std::exception& e) {
+    spdlog::error("could not store a pushed scan: {}", e.what());
+    return make_error_reply(rid, ErrorCode::kInternal, std::string("the scan could not be stored: ") + e.what());
+  }
+  std::vector<std::string> retry;
+  {
+    std::lock_guard lock(mutex_);
+    decoded_[record.scan_id] = decoded;
+    retry.swap(unstored_results_);
+  }
+  // The store takes writes again: results it refused earlier are computed again first.
+  for (const auto& id : retry) {
+    spdlog::info("scan {}: the store takes writes again; processing it again", id);
+    store_.mark_queued(id);
+    queue_.restore(id);
+  }
+  if (!queue_.offer(record.scan_id)) queue_.restore(record.scan_id);  // stored: it must run
+  spdlog::info("scan {} stored and queued (client id {})", record.scan_id,
+               record.client_scan_id.value_or("-"));
+  return make_scan_push_reply(rid, {record.scan_id, false});
+}
+
+Message ServerCore::on_scan_result(const Message& m) {
+  ScanResultRequest req = parse_scan_result_request(m);
+  const std::string rid = m.request_id();
+  std::shared_ptr<const UnwrittenResult> unwritten;
+  bool deferred_pending = false;
+  {
+    std::lock_guard lock(mutex_);
+    if (auto it = unwritten_results_.find(req.scan_id); it != unwritten_results_.end()) unwritten = it->second;
+    deferred_pending = deferred_pending_.count(req.scan_id) > 0;
+  }
+  if (unwritten) {
+    const auto& files = unwritten->files;
+    const ResultFileReader from_memory = [&files](const std::string& name) -> std::optional<std::string> {
+      const auto it = files.find(name);
+      return it == files.end() ? std::nullopt : std::optional<std::string>(it->second);
+    };
+    return make_scan_result_reply(rid, collect_result_frames(from_memory, req, unwritten->record, deferred_pending));
+  }
+  // Looked up after the unwritten results: a result leaves them only once the store has it.
+  const auto record = store_.find(req.scan_id);
+  if (!record) return make_error_reply(rid, ErrorCode::kNotFound, "no scan \"" + req.scan_id + "\"");
+  if (record->state == StoredScanState::failed)
+    return make_error_reply(rid, ErrorCode::kScanFailed,
+                            req.scan_id + " failed in stage " + record->error_stage + ": " + record->error_message);
+  if (record->state != StoredScanState::done)
+    return make_error_reply(rid, ErrorCode::kNotReady, req.scan_id + " is not processed yet");
+  {
+    std::lock_guard lock(mutex_);
+    deferred_pending = deferred_pending_.count(req.scan_id) > 0;
+  }
+  const ResultFileReader from_store = [&](const std::string& name) {
+    return store_.read_result_file(req.scan_id, name);
+  };
+  ScanResultReply reply = collect_result_frames(from_store, req, *record, deferred_pending);
+  return make_scan_result_reply(rid, reply);
+}
+
+Message ServerCore::on_scan_list(const Message& m) {
+  ScanListRequest req = parse_scan_list_request(m);
+  std::optional<std::string> running, stage;
+  std::map<std::string, std::shared_ptr<const UnwrittenResult>> unwritten;
+  {
+    std::lock_guard lock(mutex_);
+    running = current_scan_;
+    stage = current_stage_;
+    unwritten = unwritten_results_;
+  }
+  ScanListReply reply;
+  for (const auto& stored : store_.list_newest_first(req.limit)) {
+    const auto it = unwritten.find(stored.scan_id);
+    const ScanRecord& r = it != unwritten.end() ? it->second->record : stored;
+    ScanSummary s;
+    s.scan_id = r.scan_id;
+    s.client_scan_id = r.client_scan_id;
+    s.received_at = r.received_at;
+    s.finished_at = r.finished_at;
+    if (r.state == StoredScanState::done) s.state = ScanState::kDone;
+    else if (r.state == StoredScanState::failed) {
+      s.state = ScanState::kFailed;
+      s.error = ErrorInfo{error_code_from_string(r.error_code).value_or(ErrorCode::kScanFailed),
+                          r.error_message};
+    } else if (running && *running == r.scan_id) {
+      s.state = ScanState::kProcessing;
+      s.stage = stage;
+    }
+    reply.scans.push_back(std::move(s));
+  }
+  return make_scan_list_reply(m.request_id(), reply);
+}
+
+Message ServerCore::on_shutdown(const Message& m) {
+  // The role was checked in handle(): an admin key, or no CURVE with
+  // allow_unauthenticated_shutdown.
+  ShutdownRequest req = parse_shutdown_request(m);
+  spdlog::info("shutdown requested{}{}", req.reason.empty() ? "" : ": ", req.reason);
+  shutdown_ = true;
+  request_stop();
+  return make_shutdown_reply(m.request_id());
+}
+
+}  // namespace brainshift::server
