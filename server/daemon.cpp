@@ -170,13 +170,14 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
   int exit_code = 0;
   {
     IgtlGateway* gateway = igtl.get();
-    ServerCore core(s, *store, engine,
-                    [&outbox, gateway](protocol::Message m) {
-                      if (gateway) gateway->on_event(m);  // returns at once
-                      outbox.push(std::move(m));
-                    },
+    ServerCore core(s, *store, engine, [&outbox](protocol::Message m) { outbox.push(std::move(m)); },
                     {{"brainshiftd", "0.1.0"}});
-    if (gateway) core.set_status_extension([gateway](protocol::StatusReply& r) { r.openigtlink = gateway->info(); });
+    if (gateway) {
+      core.set_status_extension([gateway](protocol::StatusReply& r) { r.openigtlink = gateway->info(); });
+      // The gateway reads results from the store: it is told once one is
+      // there, which is just after event.scan.done (served from memory first).
+      core.set_result_stored_hook([gateway](const std::string& scan_id) { gateway->publish(scan_id); });
+    }
     std::atomic<bool> sockets_running{true};
     std::thread socket_thread(socket_loop, std::ref(router), std::ref(pub), std::ref(core), std::ref(outbox),
                               std::cref(sockets_running), s.security.curve);

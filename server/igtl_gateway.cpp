@@ -148,15 +148,6 @@ void IgtlGateway::wake() {
   [[maybe_unused]] const ssize_t n = ::write(wake_fd_, &one, sizeof one);
 }
 
-void IgtlGateway::on_event(const protocol::Message& event) {
-  if (event.type() != protocol::MessageType::kEventScanDone) return;
-  try {
-    publish(protocol::parse_scan_done_event(event).scan_id);
-  } catch (const std::exception& e) {
-    spdlog::error("OpenIGTLink: unreadable scan.done event: {}", e.what());
-  }
-}
-
 void IgtlGateway::publish(const std::string& scan_id) {
   {
     std::lock_guard lock(mutex_);

@@ -1,12 +1,13 @@
 #pragma once
 // The OpenIGTLink gateway: a TCP server that 3D Slicer's OpenIGTLinkIF
-// connects to as a client. After every scan.done it sends that result
+// connects to as a client. Once each result is stored (just after its
+// scan.done: ServerCore::set_result_stored_hook) it sends that result
 // (igtl_encoder.h) to each connected client, and a client that connects gets
 // the latest result at once. PROTOCOL.md section 16.
 //
 // Threads: the gateway has one thread of its own, which reads the result
 // from the store, packs it and writes it to the sockets (non-blocking, poll).
-// on_event() and info() never wait for it, so neither the engine nor the
+// publish() and info() never wait for it, so neither the engine nor the
 // request socket ever waits for an OpenIGTLink client.
 //
 // Slow clients: each client has a queue of at most queue_messages messages.
@@ -49,10 +50,7 @@ class IgtlGateway {
   IgtlGateway& operator=(const IgtlGateway&) = delete;
 
   int port() const { return port_; }
-  // Any thread, returns at once: an event.scan.done message queues that
-  // scan's result for every client; other events are ignored.
-  void on_event(const protocol::Message& event);
-  // Same, by scan id.
+  // Any thread, returns at once: queues that stored scan's result for every client.
   void publish(const std::string& scan_id);
   protocol::OpenIgtlinkInfo info() const;
 

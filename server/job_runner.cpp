@@ -197,6 +197,7 @@ bool ServerCore::write_result(const UnwrittenResult& result, const std::string& 
     unwritten_results_.erase(r.scan_id);  // the store serves it from now on
   }
   log_stage(StageTiming{StageScope::kIntraop, r.scan_id, preop_id, "store", seconds_since(t0), ""});
+  if (result_stored_) result_stored_(r.scan_id);
   return true;
 }
 

@@ -59,6 +59,12 @@ class ServerCore {
   void set_status_extension(std::function<void(protocol::StatusReply&)> extend) {
     status_extension_ = std::move(extend);
   }
+  // Called on the engine thread once a result is durable in the store (it is
+  // served from memory before that, after event.scan.done): readers of the
+  // store, such as the OpenIGTLink gateway, take it from there. Must not wait.
+  void set_result_stored_hook(std::function<void(const std::string& scan_id)> hook) {
+    result_stored_ = std::move(hook);
+  }
   bool shutdown_requested() const { return shutdown_.load(); }
   const protocol::Limits& inbound_limits() const { return limits_; }
 
@@ -111,6 +117,7 @@ class ServerCore {
   EnginePort& engine_;
   EventSink events_;
   std::function<void(protocol::StatusReply&)> status_extension_;
+  std::function<void(const std::string&)> result_stored_;
   std::map<std::string, std::string> versions_;
   protocol::Limits limits_;
   ScanQueue queue_;
