@@ -63,16 +63,6 @@ void expect_same_image(igtl::ImageMessage& m, const Grid3& grid, const void* vox
   EXPECT_EQ(std::memcmp(m.GetScalarPointer(), voxels, bytes), 0) << "voxels differ from the NIfTI";
 }
 
-int raw_connect(int port) {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_port = htons(static_cast<std::uint16_t>(port));
-  inet_pton(AF_INET, "127.0.0.1", &a.sin_addr);
-  if (::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) throw std::runtime_error("connect");
-  return fd;
-}
-
 }  // namespace
 
 TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient) {
@@ -152,7 +142,7 @@ TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient
 
   // A receiver that leaves in the middle of a message (the latest result is
   // queued for it on connect).
-  const int rude = raw_connect(*d.igtl_port);
+  const int rude = test::raw_igtl_connect(*d.igtl_port);
   char buf[4096];
   std::size_t got = 0;
   while (got < sizeof buf) {

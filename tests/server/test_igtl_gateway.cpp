@@ -72,17 +72,6 @@ void wait_clients(const IgtlGateway& g, std::uint64_t n) {
   ASSERT_EQ(g.info().clients, n);
 }
 
-// A plain TCP client, for peers that misbehave.
-int raw_connect(int port) {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_port = htons(static_cast<std::uint16_t>(port));
-  inet_pton(AF_INET, "127.0.0.1", &a.sin_addr);
-  EXPECT_EQ(::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
-  return fd;
-}
-
 }  // namespace
 
 TEST(IgtlGateway, LatestResultOnConnectThenEveryNewResultToEveryClient) {
@@ -129,7 +118,7 @@ TEST(IgtlGateway, ClientVanishingMidMessageDisturbsNobody) {
   IgtlReceiver steady(gateway.port(), 10s);
   steady.next_result();
 
-  const int rude = raw_connect(gateway.port());
+  const int rude = test::raw_igtl_connect(gateway.port());
   char buf[1000];
   std::size_t got = 0;
   while (got < sizeof buf) {
@@ -207,7 +196,7 @@ TEST(IgtlGateway, ConnectionsBeyondMaxClientsAreClosed) {
   IgtlGateway gateway(any_port(32, 1), store);
   IgtlReceiver first(gateway.port(), 10s);
   first.next_result();
-  const int extra = raw_connect(gateway.port());
+  const int extra = test::raw_igtl_connect(gateway.port());
   char c;
   EXPECT_EQ(::recv(extra, &c, 1, 0), 0);  // closed without a byte
   ::close(extra);

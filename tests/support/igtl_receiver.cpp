@@ -1,6 +1,12 @@
 #include "igtl_receiver.h"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <stdexcept>
+#include <string>
 
 #include <igtlMessageHeader.h>
 
@@ -61,6 +67,20 @@ Eigen::Matrix4d igtl_world_from_voxel(igtl::ImageMessage& image) {
   }
   w.block<3, 1>(0, 3) = centre;
   return w;
+}
+
+int raw_igtl_connect(int port) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  if (fd < 0) throw std::runtime_error("socket()");
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_port = htons(static_cast<std::uint16_t>(port));
+  inet_pton(AF_INET, "127.0.0.1", &a.sin_addr);
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) {
+    ::close(fd);
+    throw std::runtime_error("connect to 127.0.0.1:" + std::to_string(port));
+  }
+  return fd;
 }
 
 }  // namespace brainshift::test

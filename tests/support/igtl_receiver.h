@@ -47,4 +47,8 @@ class IgtlReceiver {
 // (0,0,0).
 Eigen::Matrix4d igtl_world_from_voxel(igtl::ImageMessage& image);
 
+// A plain TCP connection to 127.0.0.1:port (its file descriptor), for peers
+// that misbehave; throws std::runtime_error when it cannot connect.
+int raw_igtl_connect(int port);
+
 }  // namespace brainshift::test
