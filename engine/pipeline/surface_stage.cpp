@@ -37,20 +37,6 @@ TriSurface moved(const TriSurface& start, const std::vector<Eigen::Vector3d>& u)
   return out;
 }
 
-// Triangles whose normal turned by more than 90 degrees (or collapsed).
-std::vector<int> flipped_triangles(const TriSurface& start, const TriSurface& now) {
-  std::vector<int> out;
-  for (std::size_t t = 0; t < start.triangles.size(); ++t) {
-    const auto& tri = start.triangles[t];
-    const auto& p = start.vertices_mm;
-    const auto& x = now.vertices_mm;
-    const Eigen::Vector3d n0 = (p[tri[1]] - p[tri[0]]).cross(p[tri[2]] - p[tri[0]]);
-    const Eigen::Vector3d n1 = (x[tri[1]] - x[tri[0]]).cross(x[tri[2]] - x[tri[0]]);
-    if (!(n0.dot(n1) > 0)) out.push_back(static_cast<int>(t));
-  }
-  return out;
-}
-
 struct Defects {
   std::size_t flipped = 0, crossing_pairs = 0;
   // Crossings of a small component moved whole (see mark_small_components):
@@ -72,7 +58,7 @@ Defects geometric_defects(const TriSurface& start, const std::vector<Eigen::Vect
   const auto mark = [&](int t) {
     for (int v : start.triangles[static_cast<std::size_t>(t)]) d.vertices[v] = 1;
   };
-  const std::vector<int> flips = flipped_triangles(start, now);
+  const std::vector<int> flips = flipped_triangles(start, now.vertices_mm);
   d.flipped = flips.size();
   for (int t : flips) mark(t);
   try {
@@ -98,9 +84,9 @@ Defects geometric_defects(const TriSurface& start, const std::vector<Eigen::Vect
 // to be segmented reliably intraop, they follow the reliable surface around
 // them, each moving as a whole (a translation cannot fold or cross it).
 // Returns those components.
-std::vector<std::vector<int>> mark_small_components(const TriSurface& s, const std::vector<double>& area,
-                                                    double min_area_mm2, std::vector<char>& marked) {
-  const auto nb = surface_vertex_neighbours(s);
+std::vector<std::vector<int>> mark_small_components(const std::vector<std::vector<int>>& nb,
+                                                    const std::vector<double>& area, double min_area_mm2,
+                                                    std::vector<char>& marked) {
   std::vector<char> seen(nb.size(), 0);
   std::vector<int> stack, component;
   std::vector<std::vector<int>> small;
@@ -155,8 +141,9 @@ RepairedMatch match_and_repair(const TriSurface& start, const ContactPairs& cont
     return out;
   }
   const std::vector<double> area = vertex_areas_mm2(start);
+  const auto neighbours = rp.enabled ? surface_vertex_neighbours(start) : std::vector<std::vector<int>>{};
   std::vector<char> in_small(rp.enabled ? u.size() : 0, 0);
-  const auto small = rp.enabled ? mark_small_components(start, area, rp.min_component_area_mm2, in_small)
+  const auto small = rp.enabled ? mark_small_components(neighbours, area, rp.min_component_area_mm2, in_small)
                                 : std::vector<std::vector<int>>{};
   std::size_t small_vertices = 0;
   for (const auto& c : small) small_vertices += c.size();
@@ -179,7 +166,6 @@ RepairedMatch match_and_repair(const TriSurface& start, const ContactPairs& cont
   std::size_t unreached = 0;
   double max_change_mm = 0;
   if (rp.enabled && count_marked() > 0) {
-    const auto neighbours = surface_vertex_neighbours(start);
     const std::vector<Eigen::Vector3d> matched = u;
     for (rounds = 1; rounds <= rp.rounds; ++rounds) {
       grow_marked(unreliable, neighbours, 1);

@@ -186,17 +186,6 @@ void keep_walls_apart(Eigen::MatrixXd& u, const ContactPairs& contacts, double f
   }
 }
 
-std::size_t count_flipped(const TriSurface& s, const Points& x) {
-  std::size_t flipped = 0;
-  for (const auto& t : s.triangles) {
-    const auto& p = s.vertices_mm;
-    const Eigen::Vector3d n0 = (p[t[1]] - p[t[0]]).cross(p[t[2]] - p[t[0]]);
-    const Eigen::Vector3d n1 = (x[t[1]] - x[t[0]]).cross(x[t[2]] - x[t[0]]);
-    if (!(n0.dot(n1) > 0)) ++flipped;
-  }
-  return flipped;
-}
-
 }  // namespace
 
 SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target_sdf,
@@ -283,7 +272,7 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
   }
   r.vertices_without_data = n - with_data;
   r.mean_residual_mm = with_data ? sum / double(with_data) : 0.0;
-  r.flipped_triangles = count_flipped(surface, x);
+  r.flipped_triangles = flipped_triangles(surface, x).size();
   r.seconds = clock.seconds();
 
   std::ostringstream msg;

@@ -103,6 +103,18 @@ std::size_t fill_from_reliable_neighbours(const std::vector<Eigen::Vector3d>& p,
   return unreached;
 }
 
+std::vector<int> flipped_triangles(const TriSurface& start, const std::vector<Eigen::Vector3d>& x) {
+  std::vector<int> out;
+  const auto& p = start.vertices_mm;
+  for (std::size_t t = 0; t < start.triangles.size(); ++t) {
+    const auto& tri = start.triangles[t];
+    const Eigen::Vector3d n0 = (p[tri[1]] - p[tri[0]]).cross(p[tri[2]] - p[tri[0]]);
+    const Eigen::Vector3d n1 = (x[tri[1]] - x[tri[0]]).cross(x[tri[2]] - x[tri[0]]);
+    if (!(n0.dot(n1) > 0)) out.push_back(static_cast<int>(t));
+  }
+  return out;
+}
+
 std::vector<double> vertex_areas_mm2(const TriSurface& s) {
   std::vector<double> a(s.vertices_mm.size(), 0.0);
   for (const auto& t : s.triangles) {

@@ -60,6 +60,10 @@ std::size_t fill_from_reliable_neighbours(const std::vector<Eigen::Vector3d>& po
                                           const std::vector<char>& marked, std::vector<Eigen::Vector3d>& displacement_mm,
                                           double smoothing_mm, double max_search_mm);
 
+// Triangles whose normal turned by more than 90 degrees from the start
+// surface (or collapsed) when its vertices are at `positions_mm`: folds.
+std::vector<int> flipped_triangles(const TriSurface& start, const std::vector<Eigen::Vector3d>& positions_mm);
+
 // Lumped vertex areas (a third of each incident triangle), for area fractions.
 std::vector<double> vertex_areas_mm2(const TriSurface& surface);
 
