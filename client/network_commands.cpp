@@ -22,7 +22,7 @@
 #include "protocol/events.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
-#include "server/result_files.h"
+#include "protocol/result_outputs.h"
 
 namespace brainshift::cli {
 namespace fs = std::filesystem;
@@ -312,16 +312,15 @@ struct PullArgs {
   std::string scene_labels, preop_image, intraop_image;
 };
 
-std::optional<ResultPart> part_from_cli(const std::string& name) {
-  if (name == "field") return ResultPart::kDisplacement;
-  if (name == "field_h5") return ResultPart::kDisplacementItk;
-  if (name == "warped_image") return ResultPart::kWarpedImage;
-  if (name == "warped_labels") return ResultPart::kWarpedLabels;
-  if (name == "models") return ResultPart::kModels;
-  if (name == "metrics") return ResultPart::kMetrics;
-  if (name == "timings") return ResultPart::kTimings;
-  if (name == "report") return ResultPart::kReport;
-  return std::nullopt;
+// What scene.mrml shows that the daemon sends (the preop and intraop images
+// are the user's own files).
+constexpr ResultPart kScenePartsFromTheDaemon[] = {ResultPart::kDisplacementItk, ResultPart::kWarpedImage,
+                                                   ResultPart::kWarpedLabels, ResultPart::kModels};
+
+std::string cli_part_names() {
+  std::string out;
+  for (const auto& o : kResultOutputs) out += (out.empty() ? "" : ",") + std::string(o.cli);
+  return out;
 }
 
 // Writes the frames as register's files; returns the parts still pending.
@@ -381,11 +380,12 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
   req.scan_id = a.scan;
   std::vector<std::string> parts = a.parts;
   // What the scene shows must be in the folder.
-  if (a.scene) parts.insert(parts.end(), {"field_h5", "warped_image", "warped_labels", "models"});
+  if (a.scene)
+    for (ResultPart p : kScenePartsFromTheDaemon) parts.emplace_back(result_output(p).cli);
   else if (!a.preop_image.empty() || !a.intraop_image.empty() || !a.scene_labels.empty())
     throw CommandError(kExitUsage, "--preop-image, --intraop-image and --scene-labels go with --scene");
   for (const auto& name : parts) {
-    const auto p = part_from_cli(name);
+    const auto p = result_part_from_cli(name);
     if (!p) throw CommandError(kExitUsage, "unknown part \"" + name + "\"");
     if (std::find(req.parts.begin(), req.parts.end(), *p) == req.parts.end()) req.parts.push_back(*p);
   }
@@ -522,12 +522,11 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   push->callback([&o, exit_code, pa] { run(exit_code, [&] { return cmd_push(o, *pa); }); });
 
   auto pl = std::make_shared<PullArgs>();
-  pl->parts = {"field", "field_h5", "warped_image", "warped_labels", "models", "metrics", "timings", "report"};
+  for (const auto& output : kResultOutputs) pl->parts.emplace_back(output.cli);
   auto* pull = app.add_subcommand("pull", "fetch a scan's result into a folder (same names as register --out)");
   pull->add_option("--scan", pl->scan, "scan id")->required();
   pull->add_option("--out", pl->out, "output folder")->required();
-  pull->add_option("--parts", pl->parts, "field,field_h5,warped_image,warped_labels,models,metrics,timings,report")
-      ->delimiter(',');
+  pull->add_option("--parts", pl->parts, cli_part_names())->delimiter(',');
   pull->add_flag("--scene", pl->scene,
                  "also write scene.mrml, a 3D Slicer scene of the result (pulls field_h5, warped_image, "
                  "warped_labels and models)");

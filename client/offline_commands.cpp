@@ -17,6 +17,7 @@
 #include "image/nifti_io.h"
 #include "phantom/brain_shift_phantom.h"
 #include "pipeline/engine_session.h"
+#include "pipeline/scan_outputs.h"
 
 namespace brainshift::cli {
 namespace fs = std::filesystem;
@@ -84,8 +85,8 @@ int run_register_rank0(const RegisterOptions& o) {
   // Decoding the files is part of what the surgeon waits for.
   result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;
   result.timings["intraop"]["total"] = result.timings["intraop"]["total"].get<double>() + read_seconds;
-  ScanOutputOptions outputs;
-  outputs.label_table = session.parameters().label_table;
+  DeferredOutputOptions outputs;
+  outputs.label_table = &session.parameters().label_table;
   // register has no scan id: the output folder names the report.
   const fs::path out_dir = fs::path(o.out).filename().empty() ? fs::path(o.out).parent_path() : fs::path(o.out);
   outputs.scan_id = out_dir.filename().string();

@@ -5,7 +5,7 @@
 #include <stdexcept>
 
 #include "protocol/media.h"
-#include "server/result_files.h"
+#include "protocol/result_outputs.h"
 
 namespace brainshift::cli {
 
@@ -28,7 +28,7 @@ std::string gzip_bytes(std::string_view bytes, int level) {
 }
 
 PulledFile pulled_file_for(const protocol::Frame& frame) {
-  PulledFile f{server::file_for_frame(frame.name), frame.bytes};
+  PulledFile f{protocol::file_for_frame(frame.name), frame.bytes};
   const std::string_view gz = ".nii.gz";
   const bool wants_gzip =
       f.name.size() > gz.size() && std::string_view(f.name).substr(f.name.size() - gz.size()) == gz;

@@ -5,6 +5,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "protocol/result_outputs.h"
+
 namespace brainshift::cli {
 namespace fs = std::filesystem;
 namespace {
@@ -81,7 +83,7 @@ class SceneWriter {
   }
 
   void model(const SceneLabel& label) {
-    const std::string file = "models/" + label.name + ".vtp";
+    const std::string file = protocol::model_file_name(label.name);
     const std::string storage_id = storage("ModelStorage", file, "RAS");
     const std::string display_id = "vtkMRMLModelDisplayNode" + std::to_string(++count_);
     Element display("ModelDisplay", display_id);
@@ -140,19 +142,23 @@ void write_text(const fs::path& path, const std::string& text) {
 }  // namespace
 
 void write_slicer_scene(const fs::path& dir, const SceneContents& c) {
-  for (const char* f : {"field.h5", "warped_image.nii.gz", "warped_labels.nii.gz"}) require(dir, f);
+  using protocol::ResultPart;
+  const std::string field_h5(protocol::result_output(ResultPart::kDisplacementItk).file);
+  const std::string warped_image(protocol::result_output(ResultPart::kWarpedImage).file);
+  const std::string warped_labels(protocol::result_output(ResultPart::kWarpedLabels).file);
+  for (const auto& f : {field_h5, warped_image, warped_labels}) require(dir, f);
   if (c.preop_image) require(dir, *c.preop_image);
   if (c.intraop_image) require(dir, *c.intraop_image);
   SceneWriter scene;
   const std::string grey = "vtkMRMLColorTableNodeGrey";  // one of Slicer's built-in tables
-  const std::string field = scene.grid_transform("field.h5");
+  const std::string field = scene.grid_transform(field_h5);
   if (c.preop_image) scene.volume(*c.preop_image, "preop T1 (under the brainshift field)", false, field, grey);
   if (c.intraop_image) scene.volume(*c.intraop_image, "intraop T1", false, "", grey);
-  scene.volume("warped_image.nii.gz", "warped preop T1", false, "", grey);
+  scene.volume(warped_image, "warped preop T1", false, "", grey);
   const std::string labels = scene.colour_table(kSceneColourTable);
-  scene.volume("warped_labels.nii.gz", "warped preop labels", true, "", labels);
+  scene.volume(warped_labels, "warped preop labels", true, "", labels);
   for (const auto& l : c.labels)
-    if (fs::is_regular_file(dir / "models" / (l.name + ".vtp"))) scene.model(l);
+    if (fs::is_regular_file(dir / protocol::model_file_name(l.name))) scene.model(l);
   write_text(dir / kSceneColourTable, colour_table_text(c.labels));
   write_text(dir / kSceneFile, scene.str());
 }

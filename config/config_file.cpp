@@ -240,6 +240,7 @@ LabelTable label_table_from(const toml::table& root, const std::string& src) {
     Section s(t, "label", src);
     s.read("value", value);
     s.read("name", e.name);
+    s.read("short_name", e.short_name);
     s.read("role", role);
     s.read("youngs_modulus_pa", e.youngs_modulus_pa);
     s.read("poisson_ratio", e.poisson_ratio);
@@ -280,6 +281,8 @@ PipelineParameters parameters_from(const toml::table& root, const std::string& s
     } else {
       throw InputError(src + ": label_table \"" + *path + "\" cannot be resolved without a file location");
     }
+  } else {
+    p.label_table = label_table_from_text(embedded_labels_toml(), "built-in labels.toml");
   }
   read_mesh(root, src, p.meshing);
   read_elastic(root, src, p.elastic);
@@ -311,6 +314,11 @@ PipelineParameters pipeline_parameters_from_text(const std::string& toml_text, c
 
 LabelTable label_table_from_text(const std::string& toml_text, const std::string& source_name) {
   return label_table_from(parse(toml_text, source_name), source_name);
+}
+
+const LabelTable& default_label_table() {
+  static const LabelTable table = label_table_from_text(embedded_labels_toml(), "built-in labels.toml");
+  return table;
 }
 
 }  // namespace brainshift::config

@@ -23,5 +23,8 @@ PipelineParameters pipeline_parameters_from_text(const std::string& toml_text,
                                                  const std::string& source_name);
 // A label table alone, e.g. config/labels.toml or one sent with preop.load.
 LabelTable label_table_from_text(const std::string& toml_text, const std::string& source_name);
+// config/labels.toml as shipped (compiled in): the one copy of the default
+// labels (1 brain, 2 ventricles, 3 corticospinal tract, 4 tumor).
+const LabelTable& default_label_table();
 
 }  // namespace brainshift::config

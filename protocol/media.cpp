@@ -51,8 +51,10 @@ bool is_nifti(std::string_view media_type) {
   return media_type == kNifti || media_type == kNiftiGz;
 }
 
+std::string_view nifti_media_type(std::string_view bytes) { return has_gzip_magic(bytes) ? kNiftiGz : kNifti; }
+
 Frame nifti_frame(std::string name, std::string bytes) {
-  const auto type = has_gzip_magic(bytes) ? kNiftiGz : kNifti;
+  const auto type = nifti_media_type(bytes);
   return Frame{std::move(name), std::string(type), std::move(bytes)};
 }
 

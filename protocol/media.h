@@ -18,7 +18,8 @@ inline constexpr std::string_view kPng = "image/png";                         //
 
 bool is_nifti(std::string_view media_type);
 
-// A NIfTI frame with the media type chosen from the bytes (gzip magic or not).
+// The NIfTI media type the bytes have (gzip magic or not), and a frame with it.
+std::string_view nifti_media_type(std::string_view bytes);
 Frame nifti_frame(std::string name, std::string bytes);
 Frame json_frame(std::string name, std::string text);
 

@@ -26,20 +26,6 @@ constexpr NameTable<ScanState, 4> kScanStates{{{ScanState::kQueued, "queued"},
                                                {ScanState::kProcessing, "processing"},
                                                {ScanState::kDone, "done"},
                                                {ScanState::kFailed, "failed"}}};
-constexpr NameTable<Structure, 4> kStructures{
-    {{Structure::kBrain, "brain"},
-     {Structure::kVentricles, "ventricles"},
-     {Structure::kCorticospinalTract, "corticospinal_tract"},
-     {Structure::kTumor, "tumor"}}};
-constexpr NameTable<ResultPart, 8> kParts{{{ResultPart::kDisplacement, "displacement"},
-                                           {ResultPart::kDisplacementItk, "displacement_itk"},
-                                           {ResultPart::kWarpedImage, "warped_image"},
-                                           {ResultPart::kWarpedLabels, "warped_labels"},
-                                           {ResultPart::kModels, "models"},
-                                           {ResultPart::kMetrics, "metrics"},
-                                           {ResultPart::kTimings, "timings"},
-                                           {ResultPart::kReport, "report"}}};
-
 template <class E, std::size_t N>
 std::string_view name_of(const NameTable<E, N>& table, E value) {
   for (const auto& [e, n] : table)
@@ -117,37 +103,17 @@ json string_array(const std::vector<std::string>& v) { return json(v); }
 
 std::string_view to_string(ServerState s) { return name_of(kServerStates, s); }
 std::string_view to_string(ScanState s) { return name_of(kScanStates, s); }
-std::string_view to_string(Structure s) { return name_of(kStructures, s); }
-std::string_view to_string(ResultPart p) { return name_of(kParts, p); }
 std::optional<ServerState> server_state_from_string(std::string_view s) {
   return value_of(kServerStates, s);
 }
 std::optional<ScanState> scan_state_from_string(std::string_view s) {
   return value_of(kScanStates, s);
 }
-std::optional<Structure> structure_from_string(std::string_view s) {
-  return value_of(kStructures, s);
-}
-std::optional<ResultPart> result_part_from_string(std::string_view s) {
-  return value_of(kParts, s);
-}
-const std::vector<Structure>& all_structures() {
-  static const std::vector<Structure> all{Structure::kBrain, Structure::kVentricles,
-                                          Structure::kCorticospinalTract, Structure::kTumor};
-  return all;
-}
-std::string frame_name(ResultPart part) {
-  if (part == ResultPart::kModels)
-    throw std::invalid_argument("frame_name: models travel as model.<structure> frames");
-  return std::string(to_string(part));
-}
-std::string model_frame_name(Structure s) { return "model." + std::string(to_string(s)); }
-
 // ---- label table -----------------------------------------------------------
 
 std::string make_label_table_json(const LabelTable& table) {
   json structures = json::object();
-  for (const auto& [s, values] : table.structures) structures[std::string(to_string(s))] = values;
+  for (const auto& [name, values] : table.structures) structures[name] = values;
   return json{{"v", 1}, {"structures", structures}}.dump(2);
 }
 
@@ -165,17 +131,16 @@ LabelTable parse_label_table_json(std::string_view text) {
   if (f.uint("v") != 1) f.fail("v", "must be 1");
   LabelTable table;
   for (const auto& [name, values] : f.object("structures").items()) {
-    const auto s = structure_from_string(name);
-    if (!s) f.fail("structures", "names unknown structure \"" + name + "\"");
+    if (!is_valid_structure_name(name))
+      f.fail("structures", "\"" + name + "\" is not a structure name (1..64 of a-z, 0-9, _; a letter first)");
     if (!values.is_array() || values.empty()) f.fail("structures", "\"" + name + "\" needs a non-empty array");
     for (const auto& v : values) {
       if (!v.is_number_unsigned() || v.get<std::uint64_t>() == 0 || v.get<std::uint64_t>() > 65535)
         f.fail("structures", "\"" + name + "\" values must be label values in 1..65535");
-      table.structures[*s].push_back(v.get<std::uint16_t>());
+      table.structures[name].push_back(v.get<std::uint16_t>());
     }
   }
-  if (!table.structures.count(Structure::kBrain))
-    f.fail("structures", "must define \"brain\"");
+  if (table.structures.empty()) f.fail("structures", "must name at least one structure");
   return table;
 }
 
@@ -340,7 +305,7 @@ Message make_scan_result_request(const std::string& request_id, const ScanResult
   m.header["scan_id"] = r.scan_id;
   std::vector<std::string> parts, structures;
   for (auto p : r.parts) parts.emplace_back(to_string(p));
-  for (auto s : r.structures) structures.emplace_back(to_string(s));
+  structures = r.structures;
   m.header["parts"] = string_array(parts);
   if (!structures.empty()) m.header["structures"] = string_array(structures);
   return m;
@@ -373,7 +338,9 @@ ScanResultRequest parse_scan_result_request(const Message& m) {
     r.parts = parse_name_list<ResultPart>(f, "parts", f.array("parts"), result_part_from_string);
     if (r.parts.empty()) f.fail("parts", "must name at least one part");
     if (const json* s = f.opt_array("structures"))
-      r.structures = parse_name_list<Structure>(f, "structures", *s, structure_from_string);
+      r.structures = parse_name_list<std::string>(f, "structures", *s, [](const std::string& name) {
+        return is_valid_structure_name(name) ? std::optional<std::string>(name) : std::nullopt;
+      });
     return r;
   });
 }
@@ -400,14 +367,9 @@ Message make_scan_result_reply(const std::string& request_id, const ScanResultRe
 namespace {
 // The media type each result frame must have (PROTOCOL.md, scan.result).
 bool result_media_ok(const std::string& name, std::string_view type) {
-  if (name == "displacement" || name == "warped_image" || name == "warped_labels")
-    return media::is_nifti(type);
-  if (name == "displacement_itk") return type == media::kItkH5;
-  if (name == "metrics" || name == "timings") return type == media::kJson;
-  if (name == "report") return type == media::kPng;
-  if (name.rfind("model.", 0) == 0 && structure_from_string(name.substr(6)))
-    return type == media::kVtp;
-  return false;
+  if (structure_of_model_frame(name)) return media_type_fits(ResultPart::kModels, type);
+  const auto part = result_part_from_string(name);
+  return part && *part != ResultPart::kModels && media_type_fits(*part, type);
 }
 }  // namespace
 

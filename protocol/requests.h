@@ -13,6 +13,7 @@
 
 #include "protocol/common.h"
 #include "protocol/message.h"
+#include "protocol/result_outputs.h"
 
 namespace brainshift::protocol {
 
@@ -20,32 +21,10 @@ namespace brainshift::protocol {
 
 enum class ServerState { kIdle, kLoadingPreop, kReady, kProcessing };
 enum class ScanState { kQueued, kProcessing, kDone, kFailed };
-enum class Structure { kBrain, kVentricles, kCorticospinalTract, kTumor };
-enum class ResultPart {
-  kDisplacement,     // NIfTI DISPVECT field, RAS+ mm, intraop grid, pull-back
-  kDisplacementItk,  // ITK HDF5 DisplacementFieldTransform, LPS mm
-  kWarpedImage,      // preop T1 resampled onto the intraop grid
-  kWarpedLabels,     // preop labels resampled onto the intraop grid
-  kModels,           // one .vtp per structure ("model.<structure>" frames)
-  kMetrics,          // JSON
-  kTimings,          // JSON, see timing_log.h ScanTimings
-  kReport,           // report.png (image/png), rendered after the scan is done
-};
-
 std::string_view to_string(ServerState s);
 std::string_view to_string(ScanState s);
-std::string_view to_string(Structure s);
-std::string_view to_string(ResultPart p);
 std::optional<ServerState> server_state_from_string(std::string_view s);
 std::optional<ScanState> scan_state_from_string(std::string_view s);
-std::optional<Structure> structure_from_string(std::string_view s);
-std::optional<ResultPart> result_part_from_string(std::string_view s);
-const std::vector<Structure>& all_structures();
-
-// Frame name carrying a single-file part ("displacement", ...); for kModels
-// use model_frame_name.
-std::string frame_name(ResultPart part);
-std::string model_frame_name(Structure s);  // "model.brain"
 
 // ---- Label table (optional frame of preop.load) ---------------------------
 
@@ -54,9 +33,11 @@ inline constexpr std::size_t kMaxLabelTableBytes = 64 * 1024;
 inline constexpr std::size_t kMaxShutdownReasonLength = 256;
 
 // Which label values of the preop label image make up each structure, e.g.
-// JHU labels 7 and 8 both belong to the corticospinal tract. "brain" is required.
+// JHU labels 7 and 8 both belong to the corticospinal tract. Structure names
+// are those of the daemon's label table (config/labels.toml); the daemon, not
+// the codec, checks them against it.
 struct LabelTable {
-  std::map<Structure, std::vector<std::uint16_t>> structures{};
+  std::map<std::string, std::vector<std::uint16_t>> structures{};
   bool operator==(const LabelTable&) const = default;
 };
 std::string make_label_table_json(const LabelTable& table);
@@ -144,7 +125,7 @@ ScanPushReply parse_scan_push_reply(const Message& m);
 struct ScanResultRequest {
   std::string scan_id{};
   std::vector<ResultPart> parts{};      // non-empty, no repeats
-  std::vector<Structure> structures{};  // for kModels; empty = all
+  std::vector<std::string> structures{};  // for kModels; empty = all the result has
   bool operator==(const ScanResultRequest&) const = default;
 };
 Message make_scan_result_request(const std::string& request_id, const ScanResultRequest& r);

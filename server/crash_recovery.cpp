@@ -83,7 +83,6 @@ void ServerCore::find_incomplete_results() {
 }
 
 void ServerCore::repair_scan(const std::string& scan_id) {
-  const fs::path scratch = store_.dir() / "scans" / scan_id / "repair.tmp";
   try {
     const auto record = store_.find(scan_id);
     std::string preop_id;
@@ -95,8 +94,7 @@ void ServerCore::repair_scan(const std::string& scan_id) {
       throw InputError("it was registered against another preop than the one loaded");
     const auto names = store_.result_file_names(scan_id);
     const DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
-    fs::create_directories(scratch);
-    engine_.register_scan(d.labels, d.image, d.read_seconds, scratch, [](const std::string&, double, double) {});
+    engine_.register_scan(d.labels, d.image, d.read_seconds, [](const std::string&, double, double) {});
     engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
       if (std::find(names.begin(), names.end(), name) != names.end()) return;
       store_.add_result_file(scan_id, name, bytes);
@@ -106,8 +104,6 @@ void ServerCore::repair_scan(const std::string& scan_id) {
   } catch (const std::exception& e) {
     spdlog::error("scan {}: missing deferred outputs could not be made again: {}", scan_id, e.what());
   }
-  std::error_code ec;
-  fs::remove_all(scratch, ec);
   std::lock_guard lock(mutex_);
   deferred_pending_.erase(scan_id);
 }

@@ -157,7 +157,7 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
     pub.set(zmq::sockopt::linger, 200);
     router.bind(s.endpoint);
     pub.bind(s.events);
-    if (s.openigtlink.enabled) igtl = std::make_unique<IgtlGateway>(s.openigtlink, *store);
+    if (s.openigtlink.enabled) igtl = std::make_unique<IgtlGateway>(s.openigtlink, *store, engine.label_table());
   } catch (const std::exception& e) {
     spdlog::critical("cannot start: {}", e.what());
     engine.stop_workers();

@@ -1,7 +1,8 @@
 #pragma once
 // The EnginePort of the shipped daemon: the pipeline's EngineSession (rank 0)
-// plus the default atlas and register's output files, encoded for latency
-// (plain NIfTI; field.h5 and report.png produced after the scan is done).
+// plus the default atlas; the outputs come from register's encoder
+// (pipeline/scan_outputs.h), images plain for latency, the deferred parts
+// made after the scan is announced.
 #include <memory>
 
 #include "pipeline/engine_session.h"
@@ -16,12 +17,12 @@ class EngineAdapter final : public EnginePort {
   PreopImages load_default_atlas(const std::filesystem::path& cache_dir) override;
   void load_preop(const PreopImages& preop, std::optional<TetMesh> stored_mesh, double atlas_seconds,
                   const StageProgressFn& progress) override;
+  const LabelTable& label_table() const override { return session_.parameters().label_table; }
   bool ready() const override { return session_.ready(); }
   const TetMesh& mesh() const override { return session_.mesh(); }
   nlohmann::json preop_timings() const override { return session_.preop_timings(); }
   EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
-                                 double read_seconds, const std::filesystem::path& scratch_dir,
-                                 const StageProgressFn& progress) override;
+                                 double read_seconds, const StageProgressFn& progress) override;
   int ranks() const override { return session_.ranks(); }
   std::size_t max_image_bytes() const override { return session_.parameters().max_image_bytes; }
   void stop_workers() override { session_.stop_workers(); }

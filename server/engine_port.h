@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/image.h"
+#include "core/label_table.h"
 #include "core/tet_mesh.h"
 
 namespace brainshift::server {
@@ -24,16 +25,14 @@ using StageProgressFn = std::function<void(const std::string& stage, double frac
 
 struct PreopImages {
   ImageF t1;
-  LabelImage labels;  // same grid as t1, default label values (1 brain, 2 ventricles, ...)
+  LabelImage labels;  // same grid as t1, the values of the engine's label_table()
 };
 
 struct EngineScanOutput {
-  // The files `brainshift register --out` writes, by relative name, except
-  // the deferred ones (metrics.json, field.h5, report.png: see
-  // render_deferred), and with images MAY be plain NIfTI: field.nii or
-  // field.nii.gz, warped_image.nii[.gz], warped_labels.nii[.gz],
-  // models/<structure>.vtp, timings.json.
-  // The client gzips plain NIfTI when it writes register's .nii.gz names.
+  // The parts that are not deferred (protocol/result_outputs.h), by their
+  // stored names: field.nii, warped_image.nii, warped_labels.nii,
+  // models/<structure>.vtp, timings.json. The client gzips plain NIfTI when
+  // it writes register's .nii.gz names.
   std::map<std::string, std::string> files;
   std::string kind = "nonrigid";  // or "affine_only_fallback"
   std::string fallback_reason;
@@ -51,16 +50,18 @@ class EnginePort {
   // previous warm state stays in place on failure.
   virtual void load_preop(const PreopImages& preop, std::optional<TetMesh> stored_mesh,
                           double atlas_seconds, const StageProgressFn& progress) = 0;
+  // The label table the engine was configured with (config/labels.toml or
+  // the user's): the structures a preop label map may name, the values the
+  // preop labels are mapped to, the models' short names.
+  virtual const LabelTable& label_table() const = 0;
   virtual bool ready() const = 0;
   virtual const TetMesh& mesh() const = 0;  // requires ready()
   virtual nlohmann::json preop_timings() const = 0;
-  // Runs the intraop stages and renders the output files; scratch_dir is a
-  // private empty directory the adapter may use and delete. read_seconds (the
+  // Runs the intraop stages and encodes the outputs. read_seconds (the
   // daemon's decoding of the pushed bytes) is added to the "read" timing, as
   // `brainshift register` adds its file reading.
   virtual EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
-                                         double read_seconds, const std::filesystem::path& scratch_dir,
-                                         const StageProgressFn& progress) = 0;
+                                         double read_seconds, const StageProgressFn& progress) = 0;
   // The outputs of the scan register_scan last returned that are produced off
   // the latency path, after the result is stored and announced, in this
   // order: metrics.json (the label overlap figures judge the result; the

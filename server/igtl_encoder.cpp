@@ -82,9 +82,11 @@ PackedMessage pack_voxels(const std::string& device, const Grid3& grid, int scal
 
 }  // namespace
 
-std::string model_device(protocol::Structure s) {
-  if (s == protocol::Structure::kCorticospinalTract) return "bs.model.cst";
-  return "bs.model." + std::string(protocol::to_string(s));
+std::string model_device(const std::string& short_name) {
+  const std::string device = "bs.model." + short_name;
+  if (device.size() > kMaxDeviceName)
+    throw std::invalid_argument("OpenIGTLink: device name \"" + device + "\" exceeds 19 characters");
+  return device;
 }
 
 TimeStamp time_stamp_from_iso(const std::string& utc) {
@@ -174,8 +176,8 @@ std::vector<PackedMessage> encode_result(const ResultContent& r) {
   if (r.warped_image) add([&] { return pack_image(kWarpedImageDevice, *r.warped_image, t); });
   if (r.warped_labels)
     add([&] { return pack_labels(kWarpedLabelsDevice, *r.warped_labels, t); });
-  for (const auto& [structure, surface] : r.models)
-    add([&] { return pack_polydata(model_device(structure), surface, t); });
+  for (const auto& [short_name, surface] : r.models)
+    add([&] { return pack_polydata(model_device(short_name), surface, t); });
   const bool fallback = r.kind == "affine_only_fallback";
   // The error name field is 20 bytes, and a receiver reads a name that fills
   // them past the end (libopenigtlink 1.11): "affine_only_fallback" is 20.

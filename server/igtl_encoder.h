@@ -30,9 +30,9 @@ inline constexpr const char* kFieldDevice = "bs.field";
 inline constexpr const char* kWarpedImageDevice = "bs.warped_image";
 inline constexpr const char* kWarpedLabelsDevice = "bs.warped_labels";
 inline constexpr const char* kStatusDevice = "bs.status";
-// "bs.model.<structure>", corticospinal_tract shortened to "cst" (the name
-// would not fit the 20 bytes).
-std::string model_device(protocol::Structure s);
+// "bs.model.<short name>": the label table's short name (at most 11
+// characters, e.g. "cst" for corticospinal_tract) fits the 20 bytes.
+std::string model_device(const std::string& short_name);
 
 // STATUS subcode of the result kind (the code is always OK: both kinds are
 // valid results; the fallback is marked, not failed).
@@ -82,7 +82,7 @@ struct ResultContent {
   std::optional<VectorImage3> field;
   std::optional<ImageF> warped_image;
   std::optional<LabelImage> warped_labels;
-  std::vector<std::pair<protocol::Structure, TriSurface>> models;
+  std::vector<std::pair<std::string, TriSurface>> models;  // by short name, in label-table order
   std::vector<std::string> problems;  // parts that could not be decoded (named in the STATUS)
 };
 

@@ -22,7 +22,7 @@
 #include "mesh/vtk_io.h"
 #include "protocol/events.h"
 #include "protocol/timing_log.h"
-#include "server/result_files.h"
+#include "protocol/result_outputs.h"
 
 namespace brainshift::server {
 namespace {
@@ -67,7 +67,7 @@ int listen_on(const std::string& bind, int port, int* bound_port) {
 
 std::optional<std::pair<std::string, std::string>> read_part(const CaseStore& store, const std::string& scan_id,
                                                               ResultPart part) {
-  for (const auto& name : stored_file_names(part))
+  for (const auto& name : protocol::stored_file_names(part))
     if (auto bytes = store.read_result_file(scan_id, name)) return std::make_pair(name, std::move(*bytes));
   return std::nullopt;
 }
@@ -89,7 +89,7 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 
 }  // namespace
 
-igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id) {
+igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id, const LabelTable& labels) {
   const auto record = store.find(scan_id);
   if (!record || record->state != StoredScanState::done) throw InputError("scan " + scan_id + " has no result");
   igtl::ResultContent r;
@@ -106,16 +106,16 @@ igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& 
   if (auto f = read_part(store, scan_id, ResultPart::kWarpedLabels))
     try_decode(r, f->first,
                [&] { r.warped_labels = label_image_from_bytes(f->second, f->first, kMaxResultImageBytes); });
-  for (protocol::Structure s : protocol::all_structures()) {
-    const std::string name = model_file_name(s);
+  for (const LabelEntry& e : labels.entries) {
+    const std::string name = protocol::model_file_name(e.name);
     if (auto bytes = store.read_result_file(scan_id, name))
-      try_decode(r, name, [&] { r.models.emplace_back(s, read_vtp_bytes(*bytes, name)); });
+      try_decode(r, name, [&] { r.models.emplace_back(short_name_of(e), read_vtp_bytes(*bytes, name)); });
   }
   return r;
 }
 
-IgtlGateway::IgtlGateway(const OpenIgtlinkSettings& settings, const CaseStore& store)
-    : settings_(settings), store_(store) {
+IgtlGateway::IgtlGateway(const OpenIgtlinkSettings& settings, const CaseStore& store, LabelTable labels)
+    : settings_(settings), store_(store), labels_(std::move(labels)) {
   listen_fd_ = listen_on(settings_.bind, settings_.port, &port_);
   wake_fd_ = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
   if (wake_fd_ < 0) {
@@ -213,7 +213,7 @@ void IgtlGateway::load_and_send(const std::string& scan_id) {
     auto t1 = t0;
     std::vector<igtl::PackedMessage> packed;
     {
-      const igtl::ResultContent content = load_igtl_result(store_, scan_id);  // freed once packed
+      const igtl::ResultContent content = load_igtl_result(store_, scan_id, labels_);  // freed once packed
       read_s = seconds_since(t0);
       t1 = std::chrono::steady_clock::now();
       packed = igtl::encode_result(content);

@@ -27,6 +27,7 @@
 #include <thread>
 #include <vector>
 
+#include "core/label_table.h"
 #include "protocol/message.h"
 #include "protocol/requests.h"
 #include "server/case_store.h"
@@ -37,14 +38,15 @@ namespace brainshift::server {
 
 // A done scan's result read back from the store; unreadable parts are left
 // out and named in problems.
-igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id);
+// labels names the models' devices (their short names).
+igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id, const LabelTable& labels);
 
 class IgtlGateway {
  public:
   // Listens on settings.bind:settings.port (port 0: any free port) and starts
   // the thread, which first loads the newest done scan in the store. Throws
   // std::runtime_error naming the address when it cannot listen.
-  IgtlGateway(const OpenIgtlinkSettings& settings, const CaseStore& store);
+  IgtlGateway(const OpenIgtlinkSettings& settings, const CaseStore& store, LabelTable labels);
   ~IgtlGateway();  // closes every connection
   IgtlGateway(const IgtlGateway&) = delete;
   IgtlGateway& operator=(const IgtlGateway&) = delete;
@@ -74,6 +76,7 @@ class IgtlGateway {
 
   OpenIgtlinkSettings settings_;
   const CaseStore& store_;
+  const LabelTable labels_;
   int listen_fd_ = -1;
   int wake_fd_ = -1;  // eventfd: publish() and the destructor wake poll()
   int port_ = 0;

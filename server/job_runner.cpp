@@ -52,14 +52,14 @@ void ServerCore::run_preop_job(PreopJob job) {
         job.images = engine_.load_default_atlas(settings_.atlas_cache_path());
       } else {
         PreopImages images{read_scalar_image(settings_.preop.t1), read_label_image(settings_.preop.labels)};
-        std::optional<LabelTable> table;
+        std::optional<protocol::LabelTable> table;
         if (!settings_.preop.label_table.empty()) {
           job.label_table_json = read_text_file(settings_.preop.label_table);
           table = parse_label_table_json(job.label_table_json);
         }
         if (!images.t1.grid.same_geometry(images.labels.grid))
           throw InputError(settings_.preop.labels.string() + ": grid differs from the preop T1's");
-        remap_preop_labels(images.labels, table ? &*table : nullptr);
+        remap_preop_labels(images.labels, table ? &*table : nullptr, engine_.label_table());
         job.images = std::move(images);
       }
       atlas_seconds = seconds_since(ta);
@@ -228,17 +228,13 @@ void ServerCore::run_scan(const std::string& scan_id) {
     emit(make_event(ScanProgressEvent{scan_id, s, std::clamp(fraction, 0.0, 1.0)}));
     if (fraction >= 1.0) log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, s, seconds, ""});
   };
-  const fs::path scratch = store_.dir() / "scans" / scan_id / "work.tmp";
   try {
     if (record->preop_id != preop_id)
       throw InputError("pushed against preop " + record->preop_id + " but " + preop_id + " is loaded");
     if (!decoded) decoded = std::make_shared<DecodedScan>(decode_scan(store_.load_scan_input(scan_id)));
     // "decode" (the pushed bytes to images) is the daemon's; the engine logs its own "read".
     progress("decode", 1.0, decoded->read_seconds);
-    fs::remove_all(scratch);
-    fs::create_directories(scratch);
-    EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, scratch, progress);
-    fs::remove_all(scratch);
+    EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, progress);
     {
       // Marked before the result becomes visible: a pull in between must see
       // the deferred parts as pending, not as missing for good (the soak
@@ -260,8 +256,6 @@ void ServerCore::run_scan(const std::string& scan_id) {
   } catch (const std::exception& e) {
     fail_scan(*record, ErrorCode::kInternal, e.what(), stage);
   }
-  std::error_code ec;
-  fs::remove_all(scratch, ec);
   std::lock_guard lock(mutex_);
   state_ = loading_preop_id_.empty() ? ServerState::kReady : ServerState::kLoadingPreop;
   current_scan_.reset();

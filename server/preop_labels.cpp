@@ -5,45 +5,61 @@
 #include <sstream>
 
 #include "core/errors.h"
-#include "core/labels.h"
 
 namespace brainshift::server {
+namespace {
 
-std::uint16_t engine_label_of(protocol::Structure s) {
-  switch (s) {
-    case protocol::Structure::kBrain: return labels::brain;
-    case protocol::Structure::kVentricles: return labels::ventricles;
-    case protocol::Structure::kCorticospinalTract: return labels::corticospinal_tract;
-    case protocol::Structure::kTumor: return labels::tumor;
-  }
-  return 0;
+std::string names_of(const LabelTable& table) {
+  std::string out;
+  for (const auto& e : table.entries) out += (out.empty() ? "" : ", ") + e.name;
+  return out;
 }
 
-void remap_preop_labels(LabelImage& labels, const protocol::LabelTable* table) {
-  std::array<std::uint16_t, 65536> map{};  // 0 = unlisted
+std::string values_of(const LabelTable& table) {
+  std::string out;
+  for (const auto& e : table.entries) out += (out.empty() ? "" : ", ") + std::to_string(e.value);
+  return out;
+}
+
+}  // namespace
+
+void remap_preop_labels(LabelImage& labels, const protocol::LabelTable* map, const LabelTable& table) {
+  std::array<std::uint16_t, 65536> to{};  // 0 = unlisted
   std::array<bool, 65536> listed{};
   listed[0] = true;
-  if (table) {
-    for (const auto& [structure, values] : table->structures)
+  if (map) {
+    for (const auto& [name, values] : map->structures) {
+      const LabelEntry* entry = table.find(name);
+      if (!entry)
+        throw InputError("label_table: structure \"" + name + "\" is not in the daemon's label table (" +
+                         names_of(table) + ")");
       for (std::uint16_t v : values) {
-        map[v] = engine_label_of(structure);
+        if (listed[v] && to[v] != entry->value)
+          throw InputError("label_table: value " + std::to_string(v) + " is given to two structures");
+        to[v] = entry->value;
         listed[v] = true;
       }
+    }
   } else {
-    for (std::uint16_t v = 1; v <= 4; ++v) {
-      map[v] = v;
-      listed[v] = true;
+    for (const auto& e : table.entries) {
+      to[e.value] = e.value;
+      listed[e.value] = true;
     }
   }
-  std::size_t brain = 0;
+  const std::uint16_t parenchyma = table.brain_label();
+  std::size_t parenchyma_voxels = 0;
   for (auto& v : labels.voxels) {
     if (!listed[v])
       throw InputError("labels: value " + std::to_string(v) +
-                       (table ? " is not in the label table" : " is not a default label (1..4); send a label table"));
-    v = map[v];
-    brain += v == 1;
+                       (map ? " is not in the label table"
+                            : " is not a value of the daemon's label table (" + values_of(table) +
+                                  "); send a label table"));
+    v = to[v];
+    parenchyma_voxels += v == parenchyma;
   }
-  if (brain == 0) throw InputError("labels: no brain voxel (label 1 after mapping)");
+  if (parenchyma_voxels == 0)
+    throw InputError("labels: no " + table.find(parenchyma)->name + " voxel (label " + std::to_string(parenchyma) +
+                     " after mapping)");
 }
 
 std::string read_text_file(const std::filesystem::path& path) {

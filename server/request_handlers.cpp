@@ -9,7 +9,7 @@
 #include "image/nifti_io.h"
 #include "protocol/media.h"
 #include "server/preop_labels.h"
-#include "server/result_files.h"
+#include "protocol/result_outputs.h"
 #include "server/server_core_internal.h"
 
 namespace brainshift::server {
@@ -20,12 +20,29 @@ namespace {
 
 // Frames of the requested parts of a done scan, with every missing part in
 // `unavailable` (e.g. no warped_image when the engine wrote none).
-// deferred_pending: metrics.json, field.h5 and report.png are still being made (they follow
-// scan.done, see ServerCore::add_deferred_outputs).
+// deferred_pending: the deferred parts (result_outputs.h) are still being
+// made (they follow scan.done, see ServerCore::add_deferred_outputs).
 // read_file: a result file's bytes by name, nullopt when absent (from the
-// store, or from memory while the result is not yet written).
+// store, or from memory while the result is not yet written); file_names:
+// every file the result has (its models are those under models/). Asked for
+// no structure in particular, the models are those of every structure of the
+// label table that has one (a missing one is named unavailable), then any
+// other the result holds (made under another label table).
 using ResultFileReader = std::function<std::optional<std::string>(const std::string& name)>;
-ScanResultReply collect_result_frames(const ResultFileReader& read_file, const ScanResultRequest& request,
+std::vector<std::string> structures_to_send(const std::vector<std::string>& asked, const brainshift::LabelTable& table,
+                                            const std::vector<std::string>& file_names) {
+  if (!asked.empty()) return asked;
+  std::vector<std::string> out;
+  for (const auto& e : table.entries)
+    if (e.make_model) out.push_back(e.name);
+  for (const auto& name : file_names)
+    if (auto s = structure_of_model_file(name); s && std::find(out.begin(), out.end(), *s) == out.end())
+      out.push_back(*s);
+  return out;
+}
+
+ScanResultReply collect_result_frames(const ResultFileReader& read_file, const std::vector<std::string>& file_names,
+                                      const brainshift::LabelTable& table, const ScanResultRequest& request,
                                       const ScanRecord& record, bool deferred_pending) {
   ScanResultReply reply;
   reply.scan_id = request.scan_id;
@@ -41,24 +58,25 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const S
     return false;
   };
   for (ResultPart part : request.parts) {
-    if (part == ResultPart::kReport) {
-      const char* why = !record.has_image ? "no intraop image was pushed (the report draws on it)"
-                        : deferred_pending ? "report.png is being rendered; ask again shortly"
-                                           : "report.png was not rendered (see the server log)";
-      if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending && record.has_image)
-        reply.unavailable.back().pending = true;
-    } else if (part == ResultPart::kDisplacementItk || part == ResultPart::kMetrics) {
-      const char* why = deferred_pending ? "being written just after the field; ask again shortly" : "not in this result";
-      if (!add(frame_name(part), stored_file_names(part), why) && deferred_pending)
-        reply.unavailable.back().pending = true;
-    } else if (part != ResultPart::kModels) {
-      add(frame_name(part), stored_file_names(part),
-          part == ResultPart::kWarpedImage ? "the engine wrote no warped image" : "not in this result");
-    } else {
-      const auto& wanted = request.structures.empty() ? all_structures() : request.structures;
-      for (Structure s : wanted)
+    if (part == ResultPart::kModels) {
+      for (const auto& s : structures_to_send(request.structures, table, file_names))
         add(model_frame_name(s), {model_file_name(s)}, "no model of this structure (label absent from the preop)");
+      continue;
     }
+    const char* why = "not in this result";
+    bool pending = false;
+    if (part == ResultPart::kReport) {
+      why = !record.has_image ? "no intraop image was pushed (the report draws on it)"
+            : deferred_pending ? "report.png is being rendered; ask again shortly"
+                               : "report.png was not rendered (see the server log)";
+      pending = deferred_pending && record.has_image;
+    } else if (result_output(part).deferred) {
+      if (deferred_pending) why = "being written just after the field; ask again shortly";
+      pending = deferred_pending;
+    } else if (part == ResultPart::kWarpedImage) {
+      why = "the engine wrote no warped image";
+    }
+    if (!add(frame_name(part), stored_file_names(part), why) && pending) reply.unavailable.back().pending = true;
   }
   return reply;
 }
@@ -124,12 +142,12 @@ Message ServerCore::on_preop_load(const Message& m) {
     images.labels = label_image_from_bytes(req.labels->bytes, "labels", max_bytes);
     if (!images.t1.grid.same_geometry(images.labels.grid))
       throw InputError("labels: grid differs from t1's (dims or world_from_voxel)");
-    std::optional<LabelTable> table;
+    std::optional<protocol::LabelTable> table;
     if (req.label_table) {
       table = parse_label_table_json(req.label_table->bytes);
       job->label_table_json = req.label_table->bytes;
     }
-    remap_preop_labels(images.labels, table ? &*table : nullptr);
+    remap_preop_labels(images.labels, table ? &*table : nullptr, engine_.label_table());
     job->images = std::move(images);
     job->source = "upload";
   }
@@ -222,7 +240,10 @@ Message ServerCore::on_scan_result(const Message& m) {
       const auto it = files.find(name);
       return it == files.end() ? std::nullopt : std::optional<std::string>(it->second);
     };
-    return make_scan_result_reply(rid, collect_result_frames(from_memory, req, unwritten->record, deferred_pending));
+    std::vector<std::string> names;
+    for (const auto& [name, bytes] : files) names.push_back(name);
+    return make_scan_result_reply(rid,
+                                  collect_result_frames(from_memory, names, engine_.label_table(), req, unwritten->record, deferred_pending));
   }
   // Looked up after the unwritten results: a result leaves them only once the store has it.
   const auto record = store_.find(req.scan_id);
@@ -239,7 +260,8 @@ Message ServerCore::on_scan_result(const Message& m) {
   const ResultFileReader from_store = [&](const std::string& name) {
     return store_.read_result_file(req.scan_id, name);
   };
-  ScanResultReply reply = collect_result_frames(from_store, req, *record, deferred_pending);
+  ScanResultReply reply =
+      collect_result_frames(from_store, store_.result_file_names(req.scan_id), engine_.label_table(), req, *record, deferred_pending);
   return make_scan_result_reply(rid, reply);
 }
 

@@ -104,24 +104,4 @@ class EngineSession {
 // Ranks > 0: serve collective commands from rank 0 until it stops them.
 void run_worker_loop(MPI_Comm comm);
 
-// How the outputs are encoded. The defaults are what `brainshift register`
-// writes; the daemon trades file size for latency (compression happens on the
-// client when it writes the pulled files).
-struct ScanOutputOptions {
-  bool gzip_images = true;          // false: field.nii, warped_image.nii, warped_labels.nii
-  bool write_report = true;         // report.png (needs the intraop image)
-  bool itk_single_precision = false;  // field.h5 parameters as float (half the bytes)
-  // What report.png names and colours: the registration's label table and an
-  // id for its title (register uses the output folder's name).
-  LabelTable label_table = LabelTable::defaults();
-  std::string scan_id;
-};
-
-// Writes what `brainshift register --out DIR` writes (field.nii.gz, field.h5,
-// warped_image.nii.gz, warped_labels.nii.gz, models/<name>.vtp, metrics.json,
-// timings.json, report.png). All files go to a temporary sibling folder first
-// that is renamed into place, so a failure never leaves half-written outputs.
-void write_scan_outputs(const ScanResult& result, const ImageF* intraop_t1,
-                        const std::filesystem::path& out_dir, const ScanOutputOptions& options = {});
-
 }  // namespace brainshift

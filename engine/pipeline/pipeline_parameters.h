@@ -9,7 +9,7 @@
 #include "fem/elastic_model.h"
 #include "mesh/label_mesher.h"
 #include "models/surface_models.h"
-#include "pipeline/label_table.h"
+#include "core/label_table.h"
 #include "registration/active_surface.h"
 #include "registration/affine_registration.h"
 #include "registration/intensity_refinement.h"
@@ -32,7 +32,7 @@ struct QualityGates {
 };
 
 struct PipelineParameters {
-  LabelTable label_table = LabelTable::defaults();
+  LabelTable label_table;  // from config/labels.toml (config::default_label_table()) or the user's
   MeshingParameters meshing;
   ElasticOptions elastic;
   AffineRegistrationParameters affine;

@@ -5,7 +5,7 @@
 #include <string>
 
 #include "pipeline/engine_session.h"
-#include "pipeline/label_table.h"
+#include "core/label_table.h"
 #include "report/report.h"
 
 namespace brainshift {

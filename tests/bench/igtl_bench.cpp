@@ -15,6 +15,7 @@
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
+#include "config_file.h"
 #include "image/nifti_io.h"
 #include "mesh/vtk_io.h"
 #include "server/case_store.h"
@@ -103,7 +104,7 @@ int main(int argc, char** argv) {
     std::size_t bytes = 0, messages = 0;
     for (int r = 0; r < repeats; ++r) {
       const auto t0 = std::chrono::steady_clock::now();
-      const auto content = server::load_igtl_result(store, rec.scan_id);
+      const auto content = server::load_igtl_result(store, rec.scan_id, config::default_label_table());
       const auto t1 = std::chrono::steady_clock::now();
       auto packed = server::igtl::encode_result(content);
       const auto t2 = std::chrono::steady_clock::now();

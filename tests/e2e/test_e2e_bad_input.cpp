@@ -476,7 +476,7 @@ TEST_F(BadInputE2E, BrokenPreopUploadsLeaveTheWarmPreopInPlace) {
       {"truncated t1", upload(t1.substr(0, t1.size() / 2), labels), "truncated"},
       {"labels on another grid", upload(t1, moved), "grid differs"},
       {"no brain label", upload(t1, empty), "no brain"},
-      {"a label outside the default table", upload(t1, unknown), "not a default label"},
+      {"a label outside the default table", upload(t1, unknown), "not a value of the daemon's label table"},
   };
   for (const auto& [what, reply, fragment] : refused) {
     ASSERT_EQ(reply.type(), bp::MessageType::kError) << what << " was accepted";

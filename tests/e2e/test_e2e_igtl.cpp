@@ -17,6 +17,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "config_file.h"
 #include "daemon_harness.h"
 #include "igtl_receiver.h"
 #include "image/nifti_io.h"
@@ -118,13 +119,12 @@ TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient
   expect_same_image(*by_device(result, "bs.warped_labels").image(), labels.grid, labels.voxels.data(),
                     labels.voxels.size() * 2, igtl::ImageMessage::TYPE_UINT16, 1, "warped_labels");
   std::size_t models = 0;
-  for (Structure s : all_structures()) {
-    const auto it = files.find(model_frame_name(s));
+  for (const LabelEntry& e : brainshift::config::default_label_table().entries) {
+    const auto it = files.find(model_frame_name(e.name));
     if (it == files.end()) continue;
     ++models;
     const TriSurface vtp = read_vtp_bytes(it->second, it->first);
-    const std::string device = s == Structure::kCorticospinalTract ? "bs.model.cst"
-                                                                    : "bs.model." + std::string(to_string(s));
+    const std::string device = "bs.model." + short_name_of(e);  // "bs.model.cst" for the tract
     igtl::PolyDataMessage* poly = by_device(result, device).polydata();
     ASSERT_NE(poly, nullptr) << device;
     ASSERT_EQ(static_cast<std::size_t>(poly->GetPoints()->GetNumberOfPoints()), vtp.vertices_mm.size()) << device;

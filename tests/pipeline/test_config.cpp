@@ -28,7 +28,10 @@ TEST(Config, DefaultsParseAndMatchTheDocumentedTable) {
   EXPECT_EQ(p.label_table.find("tumor")->value, 4);
   EXPECT_DOUBLE_EQ(p.label_table.find(1)->youngs_modulus_pa, 3000.0);
   EXPECT_DOUBLE_EQ(p.label_table.find(1)->poisson_ratio, 0.35);
-  EXPECT_DOUBLE_EQ(LabelTable::defaults().find(1)->poisson_ratio, 0.35);  // code and file agree
+  // The one copy of the defaults is labels.toml: the compiled-in table is it.
+  EXPECT_EQ(config::default_label_table().entries.size(), p.label_table.entries.size());
+  EXPECT_EQ(short_name_of(*p.label_table.find("corticospinal_tract")), "cst");
+  EXPECT_EQ(short_name_of(*p.label_table.find("ventricles")), "ventricles");
   EXPECT_EQ(p.elastic.solver, SolverKind::direct_cholesky);
   EXPECT_EQ(p.elastic.dirichlet, DirichletMethod::symmetric_elimination);
 }
@@ -74,20 +77,33 @@ TEST(Config, LabelTableValidation) {
                                   "[[label]]\nvalue = 2\nname = \"v\"\nrole = \"cavity\"\nresectable = true\n";
   EXPECT_THROW(config::label_table_from_text(resectable_cavity, "t"), InputError);
   // The default table: the tumor may be resected, nothing else.
-  EXPECT_EQ(LabelTable::defaults().resectable_labels(), std::vector<std::uint16_t>{4});
+  EXPECT_EQ(config::default_label_table().resectable_labels(), std::vector<std::uint16_t>{4});
   EXPECT_EQ(config::pipeline_parameters_from_text(config::default_config_text(), "built-in")
                 .label_table.resectable_labels(),
             std::vector<std::uint16_t>{4});
 }
 
-// Colours drawn in report.png and the Slicer scene: labels.toml and the code's
-// defaults agree; a missing colour gets the palette's; a malformed one names
-// the file and the label.
+// A name becomes a file (models/<name>.vtp) and a frame name; a short name an
+// OpenIGTLink device name (20 bytes with "bs.model.").
+TEST(Config, LabelNamesAreSafeAndShortNamesFitOpenIgtlink) {
+  auto table = [](const std::string& fifth) {
+    return "[[label]]\nvalue = 1\nname = \"brain\"\nrole = \"parenchyma\"\n[[label]]\nvalue = 5\n" + fifth;
+  };
+  const auto ok = config::label_table_from_text(table("name = \"arcuate_fasciculus\"\nshort_name = \"af\"\n"), "t");
+  EXPECT_EQ(short_name_of(*ok.find(5)), "af");
+  EXPECT_EQ(short_name_of(*config::label_table_from_text(table("name = \"arcuate_fasciculus\"\n"), "t").find(5)),
+            "arcuate_fas");
+  for (const char* bad : {"name = \"../x\"\n", "name = \"Arcuate\"\n", "name = \"5af\"\n",
+                          "name = \"a.b\"\n", "name = \"af\"\nshort_name = \"arcuate_fasc\"\n",
+                          "name = \"af\"\nshort_name = \"brain\"\n"})
+    EXPECT_THROW(config::label_table_from_text(table(bad), "t"), InputError) << bad;
+}
+
+// Colours drawn in report.png and the Slicer scene: labels.toml's; a missing
+// colour gets the palette's; a malformed one names the file and the label.
 TEST(Config, LabelColoursParseDefaultAndFailClearly) {
   const auto file = config::pipeline_parameters_from_text(config::default_config_text(), "built-in").label_table;
-  const LabelTable code = LabelTable::defaults();
-  ASSERT_EQ(file.entries.size(), code.entries.size());
-  for (std::size_t i = 0; i < code.entries.size(); ++i) EXPECT_EQ(file.entries[i].colour, code.entries[i].colour) << i;
+  EXPECT_EQ(file.find("brain")->colour, (LabelColour{40, 220, 60}));
   EXPECT_EQ(file.find("tumor")->colour, (LabelColour{255, 230, 0}));
   const auto t = config::label_table_from_text(
       "[[label]]\nvalue = 1\nname = \"a\"\nrole = \"parenchyma\"\ncolour = \"#0A0b0C\"\n"

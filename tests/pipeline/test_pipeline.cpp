@@ -18,6 +18,7 @@
 #include "phantom/brain_shift_phantom.h"
 #include "mesh/vtk_io.h"
 #include "pipeline/engine_session.h"
+#include "pipeline/scan_outputs.h"
 #include "synthetic_head.h"
 #include "temp_dir.h"  // tests/support
 
@@ -157,7 +158,9 @@ TEST_F(PipelineTest, OutputsAreWrittenCompletelyOrNotAtAll) {
   const ScanResult r = session_->register_scan(scan, nullptr);
   const test::TempDir tmp("pipeline-out");
   const fs::path dir = tmp / "out";
-  write_scan_outputs(r, &*scan.t1, dir);
+  DeferredOutputOptions options;
+  options.label_table = &session_->parameters().label_table;
+  write_scan_outputs(r, &*scan.t1, dir, options);
   for (const char* f : {"field.nii.gz", "field.h5", "warped_image.nii.gz", "warped_labels.nii.gz", "metrics.json",
                         "timings.json", "report.png", "models/brain.vtp", "models/ventricles.vtp"})
     EXPECT_TRUE(fs::exists(dir / f)) << f;
@@ -170,7 +173,7 @@ TEST_F(PipelineTest, OutputsAreWrittenCompletelyOrNotAtAll) {
   }
   const fs::path blocked = tmp / "a-file";
   { std::ofstream(blocked) << "a file, not a folder"; }
-  EXPECT_ANY_THROW(write_scan_outputs(r, &*scan.t1, blocked / "out"));
+  EXPECT_ANY_THROW(write_scan_outputs(r, &*scan.t1, blocked / "out", options));
   EXPECT_FALSE(fs::exists(blocked / "out"));
 }
 

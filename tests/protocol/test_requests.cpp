@@ -99,8 +99,9 @@ TEST(PreopLoad, DefaultAtlasRoundTrip) {
 
 TEST(PreopLoad, FramesRoundTripWithLabelTable) {
   bp::LabelTable table;
-  table.structures[bp::Structure::kBrain] = {1};
-  table.structures[bp::Structure::kCorticospinalTract] = {7, 8};
+  table.structures["brain"] = {1};
+  table.structures["corticospinal_tract"] = {7, 8};
+  table.structures["arcuate_fasciculus"] = {9};  // any name of the daemon's table
   bp::PreopLoadRequest r;
   r.t1 = bp::media::nifti_frame("t1", bp::testing::fake_gzip(4096));
   r.labels = bp::media::nifti_frame("labels", bp::testing::fake_nifti(8, 8, 8));
@@ -134,14 +135,21 @@ TEST(PreopLoad, RefusesMissingFramesFramesWithDefaultAtlasAndBadContent) {
 
   bp::PreopLoadRequest bad_table = only_t1;
   bad_table.labels = bp::media::nifti_frame("labels", bp::testing::fake_nifti(2, 2, 2));
-  bad_table.label_table = bp::media::json_frame("label_table", R"({"v":1,"structures":{"ventricles":[2]}})");
+  bad_table.label_table = bp::media::json_frame("label_table", R"({"v":1,"structures":{"../ventricles":[2]}})");
   EXPECT_EQ(error_of([&] { bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", bad_table))); }),
             ErrorCode::kInvalidRequest);
 }
 
-TEST(LabelTable, RefusesUnknownStructuresAndOutOfRangeValues) {
-  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[1],"liver":[9]}})"),
-               bp::ProtocolError);
+// Structure names are the daemon's label table's (it checks them); the codec
+// refuses what cannot be one: a name that would not be a safe file name.
+TEST(LabelTable, RefusesBadStructureNamesAndOutOfRangeValues) {
+  EXPECT_EQ(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[1],"arcuate_fasciculus":[9]}})")
+                .structures.at("arcuate_fasciculus"),
+            std::vector<std::uint16_t>{9});
+  for (const char* name : {"../x", "Liver", "", "5th", "model.brain"})
+    EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{")" + std::string(name) + R"(":[9]}})"),
+                 bp::ProtocolError) << name;
+  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{}})"), bp::ProtocolError);
   EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[70000]}})"),
                bp::ProtocolError);
   EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[0]}})"),
@@ -197,7 +205,7 @@ TEST(ScanPush, RefusesMissingLabelsExtraFramesAndBadIds) {
 TEST(ScanResult, RequestRoundTrip) {
   bp::ScanResultRequest r{"s-000001",
                           {bp::ResultPart::kDisplacement, bp::ResultPart::kModels, bp::ResultPart::kTimings},
-                          {bp::Structure::kBrain, bp::Structure::kTumor}};
+                          {"brain", "tumor"}};
   EXPECT_EQ(bp::parse_scan_result_request(wire_trip(bp::make_scan_result_request("r", r))), r);
 }
 
@@ -220,7 +228,7 @@ TEST(ScanResult, ReplyRoundTripWithEveryKindOfFrame) {
   r.frames = {bp::media::nifti_frame(bp::frame_name(bp::ResultPart::kDisplacement), bp::testing::fake_gzip(999)),
               {bp::frame_name(bp::ResultPart::kDisplacementItk), std::string(bp::media::kItkH5), bp::testing::fake_h5()},
               bp::media::nifti_frame("warped_labels", bp::testing::fake_nifti(3, 3, 3)),
-              {bp::model_frame_name(bp::Structure::kVentricles), std::string(bp::media::kVtp), bp::testing::fake_vtp()},
+              {bp::model_frame_name("ventricles"), std::string(bp::media::kVtp), bp::testing::fake_vtp()},
               bp::media::json_frame("metrics", R"({"surface_rms_mm": 0.8})"),
               {bp::frame_name(bp::ResultPart::kReport), std::string(bp::media::kPng),
                std::string("\x89PNG\r\n\x1a\n....", 12)}};

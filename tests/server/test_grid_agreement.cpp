@@ -10,7 +10,8 @@
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
-#include "pipeline/label_table.h"
+#include "config_file.h"
+#include "core/label_table.h"
 #include "pipeline/warm_state.h"
 #include "protocol/media.h"
 #include "server/case_store.h"
@@ -57,7 +58,7 @@ ImageF image_on(const Grid3& g) {
 
 bool register_accepts(const LabelImage& labels, const ImageF& image) {
   try {
-    validate_intraop_input(IntraopInput{labels, image}, brainshift::LabelTable::defaults());
+    validate_intraop_input(IntraopInput{labels, image}, brainshift::config::default_label_table());
     return true;
   } catch (const InputError& e) {
     EXPECT_NE(std::string(e.what()).find("different grids"), std::string::npos) << e.what();

@@ -9,6 +9,7 @@
 
 #include <igtlMessageHeader.h>
 
+#include "config_file.h"
 #include "core/errors.h"
 #include "igtl_receiver.h"
 #include "server/igtl_encoder.h"
@@ -133,7 +134,7 @@ TEST(IgtlEncoder, PolyDataCarriesRasPointsAndTriangles) {
   TriSurface s;
   s.vertices_mm = {{-10.5, 20.25, 3}, {11, -2, 4.5}, {0, 0, -30}, {1, 1, 1}};
   s.triangles = {{0, 1, 2}, {0, 2, 3}};
-  auto m = unpack<::igtl::PolyDataMessage>(sigtl::pack_polydata(sigtl::model_device(protocol::Structure::kTumor), s, kT));
+  auto m = unpack<::igtl::PolyDataMessage>(sigtl::pack_polydata(sigtl::model_device("tumor"), s, kT));
   ASSERT_EQ(m->GetPoints()->GetNumberOfPoints(), 4);
   for (int i = 0; i < 4; ++i) {
     igtlFloat32 p[3];
@@ -192,7 +193,7 @@ TEST(IgtlEncoder, ResultOrderEndsWithStatusAndNamesPartsThatCannotBeSent) {
   TriSurface tri;
   tri.vertices_mm = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
   tri.triangles = {{0, 1, 2}};
-  r.models = {{protocol::Structure::kBrain, tri}, {protocol::Structure::kCorticospinalTract, tri}};
+  r.models = {{"brain", tri}, {"cst", tri}};
   const auto messages = sigtl::encode_result(r);
   std::vector<std::string> devices;
   for (const auto& m : messages) devices.push_back(m.device);
@@ -206,10 +207,13 @@ TEST(IgtlEncoder, ResultOrderEndsWithStatusAndNamesPartsThatCannotBeSent) {
 TEST(IgtlEncoder, DeviceNamesAreStableShortAndDistinct) {
   std::set<std::string> names = {sigtl::kFieldDevice, sigtl::kWarpedImageDevice, sigtl::kWarpedLabelsDevice,
                                  sigtl::kStatusDevice};
-  for (protocol::Structure s : protocol::all_structures()) names.insert(sigtl::model_device(s));
-  EXPECT_EQ(names.size(), 4 + protocol::all_structures().size());
+  const LabelTable& table = config::default_label_table();
+  for (const auto& e : table.entries) names.insert(sigtl::model_device(short_name_of(e)));
+  EXPECT_EQ(names.size(), 4 + table.entries.size());
   for (const auto& n : names) EXPECT_LE(n.size(), sigtl::kMaxDeviceName) << n;
-  EXPECT_EQ(sigtl::model_device(protocol::Structure::kVentricles), "bs.model.ventricles");
+  EXPECT_EQ(sigtl::model_device(short_name_of(*table.find("ventricles"))), "bs.model.ventricles");
+  EXPECT_EQ(sigtl::model_device(short_name_of(*table.find("corticospinal_tract"))), "bs.model.cst");
+  EXPECT_THROW(sigtl::model_device("arcuate_fasc"), std::invalid_argument);  // 21 bytes
   EXPECT_THROW(sigtl::pack_status("brainshift.warped_labels", 1, 0, "", "", kT), std::logic_error);
   // A 20-byte error name would reach the receiver without its NUL.
   EXPECT_THROW(sigtl::pack_status(sigtl::kStatusDevice, 1, 0, "affine_only_fallback", "", kT), std::logic_error);

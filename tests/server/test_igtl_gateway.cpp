@@ -78,7 +78,7 @@ TEST(IgtlGateway, LatestResultOnConnectThenEveryNewResultToEveryClient) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
   const std::string first = store_result(store, 1.5f);
-  IgtlGateway gateway(any_port(), store);
+  IgtlGateway gateway(any_port(), store, config::default_label_table());
   ASSERT_GT(gateway.port(), 0);
 
   IgtlReceiver a(gateway.port(), 10s);
@@ -114,7 +114,7 @@ TEST(IgtlGateway, ClientVanishingMidMessageDisturbsNobody) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
   store_result(store, 1.0f, 40);  // a field of 768 KB: the peer leaves inside it
-  IgtlGateway gateway(any_port(), store);
+  IgtlGateway gateway(any_port(), store, config::default_label_table());
   IgtlReceiver steady(gateway.port(), 10s);
   steady.next_result();
 
@@ -141,7 +141,7 @@ TEST(IgtlGateway, SlowClientLosesTheOldestMessagesNeverTheStream) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
   const std::string scan = store_result(store, 3.0f, 72);  // 4.5 MB field per result
-  IgtlGateway gateway(any_port(8), store);
+  IgtlGateway gateway(any_port(8), store, config::default_label_table());
   IgtlReceiver slow(gateway.port(), 10s);  // does not read until the end
   IgtlReceiver fast(gateway.port(), 10s);
   fast.next_result();
@@ -178,7 +178,7 @@ TEST(IgtlGateway, WhatAClientSendsIsReadAndIgnored) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
   const std::string scan = store_result(store, 1.0f);
-  IgtlGateway gateway(any_port(), store);
+  IgtlGateway gateway(any_port(), store, config::default_label_table());
   IgtlReceiver chatty(gateway.port(), 10s);
   // Slicer may send messages of its own; garbage must not confuse the gateway either.
   const std::string noise(1 << 20, '\x5a');
@@ -193,7 +193,7 @@ TEST(IgtlGateway, ConnectionsBeyondMaxClientsAreClosed) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
   store_result(store, 1.0f);
-  IgtlGateway gateway(any_port(32, 1), store);
+  IgtlGateway gateway(any_port(32, 1), store, config::default_label_table());
   IgtlReceiver first(gateway.port(), 10s);
   first.next_result();
   const int extra = test::raw_igtl_connect(gateway.port());
@@ -206,11 +206,11 @@ TEST(IgtlGateway, ConnectionsBeyondMaxClientsAreClosed) {
 TEST(IgtlGateway, PortInUseIsAClearError) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
-  IgtlGateway one(any_port(), store);
+  IgtlGateway one(any_port(), store, config::default_label_table());
   OpenIgtlinkSettings same = any_port();
   same.port = one.port();
   try {
-    IgtlGateway two(same, store);
+    IgtlGateway two(same, store, config::default_label_table());
     FAIL() << "listened twice on one port";
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find("127.0.0.1:" + std::to_string(one.port())), std::string::npos) << e.what();
@@ -221,13 +221,13 @@ TEST(IgtlGateway, ReadsBackWhatTheStoreHolds) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");
   const std::string scan = store_result(store, 0.75f);
-  const auto r = load_igtl_result(store, scan);
+  const auto r = load_igtl_result(store, scan, config::default_label_table());
   ASSERT_TRUE(r.field && r.warped_image && r.warped_labels);
   EXPECT_TRUE(r.field->grid.same_geometry(test::small_grid(12)));
   EXPECT_EQ(r.field->vectors[5], Eigen::Vector3f(0.75f, -0.75f, 1.5f));
   ASSERT_EQ(r.models.size(), 2u);
-  EXPECT_EQ(r.models[0].first, protocol::Structure::kBrain);
-  EXPECT_EQ(r.models[1].first, protocol::Structure::kTumor);
+  EXPECT_EQ(r.models[0].first, "brain");
+  EXPECT_EQ(r.models[1].first, "tumor");
   EXPECT_TRUE(r.problems.empty());
-  EXPECT_THROW(load_igtl_result(store, "s-999999"), InputError);
+  EXPECT_THROW(load_igtl_result(store, "s-999999", config::default_label_table()), InputError);
 }

@@ -116,9 +116,9 @@ TEST(ServerCore, PreopWithLabelTableIsMappedToEngineLabels) {
   for (auto& v : labels.voxels) v = v == 1 ? 17 : (v == 2 ? 43 : 0);
   r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
   r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
-  LabelTable table;
-  table.structures[Structure::kBrain] = {17};
-  table.structures[Structure::kVentricles] = {43};
+  protocol::LabelTable table;
+  table.structures["brain"] = {17};
+  table.structures["ventricles"] = {43};
   r.label_table = media::json_frame("label_table", make_label_table_json(table));
   EXPECT_EQ(h.call(make_preop_load_request("p", r)).type(), MessageType::kPreopLoadReply);
   ASSERT_TRUE(h.core->step(10ms));

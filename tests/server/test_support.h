@@ -9,6 +9,7 @@
 #include <string>
 #include <thread>
 
+#include "config_file.h"
 #include "core/image.h"
 #include "core/tet_mesh.h"
 #include "server/case_store.h"
@@ -35,12 +36,12 @@ class FakeEngine : public server::EnginePort {
   server::PreopImages load_default_atlas(const std::filesystem::path&) override;
   void load_preop(const server::PreopImages& preop, std::optional<TetMesh> stored_mesh, double atlas_seconds,
                   const server::StageProgressFn& progress) override;
+  const LabelTable& label_table() const override { return table; }
   bool ready() const override { return ready_; }
   const TetMesh& mesh() const override { return mesh_; }
   nlohmann::json preop_timings() const override { return {{"mesh", 0.1}}; }
   server::EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
-                                         double read_seconds, const std::filesystem::path& scratch_dir,
-                                         const server::StageProgressFn& progress) override;
+                                         double read_seconds, const server::StageProgressFn& progress) override;
   int ranks() const override { return 1; }
   std::size_t max_image_bytes() const override { return std::size_t{64} << 20; }
   void stop_workers() override { stopped = true; }
@@ -55,6 +56,7 @@ class FakeEngine : public server::EnginePort {
   static const std::string kReportPng;
   std::function<void()> while_rendering_report;  // called inside render_deferred
 
+  LabelTable table = config::default_label_table();  // the shipped labels.toml unless a test sets another
   bool fail_next_scan = false;   // ComputeError from the next register_scan
   // The next scan's result is the affine-only fallback (metrics.json says so).
   bool fallback_next_scan = false;

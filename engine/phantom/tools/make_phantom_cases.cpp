@@ -10,6 +10,7 @@
 #include <iostream>
 
 #include "atlas/default_atlas.h"
+#include "config_file.h"
 #include "core/timer.h"
 #include "image/nifti_io.h"
 #include "image/resample.h"
@@ -77,7 +78,7 @@ void write_case(const bs::DefaultAtlas& atlas, const bs::PhantomSpec& spec, cons
   in.warped_preop_affine = &rigid_t1;
   in.warped_preop_nonrigid = &true_t1;
   in.warped_labels = &true_labels;
-  in.legend = bs::report_legend(bs::LabelTable::defaults());
+  in.legend = bs::report_legend(bs::config::default_label_table());
   in.outer_label = bs::labels::brain;
   // The truth, not a registration: row 2 is the rigid part alone, row 3 the
   // true field; there are no registration numbers to print.

@@ -156,8 +156,8 @@ Frame nifti(const std::string& name, const std::string& bytes) { return media::n
 void message_seeds() {
   const std::string labels_gz = label_image_to_bytes(small_labels(), true);
   const std::string image_gz = scalar_image_to_bytes(small_image(), VoxelType::uint8, true);
-  const std::string table = make_label_table_json({{{Structure::kBrain, {1}}, {Structure::kVentricles, {2}},
-                                                    {Structure::kTumor, {4}}}});
+  const std::string table = make_label_table_json({{{"brain", {1}}, {"ventricles", {2}},
+                                                    {"tumor", {4}}}});
   // Requests.
   save_message("req_status", make_status_request("s-1"));
   save_message("req_preop_load_atlas", make_preop_load_request("p-1", {true, {}, {}, {}}));
@@ -171,7 +171,7 @@ void message_seeds() {
   save_message("req_scan_result",
                make_scan_result_request("r-1", {"scan-000001",
                                                 {ResultPart::kDisplacement, ResultPart::kModels, ResultPart::kTimings},
-                                                {Structure::kBrain, Structure::kTumor}}));
+                                                {"brain", "tumor"}}));
   save_message("req_scan_list", make_scan_list_request("l-1", {10}));
   save_message("req_shutdown", make_shutdown_request("x-1", {"end of case"}));
 

@@ -18,7 +18,11 @@ enum class LabelRole {
 
 struct LabelEntry {
   std::uint16_t value = 0;
-  std::string name;  // model name, e.g. "corticospinal_tract"
+  std::string name;  // model name, e.g. "corticospinal_tract": 1..64 of [a-z0-9_], a letter first
+  // At most 11 characters: the name in OpenIGTLink device names
+  // ("bs.model.cst"), whose header field holds 20 bytes. Empty: the name,
+  // cut to 11 characters.
+  std::string short_name;
   LabelRole role = LabelRole::structure;
   double youngs_modulus_pa = 3000.0;
   double poisson_ratio = 0.35;
@@ -35,18 +39,24 @@ struct LabelEntry {
 struct LabelTable {
   std::vector<LabelEntry> entries;
 
-  // 1 brain parenchyma, 2 lateral ventricles, 3 corticospinal tract, 4 tumor.
-  static LabelTable defaults();
+  // No defaults here: the shipped table is config/labels.toml, compiled into
+  // every binary by config/ (one copy; config::default_label_table()).
   const LabelEntry* find(std::uint16_t value) const;
   const LabelEntry* find(const std::string& name) const;
   // The parenchyma label (exactly one) and the cavity labels.
   std::uint16_t brain_label() const;
   std::vector<std::uint16_t> cavity_labels() const;
   std::vector<std::uint16_t> resectable_labels() const;
-  // Throws InputError: duplicate values or names, value 0, no or several
-  // parenchyma labels, nu outside (0, 0.5), E <= 0.
+  // Throws InputError: duplicate values, names or short names, value 0, a
+  // name that is not [a-z][a-z0-9_]{0,63} (it becomes file and frame names),
+  // a short name over 11 characters, no or several parenchyma labels, nu
+  // outside (0, 0.5), E <= 0.
   void validate() const;
 };
+
+// The entry's short name, or its name cut to 11 characters.
+std::string short_name_of(const LabelEntry& entry);
+inline constexpr std::size_t kMaxShortNameLength = 11;
 
 std::string to_string(LabelRole role);
 // "#rrggbb" (as written in labels.toml); InputError naming the text otherwise.

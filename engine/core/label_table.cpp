@@ -1,4 +1,4 @@
-#include "pipeline/label_table.h"
+#include "core/label_table.h"
 
 #include <set>
 
@@ -6,20 +6,6 @@
 #include "core/labels.h"
 
 namespace brainshift {
-
-// Mirrors config/labels.toml (nu = 0.35: the drained response over the time
-// scale of surgery; see the comment there).
-LabelTable LabelTable::defaults() {
-  LabelTable table;
-  table.entries = {
-      {labels::brain, "brain", LabelRole::parenchyma, 3000.0, 0.35, true, false, {40, 220, 60}},
-      {labels::ventricles, "ventricles", LabelRole::cavity, 3000.0, 0.35, true, false, {0, 200, 255}},
-      {labels::corticospinal_tract, "corticospinal_tract", LabelRole::structure, 3000.0, 0.35, true, false,
-       {255, 40, 40}},
-      {labels::tumor, "tumor", LabelRole::structure, 3000.0, 0.35, true, true, {255, 230, 0}},
-  };
-  return table;
-}
 
 const LabelEntry* LabelTable::find(std::uint16_t value) const {
   for (const auto& e : entries)
@@ -53,14 +39,34 @@ std::vector<std::uint16_t> LabelTable::resectable_labels() const {
   return out;
 }
 
+namespace {
+bool is_structure_name(const std::string& name) {
+  if (name.empty() || name.size() > 64 || name[0] < 'a' || name[0] > 'z') return false;
+  for (char c : name)
+    if (!((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '_')) return false;
+  return true;
+}
+}  // namespace
+
+std::string short_name_of(const LabelEntry& entry) {
+  return entry.short_name.empty() ? entry.name.substr(0, kMaxShortNameLength) : entry.short_name;
+}
+
 void LabelTable::validate() const {
   std::set<std::uint16_t> values;
-  std::set<std::string> names;
+  std::set<std::string> names, short_names;
+  if (entries.empty()) throw InputError("label table: no entries (the shipped one is config/labels.toml)");
   int parenchyma = 0;
   for (const auto& e : entries) {
     const std::string where = "label table entry " + std::to_string(e.value) + " (\"" + e.name + "\")";
     if (e.value == 0) throw InputError(where + ": value 0 is reserved for background");
     if (e.name.empty()) throw InputError(where + ": empty name");
+    if (!is_structure_name(e.name))
+      throw InputError(where + ": a name is 1..64 of a-z, 0-9 and _, starting with a letter");
+    if (e.short_name.size() > kMaxShortNameLength || (!e.short_name.empty() && !is_structure_name(e.short_name)))
+      throw InputError(where + ": short_name is 1..11 of a-z, 0-9 and _, starting with a letter");
+    if (!short_names.insert(short_name_of(e)).second)
+      throw InputError(where + ": short name \"" + short_name_of(e) + "\" is another label's too");
     if (!values.insert(e.value).second) throw InputError(where + ": duplicate value");
     if (!names.insert(e.name).second) throw InputError(where + ": duplicate name");
     if (!(e.youngs_modulus_pa > 0.0)) throw InputError(where + ": youngs_modulus_pa must be > 0");

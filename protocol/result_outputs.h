@@ -1,0 +1,91 @@
+#pragma once
+// The parts of a registration result and every name each goes by: the wire
+// (scan.result "parts" and frame names), the CLI (`pull --parts`), the files
+// `brainshift register --out` and `pull` write, and the daemon's store. One
+// table; the engine's encoder, the daemon, the OpenIGTLink gateway and the
+// client all look names up here (PROTOCOL.md section 8 quotes it).
+#include <array>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace brainshift::protocol {
+
+enum class ResultPart {
+  kDisplacement,     // NIfTI DISPVECT field, RAS+ mm, intraop grid, pull-back
+  kDisplacementItk,  // ITK HDF5 DisplacementFieldTransform, LPS mm
+  kWarpedImage,      // preop T1 resampled onto the intraop grid
+  kWarpedLabels,     // preop labels resampled onto the intraop grid
+  kModels,           // one .vtp per structure ("model.<structure>" frames)
+  kMetrics,          // JSON
+  kTimings,          // JSON, see timing_log.h ScanTimings
+  kReport,           // report.png (image/png), rendered after the scan is done
+};
+
+enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
+
+struct ResultOutput {
+  ResultPart part;
+  std::string_view wire;   // part and frame name; models: part "models", frames "model.<structure>"
+  std::string_view cli;    // `brainshift pull --parts`
+  std::string_view file;   // register --out and pull; models: "models/<structure>.vtp"
+  // The daemon's store: images plain (the client gzips as it writes the file:
+  // gzip of the 47 MB field alone cost the daemon ~1.5 s of latency).
+  std::string_view stored;
+  MediaKind media;
+  // Made off the latency path, after event.scan.done: a pull may find it
+  // "pending" for a moment.
+  bool deferred;
+};
+
+inline constexpr std::array<ResultOutput, 8> kResultOutputs{{
+    {ResultPart::kDisplacement, "displacement", "field", "field.nii.gz", "field.nii", MediaKind::kNifti, false},
+    {ResultPart::kDisplacementItk, "displacement_itk", "field_h5", "field.h5", "field.h5", MediaKind::kItkH5, true},
+    {ResultPart::kWarpedImage, "warped_image", "warped_image", "warped_image.nii.gz", "warped_image.nii",
+     MediaKind::kNifti, false},
+    {ResultPart::kWarpedLabels, "warped_labels", "warped_labels", "warped_labels.nii.gz", "warped_labels.nii",
+     MediaKind::kNifti, false},
+    {ResultPart::kModels, "models", "models", "models/<structure>.vtp", "models/<structure>.vtp", MediaKind::kVtp,
+     false},
+    {ResultPart::kMetrics, "metrics", "metrics", "metrics.json", "metrics.json", MediaKind::kJson, true},
+    {ResultPart::kTimings, "timings", "timings", "timings.json", "timings.json", MediaKind::kJson, false},
+    {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true},
+}};
+
+const ResultOutput& result_output(ResultPart part);
+std::string_view to_string(ResultPart p);  // the wire name
+std::optional<ResultPart> result_part_from_string(std::string_view wire);
+std::optional<ResultPart> result_part_from_cli(std::string_view cli);
+
+// Frame name carrying a single-file part ("displacement", ...); throws
+// std::invalid_argument for kModels (one model_frame_name per structure).
+std::string frame_name(ResultPart part);
+// Names the part may have in the daemon's store, preferred first: the plain
+// image ("field.nii"), then register's name ("field.nii.gz"), which stores
+// written before images were kept plain hold.
+std::vector<std::string> stored_file_names(ResultPart part);
+
+// ---- Structures: names from the daemon's label table ----------------------
+
+// A structure name as the label table gives it: 1..64 of [a-z0-9_], starting
+// with a letter. It becomes a frame name and a file name, so nothing else
+// (no '/', no '.') may pass.
+bool is_valid_structure_name(std::string_view name);
+std::string model_frame_name(std::string_view structure);  // "model.brain"
+std::string model_file_name(std::string_view structure);   // "models/brain.vtp"
+// The structure a model frame or file names; nullopt if it names none.
+std::optional<std::string> structure_of_model_frame(std::string_view frame);
+std::optional<std::string> structure_of_model_file(std::string_view file);
+
+// register's name for a received frame ("displacement" -> "field.nii.gz",
+// "model.brain" -> "models/brain.vtp"); "" for a frame no part has.
+std::string file_for_frame(std::string_view frame);
+// The part a stored or written file belongs to (either name); nullopt if none.
+std::optional<ResultPart> part_of_file(std::string_view file);
+// Whether media_type is what a frame of that part carries.
+bool media_type_fits(ResultPart part, std::string_view media_type);
+// The media type of a frame carrying that file (NIfTI: gzip or plain by the bytes).
+std::string result_media_type(std::string_view file, std::string_view bytes);
+
+}  // namespace brainshift::protocol
