@@ -7,6 +7,7 @@
 #include <spdlog/spdlog.h>
 
 #include "core/errors.h"
+#include "server/label_mapping.h"
 #include "server/server_core_internal.h"
 
 namespace brainshift::server {
@@ -86,14 +87,17 @@ void ServerCore::repair_scan(const std::string& scan_id) {
   try {
     const auto record = store_.find(scan_id);
     std::string preop_id;
+    std::shared_ptr<const protocol::LabelTable> label_map;
     {
       std::lock_guard lock(mutex_);
       preop_id = ready_preop_id_;
+      label_map = ready_label_map_;
     }
     if (!record || record->preop_id != preop_id)
       throw InputError("it was registered against another preop than the one loaded");
     const auto names = store_.result_file_names(scan_id);
-    const DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
+    DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
+    if (label_map) map_label_values(d.labels, label_map.get(), engine_.label_table());
     engine_.register_scan(d.labels, d.image, d.read_seconds, [](const std::string&, double, double) {});
     engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
       if (std::find(names.begin(), names.end(), name) != names.end()) return;

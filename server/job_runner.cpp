@@ -7,7 +7,7 @@
 #include "core/errors.h"
 #include "image/nifti_io.h"
 #include "protocol/events.h"
-#include "server/preop_labels.h"
+#include "server/label_mapping.h"
 #include "server/server_core_internal.h"
 
 namespace brainshift::server {
@@ -59,7 +59,7 @@ void ServerCore::run_preop_job(PreopJob job) {
         }
         if (!images.t1.grid.same_geometry(images.labels.grid))
           throw InputError(settings_.preop.labels.string() + ": grid differs from the preop T1's");
-        remap_preop_labels(images.labels, table ? &*table : nullptr, engine_.label_table());
+        map_label_values(images.labels, table ? &*table : nullptr, engine_.label_table());
         job.images = std::move(images);
       }
       atlas_seconds = seconds_since(ta);
@@ -74,9 +74,13 @@ void ServerCore::run_preop_job(PreopJob job) {
     if (job.source != "store" || !had_mesh) store_.save_mesh(id, mesh);
     const MeshSize size{mesh.node_count(), mesh.tet_count()};
     const double seconds = seconds_since(t0);
+    std::shared_ptr<const protocol::LabelTable> label_map;
+    if (!job.label_table_json.empty())
+      label_map = std::make_shared<const protocol::LabelTable>(parse_label_table_json(job.label_table_json));
     {
       std::lock_guard lock(mutex_);
       ready_preop_id_ = id;
+      ready_label_map_ = std::move(label_map);
       loading_preop_id_.clear();
       mesh_size_ = size;
       progress_.reset();
@@ -207,9 +211,11 @@ void ServerCore::run_scan(const std::string& scan_id) {
   if (!record) return;
   std::string preop_id;
   std::shared_ptr<DecodedScan> decoded;
+  std::shared_ptr<const protocol::LabelTable> label_map;
   {
     std::lock_guard lock(mutex_);
     preop_id = ready_preop_id_;
+    label_map = ready_label_map_;
     state_ = ServerState::kProcessing;
     current_scan_ = scan_id;
     current_stage_ = "decode";
@@ -232,6 +238,7 @@ void ServerCore::run_scan(const std::string& scan_id) {
     if (record->preop_id != preop_id)
       throw InputError("pushed against preop " + record->preop_id + " but " + preop_id + " is loaded");
     if (!decoded) decoded = std::make_shared<DecodedScan>(decode_scan(store_.load_scan_input(scan_id)));
+    if (label_map) map_label_values(decoded->labels, label_map.get(), engine_.label_table());
     // "decode" (the pushed bytes to images) is the daemon's; the engine logs its own "read".
     progress("decode", 1.0, decoded->read_seconds);
     EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, progress);

@@ -8,7 +8,7 @@
 #include "core/errors.h"
 #include "image/nifti_io.h"
 #include "protocol/media.h"
-#include "server/preop_labels.h"
+#include "server/label_mapping.h"
 #include "protocol/result_outputs.h"
 #include "server/server_core_internal.h"
 
@@ -147,7 +147,7 @@ Message ServerCore::on_preop_load(const Message& m) {
       table = parse_label_table_json(req.label_table->bytes);
       job->label_table_json = req.label_table->bytes;
     }
-    remap_preop_labels(images.labels, table ? &*table : nullptr, engine_.label_table());
+    map_label_values(images.labels, table ? &*table : nullptr, engine_.label_table());
     job->images = std::move(images);
     job->source = "upload";
   }

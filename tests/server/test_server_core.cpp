@@ -127,6 +127,63 @@ TEST(ServerCore, PreopWithLabelTableIsMappedToEngineLabels) {
     ASSERT_EQ(seen.voxels[i], labels.voxels[i] == 17 ? 1 : (labels.voxels[i] == 43 ? 2 : 0));
 }
 
+// A daemon configured with a fifth structure: a preop naming it in its label
+// map is mapped to the daemon's values, a map naming a structure the daemon
+// does not know is refused naming it, and the intraop labels of a scan use the
+// sender's values too (PROTOCOL.md), mapped the same way before the engine
+// sees them.
+TEST(ServerCore, LabelMapWithAFifthStructureFlowsToPreopAndScans) {
+  Harness h;
+  LabelEntry arcuate;
+  arcuate.value = 5;
+  arcuate.name = "arcuate_fasciculus";
+  arcuate.short_name = "af";
+  h.engine.table.entries.push_back(arcuate);
+  LabelImage labels = test::ball_labels(10);
+  for (std::size_t i = 0; i < labels.voxels.size(); ++i)
+    labels.voxels[i] = labels.voxels[i] == 2 ? 43 : labels.voxels[i] == 1 ? (i % 7 == 0 ? 99 : 17) : 0;
+  PreopLoadRequest r;
+  r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
+  r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
+  protocol::LabelTable map;
+  map.structures["brain"] = {17};
+  map.structures["ventricles"] = {43};
+  map.structures["liver"] = {99};
+  r.label_table = media::json_frame("label_table", make_label_table_json(map));
+  const Message refused = h.call(make_preop_load_request("p0", r));
+  expect_error(refused, ErrorCode::kInvalidRequest, "p0");
+  EXPECT_NE(parse_error_reply(refused).message.find("\"liver\" is not in the daemon's label table"),
+            std::string::npos) << parse_error_reply(refused).message;
+
+  map.structures.erase("liver");
+  map.structures["arcuate_fasciculus"] = {99};
+  r.label_table = media::json_frame("label_table", make_label_table_json(map));
+  ASSERT_EQ(h.call(make_preop_load_request("p1", r)).type(), MessageType::kPreopLoadReply);
+  ASSERT_TRUE(h.core->step(10ms));
+  auto engine_value = [](std::uint16_t v) -> std::uint16_t { return v == 17 ? 1 : v == 43 ? 2 : v == 99 ? 5 : 0; };
+  const LabelImage& seen = h.engine.last_preop.labels;
+  for (std::size_t i = 0; i < seen.voxels.size(); ++i) ASSERT_EQ(seen.voxels[i], engine_value(labels.voxels[i])) << i;
+
+  // The double's field holds the label value the engine got in x.
+  const ScanPushReply pushed = parse_scan_push_reply(h.push(labels));
+  ASSERT_TRUE(h.core->step(10ms));
+  const ScanResultReply result = parse_scan_result_reply(
+      h.call(make_scan_result_request("r", {pushed.scan_id, {ResultPart::kDisplacement}, {}})));
+  const VectorImage3 field = vector_image_from_bytes(result.find("displacement")->bytes, "field", 1u << 26);
+  for (std::size_t i = 0; i < field.vectors.size(); ++i)
+    ASSERT_EQ(field.vectors[i].x(), engine_value(labels.voxels[i])) << i;
+
+  // A sender value the map does not list fails the scan, naming it.
+  LabelImage stray = labels;
+  stray.voxels[stray.voxels.size() / 2] = 123;
+  const ScanPushReply bad = parse_scan_push_reply(h.push(stray));
+  ASSERT_TRUE(h.core->step(10ms));
+  const Message failed = h.call(make_scan_result_request("r2", {bad.scan_id, {ResultPart::kDisplacement}, {}}));
+  ASSERT_EQ(failed.type(), MessageType::kError);
+  EXPECT_NE(parse_error_reply(failed).message.find("value 123 is not in the label table"), std::string::npos)
+      << parse_error_reply(failed).message;
+}
+
 TEST(ServerCore, BadPreopIsATypedErrorAndNothingChanges) {
   Harness h;
   PreopLoadRequest r;

@@ -1,6 +1,7 @@
 #pragma once
-// Preop label values as the engine's label table has them, whatever values
-// the sender's atlas uses.
+// Label values as the engine's label table has them, whatever values the
+// sender's atlas uses: the preop labels of preop.load, and the intraop labels
+// of every scan pushed against that preop (PROTOCOL.md: the same values).
 #include <filesystem>
 #include <string>
 
@@ -15,7 +16,7 @@ namespace brainshift::server {
 // listed, and each becomes its structure's value in the table. Without one,
 // the values must already be the table's. InputError naming the first
 // offending structure or value, and when no voxel is the parenchyma label.
-void remap_preop_labels(LabelImage& labels, const protocol::LabelTable* map, const LabelTable& table);
+void map_label_values(LabelImage& labels, const protocol::LabelTable* map, const LabelTable& table);
 
 // Whole file as bytes; InputError naming the path when unreadable.
 std::string read_text_file(const std::filesystem::path& path);

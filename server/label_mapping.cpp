@@ -1,4 +1,4 @@
-#include "server/preop_labels.h"
+#include "server/label_mapping.h"
 
 #include <array>
 #include <fstream>
@@ -23,7 +23,7 @@ std::string values_of(const LabelTable& table) {
 
 }  // namespace
 
-void remap_preop_labels(LabelImage& labels, const protocol::LabelTable* map, const LabelTable& table) {
+void map_label_values(LabelImage& labels, const protocol::LabelTable* map, const LabelTable& table) {
   std::array<std::uint16_t, 65536> to{};  // 0 = unlisted
   std::array<bool, 65536> listed{};
   listed[0] = true;
