@@ -33,14 +33,15 @@ struct PreopPaths {
   std::string image, labels, atlas_cache;
 };
 
-// Reads the preop pair, or the default atlas when neither path is given.
-PreopInput read_preop(const PreopPaths& paths) {
+// Reads the preop pair, or the default atlas (in the table's values) when
+// neither path is given.
+PreopInput read_preop(const PreopPaths& paths, const LabelTable& table) {
   if (paths.image.empty() != paths.labels.empty())
     throw InputError("give both --preop-image and --preop-labels, or neither (default atlas)");
   if (paths.image.empty()) {
     const fs::path cache = paths.atlas_cache.empty() ? default_atlas_cache() : fs::path(paths.atlas_cache);
     DefaultAtlas atlas = load_or_build_default_atlas(cache);
-    return PreopInput{std::move(atlas.t1), std::move(atlas.labels)};
+    return PreopInput{std::move(atlas.t1), atlas_labels_for(atlas.labels, table)};
   }
   return PreopInput{read_scalar_image(paths.image), read_label_image(paths.labels)};
 }
@@ -75,7 +76,7 @@ int run_register_rank0(const RegisterOptions& o) {
 
   EngineSession session(MPI_COMM_WORLD, params);
   Stopwatch atlas_clock;
-  PreopInput preop = read_preop(o.preop);
+  PreopInput preop = read_preop(o.preop, params.label_table);
   session.set_atlas_seconds(atlas_clock.seconds());
   print_progress("preop", "atlas", 1.0, atlas_clock.seconds());
   session.load_preop(std::move(preop), [](const std::string& s, double f, double t) { print_progress("preop", s, f, t); });
@@ -155,7 +156,8 @@ int run_phantom(const PhantomOptions& o) {
     if (!chosen) throw InputError("unknown phantom preset \"" + o.preset + "\" (see --list)");
     PhantomSpec spec = *chosen;
     spec.seed = o.seed;
-    PreopInput preop = read_preop(o.preop);
+    // The phantom's presets name the atlas's own values (the shipped table's).
+    PreopInput preop = read_preop(o.preop, config::default_label_table());
     if (spec.preop_tumor) {
       // The case resects a tumor the preop must have: register against the
       // preop written next to it.

@@ -27,7 +27,7 @@
 #include <string>
 #include <vector>
 
-#include "core/labels.h"
+#include "core/label_colour.h"
 
 namespace brainshift::cli {
 

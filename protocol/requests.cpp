@@ -130,6 +130,8 @@ LabelTable parse_label_table_json(std::string_view text) {
   const FieldReader f(j, "label_table");
   if (f.uint("v") != 1) f.fail("v", "must be 1");
   LabelTable table;
+  if (f.object("structures").size() > kMaxStructures)
+    f.fail("structures", "names more than " + std::to_string(kMaxStructures) + " structures");
   for (const auto& [name, values] : f.object("structures").items()) {
     if (!is_valid_structure_name(name))
       f.fail("structures", "\"" + name + "\" is not a structure name (1..64 of a-z, 0-9, _; a letter first)");
@@ -337,10 +339,13 @@ ScanResultRequest parse_scan_result_request(const Message& m) {
       f.fail("scan_id", "must be 1..128 printable ASCII characters without spaces");
     r.parts = parse_name_list<ResultPart>(f, "parts", f.array("parts"), result_part_from_string);
     if (r.parts.empty()) f.fail("parts", "must name at least one part");
-    if (const json* s = f.opt_array("structures"))
+    if (const json* s = f.opt_array("structures")) {
+      if (s->size() > kMaxStructures)
+        f.fail("structures", "names more than " + std::to_string(kMaxStructures) + " structures");
       r.structures = parse_name_list<std::string>(f, "structures", *s, [](const std::string& name) {
         return is_valid_structure_name(name) ? std::optional<std::string>(name) : std::nullopt;
       });
+    }
     return r;
   });
 }

@@ -31,6 +31,8 @@ std::optional<ScanState> scan_state_from_string(std::string_view s);
 // Bounds on what a client sends (PROTOCOL.md section 13.5).
 inline constexpr std::size_t kMaxLabelTableBytes = 64 * 1024;
 inline constexpr std::size_t kMaxShutdownReasonLength = 256;
+// Structures named in a label table or a scan.result request.
+inline constexpr std::size_t kMaxStructures = 64;
 
 // Which label values of the preop label image make up each structure, e.g.
 // JHU labels 7 and 8 both belong to the corticospinal tract. Structure names

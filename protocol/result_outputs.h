@@ -3,7 +3,7 @@
 // (scan.result "parts" and frame names), the CLI (`pull --parts`), the files
 // `brainshift register --out` and `pull` write, and the daemon's store. One
 // table; the engine's encoder, the daemon, the OpenIGTLink gateway and the
-// client all look names up here (PROTOCOL.md section 8 quotes it).
+// client all look names up here (PROTOCOL.md section 5.4 quotes it).
 #include <array>
 #include <optional>
 #include <string>

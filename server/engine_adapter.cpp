@@ -16,7 +16,7 @@ EngineAdapter::EngineAdapter(MPI_Comm comm, PipelineParameters params) : session
 
 PreopImages EngineAdapter::load_default_atlas(const fs::path& cache_dir) {
   DefaultAtlas atlas = load_or_build_default_atlas(cache_dir);
-  return PreopImages{std::move(atlas.t1), std::move(atlas.labels)};
+  return PreopImages{std::move(atlas.t1), atlas_labels_for(atlas.labels, session_.parameters().label_table)};
 }
 
 void EngineAdapter::load_preop(const PreopImages& preop, std::optional<TetMesh> stored_mesh,

@@ -5,6 +5,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <fstream>
@@ -12,7 +13,7 @@
 #include <vector>
 
 #include "core/errors.h"
-#include "core/labels.h"
+#include "core/label_colour.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "image/nifti_io.h"
@@ -107,12 +108,12 @@ Mask jhu_corticospinal_tract(const std::filesystem::path& dir, const Grid3& grid
 }
 
 LabelImage compose_atlas_labels(const Mask& brain, const Mask& ventricles, const Mask& cst) {
-  LabelImage labels(brain.grid, labels::background);
+  LabelImage labels(brain.grid, atlas_labels::background);
   for (std::size_t i = 0; i < labels.voxels.size(); ++i) {
     if (!brain.voxels[i]) continue;
-    labels.voxels[i] = ventricles.voxels[i] ? labels::ventricles
-                       : cst.voxels[i]      ? labels::corticospinal_tract
-                                            : labels::brain;
+    labels.voxels[i] = ventricles.voxels[i] ? atlas_labels::ventricles
+                       : cst.voxels[i]      ? atlas_labels::corticospinal_tract
+                                            : atlas_labels::brain;
   }
   return labels;
 }
@@ -138,7 +139,7 @@ DefaultAtlas load_cache(const CachePaths& paths) {
   if (!atlas.t1.grid.same_geometry(atlas.labels.grid))
     throw InputError(paths.labels.string() + ": grid differs from " + paths.t1.string());
   for (std::uint16_t v : atlas.labels.voxels)
-    if (v > labels::corticospinal_tract) throw InputError(paths.labels.string() + ": unexpected label value");
+    if (v > atlas_labels::corticospinal_tract) throw InputError(paths.labels.string() + ": unexpected label value");
   return atlas;
 }
 
@@ -149,7 +150,7 @@ nlohmann::json provenance(const DefaultAtlas& atlas, const std::filesystem::path
   j["sources"] = {"ch2.nii.gz", "ch2bet.nii.gz", "ch2better.nii.gz", "JHU-WhiteMatter-labels-1mm.nii.gz"};
   j["labels"] = {{"1", "brain parenchyma"}, {"2", "lateral ventricles"}, {"3", "corticospinal tract"}};
   j["jhu_cst_labels"] = kJhuCstLabels;
-  for (std::uint16_t l : {labels::brain, labels::ventricles, labels::corticospinal_tract})
+  for (std::uint16_t l : {atlas_labels::brain, atlas_labels::ventricles, atlas_labels::corticospinal_tract})
     j["volume_ml"][std::to_string(l)] = volume_ml(mask_of_labels(atlas.labels, {l}));
   return j;
 }
@@ -187,6 +188,19 @@ DefaultAtlas load_or_build_default_atlas(const std::filesystem::path& cache_dir,
   DefaultAtlas atlas = build_default_atlas(templates_dir);
   write_cache(atlas, paths, templates_dir);
   return atlas;
+}
+
+LabelImage atlas_labels_for(const LabelImage& atlas, const LabelTable& table) {
+  const std::uint16_t parenchyma = table.brain_label();
+  auto value_for = [&](const char* name) {
+    const LabelEntry* e = table.find(std::string(name));
+    return e ? e->value : parenchyma;
+  };
+  std::array<std::uint16_t, 4> to{atlas_labels::background, parenchyma, value_for("ventricles"),
+                                  value_for("corticospinal_tract")};
+  LabelImage out = atlas;
+  for (auto& v : out.voxels) v = v < to.size() ? to[v] : parenchyma;
+  return out;
 }
 
 }  // namespace brainshift

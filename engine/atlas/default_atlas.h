@@ -25,10 +25,26 @@
 //   the brain. Ventricles take precedence over CST where they overlap.
 #include <filesystem>
 
+#include <cstdint>
+#include <string>
+#include <utility>
+#include <vector>
+
 #include "core/image.h"
+#include "core/label_table.h"
 #include "image/morphology.h"
 
 namespace brainshift {
+
+// The atlas's own label values. The shipped label table (config/labels.toml)
+// uses the same numbers; a site's table with other values gets the atlas
+// through atlas_labels_for (by structure name).
+namespace atlas_labels {
+inline constexpr std::uint16_t background = 0;
+inline constexpr std::uint16_t brain = 1;
+inline constexpr std::uint16_t ventricles = 2;
+inline constexpr std::uint16_t corticospinal_tract = 3;
+}  // namespace atlas_labels
 
 struct DefaultAtlas {
   ImageF t1;           // ch2 T1 on its native grid
@@ -40,6 +56,11 @@ struct DefaultAtlas {
 // mask with its ventricles and tract (ventricles win over the tract).
 Mask jhu_corticospinal_tract(const std::filesystem::path& templates_dir, const Grid3& grid);
 LabelImage compose_atlas_labels(const Mask& brain, const Mask& ventricles, const Mask& cst);
+
+// The atlas's labels in the values of `table`, matched by structure name
+// (brain, ventricles, corticospinal_tract). A structure the table lacks
+// becomes the table's parenchyma: it is tissue the site does not track.
+LabelImage atlas_labels_for(const LabelImage& atlas, const LabelTable& table);
 
 DefaultAtlas build_default_atlas(
     const std::filesystem::path& templates_dir = "/usr/share/mricron/templates");

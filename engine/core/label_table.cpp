@@ -3,7 +3,7 @@
 #include <set>
 
 #include "core/errors.h"
-#include "core/labels.h"
+#include "core/label_colour.h"
 
 namespace brainshift {
 

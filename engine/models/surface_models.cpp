@@ -6,7 +6,6 @@
 #include <unordered_map>
 
 #include "core/errors.h"
-#include "core/labels.h"
 
 namespace brainshift {
 namespace {
@@ -434,14 +433,6 @@ TriSurface surface_model(const LabelImage& labels, const std::vector<std::uint16
 
 TriSurface surface_model(const LabelImage& labels, std::uint16_t label, const ModelParameters& params) {
   return surface_model(labels, std::vector<std::uint16_t>{label}, params);
-}
-
-std::vector<StructureDefinition> default_structure_table() {
-  using namespace labels;
-  return {{"brain", {brain, ventricles, corticospinal_tract, tumor}},
-          {"ventricles", {ventricles}},
-          {"corticospinal_tract", {corticospinal_tract}},
-          {"tumor", {tumor}}};
 }
 
 std::map<std::string, TriSurface> structure_models(const LabelImage& labels,

@@ -57,11 +57,8 @@ struct StructureDefinition {
   std::vector<std::uint16_t> labels;
 };
 
-// The project's default structures (engine/core/labels.h): "brain" = 1|2|3|4
-// (parenchyma plus everything inside it, so its surface is the outer brain
-// surface), "ventricles" = 2, "corticospinal_tract" = 3, "tumor" = 4.
-std::vector<StructureDefinition> default_structure_table();
-
+// (Made from the label table by the pipeline: the parenchyma's structure
+// holds every label inside it, so its surface is the outer brain surface.)
 // One model per structure present in the label map (absent ones are skipped).
 std::map<std::string, TriSurface> structure_models(
     const LabelImage& labels, const std::vector<StructureDefinition>& table,

@@ -7,7 +7,7 @@
 
 #include "atlas/default_atlas.h"
 #include "core/errors.h"
-#include "core/labels.h"
+#include "core/label_colour.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "image/nifti_io.h"
@@ -80,7 +80,7 @@ IndependentLabels build_independent_labels(const ImageF& t1, const std::filesyst
 
   out.labels = compose_atlas_labels(brain, ventricles, jhu_corticospinal_tract(dir, g));
   out.brain_ml = volume_ml(brain);
-  out.cst_ml = volume_ml(mask_of_labels(out.labels, {labels::corticospinal_tract}));
+  out.cst_ml = volume_ml(mask_of_labels(out.labels, {atlas_labels::corticospinal_tract}));
   return out;
 }
 

@@ -33,7 +33,7 @@
 #include <vector>
 
 #include "core/image.h"
-#include "core/labels.h"
+#include "core/label_colour.h"
 
 namespace brainshift {
 

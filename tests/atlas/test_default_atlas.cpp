@@ -7,7 +7,8 @@
 #include <unistd.h>
 
 #include "atlas/default_atlas.h"
-#include "core/labels.h"
+#include "core/errors.h"
+#include "core/label_colour.h"
 #include "core/timer.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
@@ -63,11 +64,11 @@ class DefaultAtlasTest : public ::testing::Test {
 TEST_F(DefaultAtlasTest, OnColin27GridWithKnownLabelsOnly) {
   EXPECT_EQ(atlas().t1.grid.dims, (std::array<int, 3>{181, 217, 181}));
   EXPECT_TRUE(atlas().labels.grid.same_geometry(atlas().t1.grid));
-  for (std::uint16_t v : atlas().labels.voxels) ASSERT_LE(v, labels::corticospinal_tract);
+  for (std::uint16_t v : atlas().labels.voxels) ASSERT_LE(v, atlas_labels::corticospinal_tract);
 }
 
 TEST_F(DefaultAtlasTest, BrainVolumeIsAdult) {
-  Mask brain = label(labels::brain);
+  Mask brain = label(atlas_labels::brain);
   for (std::size_t i = 0; i < brain.voxels.size(); ++i) brain.voxels[i] = atlas().labels.voxels[i] != 0;
   const double ml = volume_ml(brain);
   EXPECT_GT(ml, 1300.0);
@@ -78,7 +79,7 @@ TEST_F(DefaultAtlasTest, BrainVolumeIsAdult) {
 }
 
 TEST_F(DefaultAtlasTest, LateralVentriclesPlausible) {
-  const Mask v = label(labels::ventricles);
+  const Mask v = label(atlas_labels::ventricles);
   const double ml = volume_ml(v);
   EXPECT_GT(ml, 8.0);
   EXPECT_LT(ml, 60.0);
@@ -96,7 +97,7 @@ TEST_F(DefaultAtlasTest, LateralVentriclesPlausible) {
   for (int k = 1; k + 1 < g.dims[2]; ++k)
     for (int j = 1; j + 1 < g.dims[1]; ++j)
       for (int i = 1; i + 1 < g.dims[0]; ++i) {
-        if (lab.at(i, j, k) != labels::ventricles) continue;
+        if (lab.at(i, j, k) != atlas_labels::ventricles) continue;
         touching += lab.at(i - 1, j, k) == 0 || lab.at(i + 1, j, k) == 0 || lab.at(i, j - 1, k) == 0 ||
                     lab.at(i, j + 1, k) == 0 || lab.at(i, j, k - 1) == 0 || lab.at(i, j, k + 1) == 0;
       }
@@ -107,7 +108,7 @@ TEST_F(DefaultAtlasTest, LateralVentriclesPlausible) {
   for (int k = 0; k < g.dims[2]; ++k)
     for (int j = 0; j < g.dims[1]; ++j)
       for (int i = 0; i < g.dims[0]; ++i) {
-        if (lab.at(i, j, k) != labels::ventricles) continue;
+        if (lab.at(i, j, k) != atlas_labels::ventricles) continue;
         const Eigen::Vector3d w = g.world_mm(i, j, k);
         third += std::abs(w.x()) < 2.5 && w.y() > -30 && w.y() < 0 && w.z() < 8;
       }
@@ -115,7 +116,7 @@ TEST_F(DefaultAtlasTest, LateralVentriclesPlausible) {
 }
 
 TEST_F(DefaultAtlasTest, CorticospinalTractBilateralFromBrainstemToCoronaRadiata) {
-  const Mask cst = label(labels::corticospinal_tract);
+  const Mask cst = label(atlas_labels::corticospinal_tract);
   const auto [left, right] = left_right_ml(cst);
   EXPECT_GT(left, 3.0);
   EXPECT_GT(right, 3.0);
@@ -156,6 +157,21 @@ TEST(DefaultAtlasErrors, MissingTemplatesNameTheFile) {
   } catch (const std::exception& e) {
     EXPECT_NE(std::string(e.what()).find("ch2.nii.gz"), std::string::npos) << e.what();
   }
+}
+
+// A site's table with other values and no tract: the atlas arrives in its
+// values, by name, the tract as tissue.
+TEST(AtlasLabelsFor, MapsByNameAndUntrackedStructuresBecomeTissue) {
+  LabelImage atlas(Grid3{}, 0);
+  atlas.grid.dims = {4, 1, 1};
+  atlas.voxels = {atlas_labels::background, atlas_labels::brain, atlas_labels::ventricles,
+                  atlas_labels::corticospinal_tract};
+  LabelTable site;
+  site.entries = {{10, "parenchyma_of_site", "", LabelRole::parenchyma}, {20, "ventricles", "", LabelRole::cavity}};
+  EXPECT_EQ(atlas_labels_for(atlas, site).voxels, (std::vector<std::uint16_t>{0, 10, 20, 10}));
+  site.entries.push_back({30, "corticospinal_tract", "cst"});
+  EXPECT_EQ(atlas_labels_for(atlas, site).voxels, (std::vector<std::uint16_t>{0, 10, 20, 30}));
+  EXPECT_THROW(atlas_labels_for(atlas, LabelTable{}), InputError);
 }
 
 }  // namespace

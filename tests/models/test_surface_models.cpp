@@ -186,7 +186,7 @@ TEST(SurfaceModel, StructureTableSkipsAbsentStructures) {
         const double r = std::sqrt((i - 19.5) * (i - 19.5) + (j - 19.5) * (j - 19.5) + (k - 19.5) * (k - 19.5));
         if (r < 15) img.at(i, j, k) = r < 5 ? 2 : 1;
       }
-  const auto models = structure_models(img, default_structure_table());
+  const auto models = structure_models(img, {{"brain", {1, 2}}, {"ventricles", {2}}, {"tumor", {4}}});
   ASSERT_EQ(models.size(), 2u);
   const auto& brain = models.at("brain");
   const auto& vent = models.at("ventricles");

@@ -1,7 +1,7 @@
 #include "robustness_evaluation.h"
 
 #include "atlas/default_atlas.h"
-#include "core/labels.h"
+#include "core/label_colour.h"
 #include "phantom/independent_labels.h"
 #include "phantom/tumor_implant.h"
 
@@ -27,7 +27,7 @@ CaseAnatomy case_anatomy(const RobustnessInputs& in, const RobustnessSpec& spec)
     implant_tumor(a.preop.t1, a.truth_labels, tumor);
     for (std::size_t v = 0; v < a.truth_labels.voxels.size(); ++v) {
       std::uint16_t& p = a.preop.labels.voxels[v];
-      if (a.truth_labels.voxels[v] == tumor.label && (p == labels::brain || p == labels::corticospinal_tract))
+      if (a.truth_labels.voxels[v] == tumor.label && (p == atlas_labels::brain || p == atlas_labels::corticospinal_tract))
         p = tumor.label;
     }
     a.preop_key += "+tumor" + std::to_string(tumor.seed);

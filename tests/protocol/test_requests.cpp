@@ -150,6 +150,9 @@ TEST(LabelTable, RefusesBadStructureNamesAndOutOfRangeValues) {
     EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{")" + std::string(name) + R"(":[9]}})"),
                  bp::ProtocolError) << name;
   EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{}})"), bp::ProtocolError);
+  json many = {{"v", 1}, {"structures", json::object()}};
+  for (std::size_t i = 0; i <= bp::kMaxStructures; ++i) many["structures"]["s" + std::to_string(i)] = {i + 1};
+  EXPECT_THROW(bp::parse_label_table_json(many.dump()), bp::ProtocolError);
   EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[70000]}})"),
                bp::ProtocolError);
   EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[0]}})"),
@@ -217,6 +220,13 @@ TEST(ScanResult, RequestRefusesEmptyRepeatedOrUnknownParts) {
   EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
   m.header["parts"] = {"jacobian"};
   EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
+  m.header["parts"] = {"models"};
+  m.header["structures"] = {"../brain"};
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
+  m.header["structures"] = json::array();
+  for (std::size_t i = 0; i <= bp::kMaxStructures; ++i) m.header["structures"].push_back("s" + std::to_string(i));
+  EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);
+  m.header.erase("structures");
   m.header["parts"] = {"metrics"};
   m.header.erase("scan_id");
   EXPECT_EQ(error_of([&] { bp::parse_scan_result_request(m); }), ErrorCode::kInvalidRequest);

@@ -64,7 +64,7 @@ void write_case(const bs::DefaultAtlas& atlas, const bs::PhantomSpec& spec, cons
        },
        true_t1, true_labels);
   bs::ReportOptions opt;
-  opt.centre_label = bs::labels::tumor;
+  opt.centre_label = bs::config::default_label_table().find("tumor")->value;
   if (pc.description.contains("sinking")) {
     const auto& c = pc.description["sinking"]["craniotomy_preop_mm"];
     const Eigen::Vector3d preop(c[0].get<double>(), c[1].get<double>(), c[2].get<double>());
@@ -79,7 +79,7 @@ void write_case(const bs::DefaultAtlas& atlas, const bs::PhantomSpec& spec, cons
   in.warped_preop_nonrigid = &true_t1;
   in.warped_labels = &true_labels;
   in.legend = bs::report_legend(bs::config::default_label_table());
-  in.outer_label = bs::labels::brain;
+  in.outer_label = bs::atlas_labels::brain;
   // The truth, not a registration: row 2 is the rigid part alone, row 3 the
   // true field; there are no registration numbers to print.
   in.summary.scan_id = spec.name;
