@@ -11,6 +11,7 @@
 #include "core/errors.h"
 #include "image/distance_map.h"
 #include "image/morphology.h"
+#include "image/resample.h"
 #include "phantom/random_fields.h"
 
 namespace brainshift {
@@ -30,50 +31,6 @@ std::array<bool, 65536> label_set(const std::vector<std::uint16_t>& labels) {
   for (auto l : labels) s[l] = true;
   return s;
 }
-
-// Trilinear / nearest sampling through world mm with the inverse affine
-// computed once (the per-call inverse of image/resample.h is too slow for
-// millions of samples). Same edge convention: the outer half voxel replicates.
-class Sampler {
- public:
-  explicit Sampler(const Grid3& g) : g_(g), voxel_from_world_(g.voxel_from_world()) {}
-  bool voxel(const Eigen::Vector3d& world, Eigen::Vector3d& v) const {
-    v = (voxel_from_world_ * world.homogeneous()).head<3>();
-    for (int d = 0; d < 3; ++d)
-      if (!(v[d] >= -0.5 && v[d] <= g_.dims[d] - 0.5)) return false;
-    return true;
-  }
-  float linear(const std::vector<float>& data, const Eigen::Vector3d& world, float outside) const {
-    Eigen::Vector3d v;
-    if (!voxel(world, v)) return outside;
-    int i0[3], i1[3];
-    double f[3];
-    for (int d = 0; d < 3; ++d) {
-      const double c = std::clamp(v[d], 0.0, static_cast<double>(g_.dims[d] - 1));
-      i0[d] = std::min(static_cast<int>(c), g_.dims[d] - 1);
-      i1[d] = std::min(i0[d] + 1, g_.dims[d] - 1);
-      f[d] = c - i0[d];
-    }
-    auto at = [&](int i, int j, int k) { return static_cast<double>(data[g_.index(i, j, k)]); };
-    const double c0 = (at(i0[0], i0[1], i0[2]) * (1 - f[0]) + at(i1[0], i0[1], i0[2]) * f[0]) * (1 - f[1]) +
-                      (at(i0[0], i1[1], i0[2]) * (1 - f[0]) + at(i1[0], i1[1], i0[2]) * f[0]) * f[1];
-    const double c1 = (at(i0[0], i0[1], i1[2]) * (1 - f[0]) + at(i1[0], i0[1], i1[2]) * f[0]) * (1 - f[1]) +
-                      (at(i0[0], i1[1], i1[2]) * (1 - f[0]) + at(i1[0], i1[1], i1[2]) * f[0]) * f[1];
-    return static_cast<float>(c0 * (1 - f[2]) + c1 * f[2]);
-  }
-  std::uint16_t nearest(const std::vector<std::uint16_t>& data, const Eigen::Vector3d& world,
-                        std::uint16_t outside) const {
-    Eigen::Vector3d v;
-    if (!voxel(world, v)) return outside;
-    int idx[3];
-    for (int d = 0; d < 3; ++d) idx[d] = std::clamp(static_cast<int>(std::floor(v[d] + 0.5)), 0, g_.dims[d] - 1);
-    return data[g_.index(idx[0], idx[1], idx[2])];
-  }
-
- private:
-  Grid3 g_;
-  Eigen::Matrix4d voxel_from_world_;
-};
 
 // Runs fn(k) for every slice k on two threads (the target machines have 2 cores).
 template <class F>
@@ -137,7 +94,7 @@ PhantomDeformation::PhantomDeformation(const LabelImage& labels, const PhantomSp
   const auto brain = label_set(spec.brain_labels);
   centroid_ = mask_centroid(labels, brain);
   if (!centroid_.allFinite()) throw InputError("phantom '" + spec.name + "': no brain label in the preop labels");
-  const Sampler sampler(labels.grid);
+  const GridSampler sampler(labels.grid);
 
   const auto& sk = spec.sinking;
   const Eigen::Vector3d outward = sk.craniotomy_direction.normalized();
@@ -312,8 +269,7 @@ Grid3 intraop_grid(const PhantomSpec& s, const Eigen::Vector3d& centre_mm) {
 
 double percentile_in(const ImageF& t1, const LabelImage& labels, const std::array<bool, 65536>& in, double q) {
   std::vector<float> values;
-  const Sampler s(t1.grid);
-  const Sampler ls(labels.grid);
+  const GridSampler ls(labels.grid);
   const bool same = t1.grid.same_geometry(labels.grid);
   for (int k = 0; k < t1.grid.dims[2]; ++k)
     for (int j = 0; j < t1.grid.dims[1]; ++j)
@@ -391,19 +347,19 @@ PhantomCase make_phantom(const ImageF& preop_t1, const LabelImage& preop_labels,
   if (fluid <= 0) fluid = 0.1 * brain_p99;  // no ventricles: a dark fluid anyway
   const double sigma = spec.noise_fraction * brain_p99;
 
-  const Sampler t1s(preop_t1.grid), labs(preop_labels.grid);
+  const GridSampler t1s(preop_t1.grid), labs(preop_labels.grid);
   out.intraop_t1 = ImageF(grid, 0.f);
   out.intraop_labels = LabelImage(grid, 0);
   // Noise-free resection/brain membership, reused for landmarks.
   std::vector<std::uint8_t> tissue(grid.voxel_count(), 0);
   const Eigen::Matrix4d preop_from_intraop_rigid = phi.intraop_from_preop_rigid().inverse();
-  const Sampler sdt(phi.resection_uses_tumor_label() ? maps.sd_tumor.grid : grid);
+  const GridSampler sdt(phi.resection_uses_tumor_label() ? maps.sd_tumor.grid : grid);
   auto cavity_distance = [&](const Eigen::Vector3d& p) -> double {
     if (!resect) return 1e9;
     if (phi.resection_uses_tumor_label()) return sdt.linear(maps.sd_tumor.voxels, p, 1e3f);
     return (p - phi.resection_centre_mm()).norm() - phi.resection_radius_mm();
   };
-  const Sampler sdb(maps.sd_brain.grid), sdv(maps.sd_ventricles.grid);
+  const GridSampler sdb(maps.sd_brain.grid), sdv(maps.sd_ventricles.grid);
   parallel_slices(grid.dims[2], [&](int k) {
     for (int j = 0; j < grid.dims[1]; ++j)
       for (int i = 0; i < grid.dims[0]; ++i) {

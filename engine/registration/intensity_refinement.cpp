@@ -15,6 +15,7 @@
 #include "core/timer.h"
 #include "image/distance_map.h"
 #include "image/image_stats.h"
+#include "image/interpolation.h"
 #include "registration/linear_sampler.h"
 
 namespace brainshift {
@@ -706,21 +707,9 @@ struct CorrectionStats {
 // u at a continuous voxel index (trilinear, clamped to the grid; at least two
 // voxels per axis, see check_inputs). Float: this runs for every voxel.
 Vec3f field_at(const VectorImage3& u, const Vec3f& index) {
-  const auto& d = u.grid.dims;
-  int b[3];
-  float f[3];
-  for (int a = 0; a < 3; ++a) {
-    const float t = std::clamp(index[a], 0.f, static_cast<float>(d[a] - 1));
-    b[a] = std::min(static_cast<int>(t), d[a] - 2);
-    f[a] = t - static_cast<float>(b[a]);
-  }
-  const std::size_t sy = static_cast<std::size_t>(d[0]), sz = sy * static_cast<std::size_t>(d[1]);
-  const Vec3f* p = u.vectors.data() + u.grid.index(b[0], b[1], b[2]);
-  const Vec3f c00 = p[0] + f[0] * (p[1] - p[0]), c10 = p[sy] + f[0] * (p[sy + 1] - p[sy]);
-  const Vec3f c01 = p[sz] + f[0] * (p[sz + 1] - p[sz]);
-  const Vec3f c11 = p[sy + sz] + f[0] * (p[sy + sz + 1] - p[sy + sz]);
-  const Vec3f c0 = c00 + f[1] * (c10 - c00), c1 = c01 + f[1] * (c11 - c01);
-  return c0 + f[2] * (c1 - c0);
+  Vec3f value;
+  trilinear_sample<TrilinearEdge::kClamp, float>(u.grid, u.vectors.data(), index, &value);
+  return value;
 }
 
 // The refined pull-back u'(x) = w(x) + u(x + w(x)), w = fade(x) v(x): the
