@@ -1,4 +1,4 @@
-#include "phantom/random_fields.h"
+#include "phantom/phantom_artefacts.h"
 
 #include <algorithm>
 #include <array>
@@ -66,6 +66,14 @@ std::vector<float> bias_field(const Grid3& g, double amplitude, std::mt19937_64&
       }
   for (std::size_t v = 0; v < out.size(); ++v) out[v] = static_cast<float>(std::exp(amplitude * values[v] / max_abs));
   return out;
+}
+
+void add_rician_noise(std::vector<float>& voxels, double sigma, std::mt19937_64& rng) {
+  std::normal_distribution<double> normal(0, sigma);
+  for (auto& v : voxels) {
+    const double re = v + normal(rng), im = normal(rng);
+    v = static_cast<float>(std::sqrt(re * re + im * im));
+  }
 }
 
 }  // namespace brainshift
