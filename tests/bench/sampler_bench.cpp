@@ -15,6 +15,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/timer.h"
+#include "field/field_fill.h"
 #include "field/vector_sampling.h"
 #include "field/warp.h"
 #include "image/resample.h"
@@ -115,6 +116,26 @@ int main(int argc, char** argv) {
     check = s;
   });
   out["vector_sampling_checksum"] = check;
+
+  // Known inside a ball (the mesh's brain), filled everywhere else, as the field stage does.
+  std::vector<std::uint8_t> known(target.voxel_count(), 0);
+  std::vector<std::uint32_t> targets;
+  for (int k = 0; k < target.dims[2]; ++k)
+    for (int j = 0; j < target.dims[1]; ++j)
+      for (int i = 0; i < target.dims[0]; ++i) {
+        const std::size_t v = target.index(i, j, k);
+        const bool in = (Eigen::Vector3d(i, j, k) - Eigen::Vector3d::Constant(80)).norm() < 55;
+        known[v] = in;
+        if (!in) targets.push_back(static_cast<std::uint32_t>(v));
+      }
+  out["fill_push_pull_s"] = fastest(repeat, [&] {
+    std::vector<Eigen::Vector3f> values = u.vectors;
+    fill_push_pull(target, known, targets, values);
+    double s = 0;
+    for (const auto& v : values) s += v.sum();
+    check = s;
+  });
+  out["fill_push_pull_checksum"] = check;
   out["points"] = points;
   out["repeat"] = repeat;
   std::printf("%s\n", out.dump().c_str());
