@@ -41,4 +41,15 @@ void parallel_halves(std::size_t n, std::size_t min_per_thread, Fn&& fn) {
   if (helper_error) std::rethrow_exception(helper_error);
 }
 
+// fn(begin, end, half) on the two halves of [0, n) (half 0 or 1), side by side
+// when there is a second core. Always the same two partial results, so sums
+// reduced from them do not depend on the number of cores.
+template <class Fn>
+void on_two_halves(std::size_t n, Fn&& fn) {
+  const std::size_t mid = n / 2;
+  parallel_halves(2, 1, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t h = begin; h < end; ++h) fn(h == 0 ? 0 : mid, h == 0 ? mid : n, h);
+  });
+}
+
 }  // namespace brainshift

@@ -8,6 +8,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/smoothstep.h"
 #include "core/timer.h"
 #include "field/field_fill.h"
 #include "image/distance_map.h"
@@ -170,11 +171,6 @@ void rasterise(const TetMesh& mesh, const MeshDeformation& def, const Grid3& gri
       scan_tet(scan, preop, grid, tol, raster);
     }
   });
-}
-
-double smoothstep(double t) {
-  t = std::clamp(t, 0.0, 1.0);
-  return t * t * (3.0 - 2.0 * t);
 }
 
 template <class F>

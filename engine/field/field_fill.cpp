@@ -5,6 +5,7 @@
 #include <cmath>
 
 #include "core/parallel.h"
+#include "image/interpolation.h"
 
 namespace brainshift {
 namespace {
@@ -95,17 +96,15 @@ struct Upsampler {
         ay(axis_weights(fine.dims[1], c.dims[1], c.factor[1])),
         az(axis_weights(fine.dims[2], c.dims[2], c.factor[2])) {}
 
+  // The cell comes from the per-axis tables; image/interpolation.h blends it.
   Eigen::Vector3f at(int i, int j, int k) const {
-    const auto v = [&](int a, int b, int c) -> const Eigen::Vector3f& {
-      return coarse.values[coarse.index(a, b, c)];
-    };
-    const float tx = ax.t[i], ty = ay.t[j], tz = az.t[k];
-    const int x0 = ax.lo[i], x1 = ax.hi[i], y0 = ay.lo[j], y1 = ay.hi[j], z0 = az.lo[k], z1 = az.hi[k];
-    const Eigen::Vector3f c00 = (1 - tx) * v(x0, y0, z0) + tx * v(x1, y0, z0);
-    const Eigen::Vector3f c10 = (1 - tx) * v(x0, y1, z0) + tx * v(x1, y1, z0);
-    const Eigen::Vector3f c01 = (1 - tx) * v(x0, y0, z1) + tx * v(x1, y0, z1);
-    const Eigen::Vector3f c11 = (1 - tx) * v(x0, y1, z1) + tx * v(x1, y1, z1);
-    return (1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11);
+    const std::size_t sy = static_cast<std::size_t>(coarse.dims[0]), sz = sy * static_cast<std::size_t>(coarse.dims[1]);
+    TrilinearCell<float> cell;
+    cell.origin = coarse.index(ax.lo[i], ay.lo[j], az.lo[k]);
+    cell.step = {static_cast<std::size_t>(ax.hi[i] - ax.lo[i]), static_cast<std::size_t>(ay.hi[j] - ay.lo[j]) * sy,
+                 static_cast<std::size_t>(az.hi[k] - az.lo[k]) * sz};
+    cell.t = {ax.t[i], ay.t[j], az.t[k]};
+    return trilinear_blend(trilinear_corners<float>(coarse.values.data(), cell), cell);
   }
 };
 

@@ -1,10 +1,9 @@
 #include "field/warp.h"
 
-#include <algorithm>
-#include <cmath>
 #include <string>
 
 #include "core/errors.h"
+#include "image/interpolation.h"
 
 namespace brainshift {
 namespace {
@@ -38,38 +37,14 @@ void for_each_pullback(const Grid3& preop, const VectorImage3& pullback, Sink&& 
     }
 }
 
-bool inside(const Eigen::Vector3d& c, const std::array<int, 3>& dims) {
-  return c.x() >= -0.5 && c.y() >= -0.5 && c.z() >= -0.5 && c.x() <= dims[0] - 0.5 &&
-         c.y() <= dims[1] - 0.5 && c.z() <= dims[2] - 0.5;
-}
-
-float trilinear(const ImageF& image, const Eigen::Vector3d& c) {
-  const auto& d = image.grid.dims;
-  int lo[3], hi[3];
-  float t[3];
-  for (int a = 0; a < 3; ++a) {
-    const double x = std::clamp(c[a], 0.0, static_cast<double>(d[a] - 1));
-    lo[a] = std::min(static_cast<int>(x), d[a] - 1);
-    hi[a] = std::min(lo[a] + 1, d[a] - 1);
-    t[a] = static_cast<float>(x - lo[a]);
-  }
-  const auto at = [&](int i, int j, int k) { return image.voxels[image.grid.index(i, j, k)]; };
-  const float c00 = at(lo[0], lo[1], lo[2]) + t[0] * (at(hi[0], lo[1], lo[2]) - at(lo[0], lo[1], lo[2]));
-  const float c10 = at(lo[0], hi[1], lo[2]) + t[0] * (at(hi[0], hi[1], lo[2]) - at(lo[0], hi[1], lo[2]));
-  const float c01 = at(lo[0], lo[1], hi[2]) + t[0] * (at(hi[0], lo[1], hi[2]) - at(lo[0], lo[1], hi[2]));
-  const float c11 = at(lo[0], hi[1], hi[2]) + t[0] * (at(hi[0], hi[1], hi[2]) - at(lo[0], hi[1], hi[2]));
-  const float c0 = c00 + t[1] * (c10 - c00);
-  const float c1 = c01 + t[1] * (c11 - c01);
-  return c0 + t[2] * (c1 - c0);
-}
-
 }  // namespace
 
 ImageF warp_image_linear(const ImageF& preop, const VectorImage3& pullback, float outside_value) {
   check(preop.grid, pullback);
   ImageF out(pullback.grid, outside_value);
+  // Float arithmetic: this runs for every voxel of the scan.
   for_each_pullback(preop.grid, pullback, [&](std::size_t v, const Eigen::Vector3d& c) {
-    if (inside(c, preop.grid.dims)) out.voxels[v] = trilinear(preop, c);
+    trilinear_sample<TrilinearEdge::kVoxelExtent, float>(preop.grid, preop.voxels.data(), c, &out.voxels[v]);
   });
   return out;
 }
@@ -78,14 +53,9 @@ LabelImage warp_labels_nearest(const LabelImage& preop, const VectorImage3& pull
                                std::uint16_t outside_value) {
   check(preop.grid, pullback);
   LabelImage out(pullback.grid, outside_value);
-  const auto& d = preop.grid.dims;
   for_each_pullback(preop.grid, pullback, [&](std::size_t v, const Eigen::Vector3d& c) {
-    if (!inside(c, d)) return;
-    // Round half up; clamp keeps the outer half voxel on the edge voxel.
-    const int i = std::clamp(static_cast<int>(std::floor(c.x() + 0.5)), 0, d[0] - 1);
-    const int j = std::clamp(static_cast<int>(std::floor(c.y() + 0.5)), 0, d[1] - 1);
-    const int k = std::clamp(static_cast<int>(std::floor(c.z() + 0.5)), 0, d[2] - 1);
-    out.voxels[v] = preop.at(i, j, k);
+    std::size_t index;
+    if (nearest_voxel(preop.grid, c, &index)) out.voxels[v] = preop.voxels[index];
   });
   return out;
 }

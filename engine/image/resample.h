@@ -4,13 +4,41 @@
 // A point is inside an image when its continuous voxel coordinate lies in
 // [-0.5, n-0.5] on every axis (the voxels' extent, not only the hull of their
 // centres); within the outer half voxel the edge value is replicated. Elsewhere
-// outside_value is returned.
+// outside_value is returned. (TrilinearEdge::kVoxelExtent of image/interpolation.h.)
 #include <Eigen/Dense>
 #include <cstdint>
+#include <vector>
 
 #include "core/image.h"
+#include "image/interpolation.h"
 
 namespace brainshift {
+
+// Samples voxel data on one grid at many world points, with the inverse
+// affine computed once (sample_linear inverts it on every call).
+class GridSampler {
+ public:
+  explicit GridSampler(const Grid3& grid) : grid_(grid), voxel_from_world_(grid.voxel_from_world()) {}
+  Eigen::Vector3d voxel(const Eigen::Vector3d& world_mm) const {
+    return (voxel_from_world_ * world_mm.homogeneous()).head<3>();
+  }
+  // voxels: grid.voxel_count() values in grid order.
+  float linear(const std::vector<float>& voxels, const Eigen::Vector3d& world_mm, float outside_value) const {
+    double value;
+    return trilinear_sample<TrilinearEdge::kVoxelExtent>(grid_, voxels.data(), voxel(world_mm), &value)
+               ? static_cast<float>(value)
+               : outside_value;
+  }
+  std::uint16_t nearest(const std::vector<std::uint16_t>& voxels, const Eigen::Vector3d& world_mm,
+                        std::uint16_t outside_value) const {
+    std::size_t index;
+    return nearest_voxel(grid_, voxel(world_mm), &index) ? voxels[index] : outside_value;
+  }
+
+ private:
+  Grid3 grid_;
+  Eigen::Matrix4d voxel_from_world_;
+};
 
 float sample_linear(const ImageF& image, const Eigen::Vector3d& world_mm, float outside_value);
 std::uint16_t sample_nearest(const LabelImage& labels, const Eigen::Vector3d& world_mm,

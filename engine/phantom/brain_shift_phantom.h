@@ -27,6 +27,10 @@
 // label_noise_correlation_mm): segmentation noise that is spatially
 // correlated like a real one.
 // Everything is deterministic for a given seed.
+//
+// Where: the deformation in phantom_deformation.cpp, the images in
+// brain_shift_phantom.cpp, the artefacts in phantom_artefacts.h, the standard
+// suite in phantom_presets.cpp.
 #include <Eigen/Dense>
 #include <cstdint>
 #include <optional>

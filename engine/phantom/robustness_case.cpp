@@ -8,7 +8,7 @@
 #include "core/errors.h"
 #include "image/distance_map.h"
 #include "image/morphology.h"
-#include "phantom/random_fields.h"
+#include "phantom/phantom_artefacts.h"
 
 namespace brainshift {
 namespace {
@@ -147,11 +147,7 @@ ImageF degrade_image(const ImageF& clean, const LabelImage& clean_labels, const 
   const auto bias = bias_field(out.grid, std::log1p(a.bias_amplitude), rng);
   for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] *= bias[v];
   const double wm_level = gm + a.gm_wm_contrast * (wm - gm);
-  std::normal_distribution<double> normal(0, wm_level / a.wm_snr);
-  for (auto& v : out.voxels) {
-    const double re = v + normal(rng), im = normal(rng);
-    v = static_cast<float>(std::sqrt(re * re + im * im));
-  }
+  add_rician_noise(out.voxels, wm_level / a.wm_snr, rng);
   return out;
 }
 

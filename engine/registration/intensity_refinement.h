@@ -19,7 +19,7 @@
 // used inside the brain region and fades to 0 outside it, where the field is
 // the FEM's continuation that fades to the affine. Composed rather than
 // added, the Jacobian determinants multiply and the correction cannot fold
-// an element the FEM compressed strongly (see apply_correction in the .cpp).
+// an element the FEM compressed strongly (see intensity_correction.cpp).
 // The optimisation linearises u(x + v) ~ u(x) + grad u(x) v at each sample;
 // the final composition is exact.
 //

@@ -1,8 +1,10 @@
-#include "phantom/random_fields.h"
+#include "phantom/phantom_artefacts.h"
 
 #include <algorithm>
 #include <array>
 #include <cmath>
+
+#include "image/interpolation.h"
 
 namespace brainshift {
 
@@ -20,21 +22,18 @@ std::vector<float> smooth_noise(const Grid3& g, double correlation_mm, double rm
     n[a] = static_cast<int>(std::ceil((g.dims[a] - 1) * step[a])) + 2;
   }
   std::normal_distribution<double> normal(0, 1);
-  std::vector<double> lattice(static_cast<std::size_t>(n[0]) * n[1] * n[2]);
+  Grid3 lattice_grid;
+  lattice_grid.dims = n;
+  std::vector<double> lattice(lattice_grid.voxel_count());
   for (auto& v : lattice) v = normal(rng);
-  auto L = [&](int i, int j, int k) { return lattice[i + static_cast<std::size_t>(n[0]) * (j + static_cast<std::size_t>(n[1]) * k)]; };
   double sum2 = 0;
   for (int k = 0; k < g.dims[2]; ++k)
     for (int j = 0; j < g.dims[1]; ++j)
       for (int i = 0; i < g.dims[0]; ++i) {
-        const double x = i * step[0], y = j * step[1], z = k * step[2];
-        const int x0 = static_cast<int>(x), y0 = static_cast<int>(y), z0 = static_cast<int>(z);
-        const double fx = x - x0, fy = y - y0, fz = z - z0;
+        // Within the hull of the lattice's nodes by the choice of n.
         double v = 0;
-        for (int c = 0; c < 8; ++c) {
-          const int dx = c & 1, dy = (c >> 1) & 1, dz = (c >> 2) & 1;
-          v += (dx ? fx : 1 - fx) * (dy ? fy : 1 - fy) * (dz ? fz : 1 - fz) * L(x0 + dx, y0 + dy, z0 + dz);
-        }
+        trilinear_sample<TrilinearEdge::kCentreHull>(lattice_grid, lattice.data(),
+                                                     Eigen::Vector3d(i * step[0], j * step[1], k * step[2]), &v);
         out[g.index(i, j, k)] = static_cast<float>(v);
         sum2 += v * v;
       }
@@ -66,6 +65,14 @@ std::vector<float> bias_field(const Grid3& g, double amplitude, std::mt19937_64&
       }
   for (std::size_t v = 0; v < out.size(); ++v) out[v] = static_cast<float>(std::exp(amplitude * values[v] / max_abs));
   return out;
+}
+
+void add_rician_noise(std::vector<float>& voxels, double sigma, std::mt19937_64& rng) {
+  std::normal_distribution<double> normal(0, sigma);
+  for (auto& v : voxels) {
+    const double re = v + normal(rng), im = normal(rng);
+    v = static_cast<float>(std::sqrt(re * re + im * im));
+  }
 }
 
 }  // namespace brainshift

@@ -1,7 +1,8 @@
 #pragma once
-// Smooth random fields on a grid, shared by the synthetic cases: correlated
-// segmentation noise and a coil-like multiplicative bias. Deterministic for a
-// given generator state.
+// Imaging artefacts of the synthetic cases (brain_shift_phantom.h,
+// robustness_case.h): correlated segmentation noise, a coil-like
+// multiplicative bias and Rician noise. Deterministic for a given generator
+// state.
 #include <random>
 #include <vector>
 
@@ -16,5 +17,10 @@ std::vector<float> smooth_noise(const Grid3& grid, double correlation_mm, double
 // exp(amplitude * g), g a random quadratic polynomial over the grid box with
 // max |g| = 1 (ones for amplitude 0).
 std::vector<float> bias_field(const Grid3& grid, double amplitude, std::mt19937_64& rng);
+
+// Magnitude of the value plus complex Gaussian noise of sigma (> 0) per
+// component, voxel by voxel in order (one random stream): an MR magnitude
+// image's noise, biased upward where the signal is dark.
+void add_rician_noise(std::vector<float>& voxels, double sigma, std::mt19937_64& rng);
 
 }  // namespace brainshift
