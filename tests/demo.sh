@@ -119,12 +119,13 @@ echo "Stage timings of $SCAN (seconds, from the daemon's timing log):"
 grep "\"scan_id\":\"$SCAN\"" "$OUT/timing.jsonl" |
   sed -n 's/.*"seconds":\([0-9.e+-]*\).*"stage":"\([a-z_]*\)".*/\2 \1/p; t; s/.*"stage":"\([a-z_]*\)".*"seconds":\([0-9.e+-]*\).*/\1 \2/p' |
   awk '
-    # metrics, itk_field and report are made after scan.done (deferred parts).
-    $1 == "metrics" || $1 == "itk_field" || $1 == "report" { late[++n] = sprintf("  %-10s %8.3f", $1, $2); next }
+    # The result is served from memory at scan.done and written (store) after
+    # it; metrics, itk_field and report are made after it too (deferred parts).
+    $1 == "store" || $1 == "metrics" || $1 == "itk_field" || $1 == "report" { late[++n] = sprintf("  %-10s %8.3f", $1, $2); next }
     { printf "  %-10s %8.3f\n", $1, $2; total += $2 }
     END {
       printf "  %-10s %8.3f   (to scan.done)\n", "sum", total
-      if (n) print "  after scan.done (deferred parts):"
+      if (n) print "  after scan.done (the write, then the deferred parts):"
       for (i = 1; i <= n; ++i) print late[i]
     }'
 echo
