@@ -3,6 +3,7 @@
 #include <set>
 
 #include "core/errors.h"
+#include "protocol/result_outputs.h"
 #include "core/label_colour.h"
 
 namespace brainshift {
@@ -39,15 +40,6 @@ std::vector<std::uint16_t> LabelTable::resectable_labels() const {
   return out;
 }
 
-namespace {
-bool is_structure_name(const std::string& name) {
-  if (name.empty() || name.size() > 64 || name[0] < 'a' || name[0] > 'z') return false;
-  for (char c : name)
-    if (!((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '_')) return false;
-  return true;
-}
-}  // namespace
-
 std::string short_name_of(const LabelEntry& entry) {
   return entry.short_name.empty() ? entry.name.substr(0, kMaxShortNameLength) : entry.short_name;
 }
@@ -61,9 +53,11 @@ void LabelTable::validate() const {
     const std::string where = "label table entry " + std::to_string(e.value) + " (\"" + e.name + "\")";
     if (e.value == 0) throw InputError(where + ": value 0 is reserved for background");
     if (e.name.empty()) throw InputError(where + ": empty name");
-    if (!is_structure_name(e.name))
+    if (!protocol::is_valid_structure_name(e.name))
       throw InputError(where + ": a name is 1..64 of a-z, 0-9 and _, starting with a letter");
-    if (e.short_name.size() > kMaxShortNameLength || (!e.short_name.empty() && !is_structure_name(e.short_name)))
+    const bool short_ok = e.short_name.empty() || (e.short_name.size() <= kMaxShortNameLength &&
+                                                   protocol::is_valid_structure_name(e.short_name));
+    if (!short_ok)
       throw InputError(where + ": short_name is 1..11 of a-z, 0-9 and _, starting with a letter");
     if (!short_names.insert(short_name_of(e)).second)
       throw InputError(where + ": short name \"" + short_name_of(e) + "\" is another label's too");
