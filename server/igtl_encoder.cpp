@@ -1,13 +1,17 @@
 #include "server/igtl_encoder.h"
 
 #include <cstdio>
+#include <algorithm>
 #include <cstring>
 #include <ctime>
 #include <limits>
 
 #include <igtlImageMessage.h>
+#include <igtlImageMetaMessage.h>
+#include <igtlLabelMetaMessage.h>
 #include <igtlPolyDataMessage.h>
 #include <igtlStatusMessage.h>
+#include <igtl_header.h>
 #include <igtl_util.h>
 #include <nlohmann/json.hpp>
 
@@ -153,12 +157,98 @@ PackedMessage pack_status(const std::string& device, int code, std::int64_t subc
   return take_pack(m.GetPointer(), device, "STATUS");
 }
 
+namespace {
+
+// The header fields hold 12 (type) and 20 (device) bytes.
+void check_reply_names(const std::string& type, const std::string& device) {
+  if (type.empty() || type.size() > IGTL_HEADER_TYPE_SIZE || device.size() > IGTL_HEADER_NAME_SIZE)
+    throw std::logic_error("OpenIGTLink reply type \"" + type + "\" or device \"" + device + "\" does not fit the header");
+}
+
+std::array<igtlUint16, 3> meta_size(const std::array<int, 3>& dims, const std::string& device) {
+  std::array<igtlUint16, 3> size{};
+  for (int a = 0; a < 3; ++a) {
+    if (dims[a] < 1 || dims[a] > std::numeric_limits<std::uint16_t>::max())
+      throw InputError(device + ": " + std::to_string(dims[a]) + " voxels along an axis; OpenIGTLink holds 1..65535");
+    size[a] = static_cast<igtlUint16>(dims[a]);
+  }
+  return size;
+}
+
+}  // namespace
+
+PackedMessage pack_image_meta(const std::string& device, const std::vector<ImageMetaEntry>& entries, TimeStamp t) {
+  check_reply_names("IMGMETA", device);
+  auto m = ::igtl::ImageMetaMessage::New();
+  m->SetDeviceName(device.c_str());
+  for (const ImageMetaEntry& e : entries) {
+    auto el = ::igtl::ImageMetaElement::New();
+    check_device(e.device);
+    el->SetName(e.name.substr(0, 63).c_str());
+    el->SetDeviceName(e.device.c_str());
+    auto size = meta_size(e.dims, e.device);
+    el->SetSize(size.data());
+    el->SetScalarType(static_cast<igtlUint8>(e.scalar_type));
+    auto ts = ::igtl::TimeStamp::New();
+    ts->SetTime(e.time.seconds, igtl_frac_to_nanosec(e.time.fraction));
+    el->SetTimeStamp(ts);
+    m->AddImageMetaElement(el);
+  }
+  m->SetTimeStamp(t.seconds, t.fraction);
+  return take_pack(m.GetPointer(), device, "IMGMETA");
+}
+
+PackedMessage pack_label_meta(const std::string& device, const std::vector<LabelMetaEntry>& entries, TimeStamp t) {
+  check_reply_names("LBMETA", device);
+  auto m = ::igtl::LabelMetaMessage::New();
+  m->SetDeviceName(device.c_str());
+  for (const LabelMetaEntry& e : entries) {
+    auto el = ::igtl::LabelMetaElement::New();
+    check_device(e.device);
+    check_device(e.owner);
+    el->SetName(e.name.substr(0, 63).c_str());
+    el->SetDeviceName(e.device.c_str());
+    el->SetOwner(e.owner.c_str());
+    el->SetLabel(e.value);
+    el->SetRGBA(e.colour[0], e.colour[1], e.colour[2], 255);
+    auto size = meta_size(e.dims, e.device);
+    el->SetSize(size.data());
+    m->AddLabelMetaElement(el);
+  }
+  m->SetTimeStamp(t.seconds, t.fraction);
+  return take_pack(m.GetPointer(), device, "LBMETA");
+}
+
+PackedMessage pack_raw(const std::string& type, const std::string& device, std::string body, TimeStamp t) {
+  check_reply_names(type, device);
+  igtl_header h{};
+  h.version = IGTL_HEADER_VERSION;
+  std::memcpy(h.name, type.data(), std::min<std::size_t>(type.size(), IGTL_HEADER_TYPE_SIZE));
+  std::memcpy(h.device_name, device.data(), std::min<std::size_t>(device.size(), IGTL_HEADER_NAME_SIZE));
+  h.timestamp = (static_cast<igtl_uint64>(t.seconds) << 32) | t.fraction;
+  h.body_size = body.size();
+  h.crc = crc64(reinterpret_cast<unsigned char*>(body.data()), body.size(), 0);
+  igtl_header_convert_byte_order(&h);
+  auto bytes = std::make_shared<std::string>(reinterpret_cast<const char*>(&h), IGTL_HEADER_SIZE);
+  *bytes += body;
+  const std::string_view view(*bytes);
+  return PackedMessage{device, type, view, std::move(bytes)};
+}
+
 std::string status_text(const ResultContent& r) {
   nlohmann::json j{{"scan_id", r.scan_id}, {"kind", r.kind}, {"reason", r.fallback_reason},
                    {"finished_at", r.finished_at}};
   if (r.client_scan_id) j["client_scan_id"] = *r.client_scan_id;
   if (!r.problems.empty()) j["problems"] = r.problems;
   return j.dump();
+}
+
+PackedMessage pack_result_status(const std::string& device, const ResultContent& r) {
+  const bool fallback = r.kind == "affine_only_fallback";
+  // The error name field is 20 bytes, and a receiver reads a name that fills
+  // them past the end (libopenigtlink 1.11): "affine_only_fallback" is 20.
+  return pack_status(device, ::igtl::StatusMessage::STATUS_OK, fallback ? kAffineFallbackSubcode : kNonrigidSubcode,
+                     fallback ? kAffineFallbackName : kNonrigidName, status_text(r), time_stamp_from_iso(r.finished_at));
 }
 
 std::vector<PackedMessage> encode_result(const ResultContent& r) {
@@ -178,12 +268,7 @@ std::vector<PackedMessage> encode_result(const ResultContent& r) {
     add([&] { return pack_labels(kWarpedLabelsDevice, *r.warped_labels, t); });
   for (const auto& [short_name, surface] : r.models)
     add([&] { return pack_polydata(model_device(short_name), surface, t); });
-  const bool fallback = r.kind == "affine_only_fallback";
-  // The error name field is 20 bytes, and a receiver reads a name that fills
-  // them past the end (libopenigtlink 1.11): "affine_only_fallback" is 20.
-  out.push_back(pack_status(kStatusDevice, ::igtl::StatusMessage::STATUS_OK,
-                            fallback ? kAffineFallbackSubcode : kNonrigidSubcode,
-                            fallback ? kAffineFallbackName : kNonrigidName, status_text(status), t));
+  out.push_back(pack_result_status(kStatusDevice, status));
   return out;
 }
 

@@ -9,6 +9,7 @@
 // coordinate byte; the byte is still set to RAS (1) for receivers that honour
 // it. An IMAGE's matrix origin is the CENTRE of the volume (OpenIGTLink's
 // convention), not voxel (0,0,0).
+#include <array>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -18,6 +19,7 @@
 #include <vector>
 
 #include "core/image.h"
+#include "core/label_colour.h"
 #include "core/tet_mesh.h"
 #include "protocol/requests.h"
 
@@ -72,6 +74,30 @@ PackedMessage pack_polydata(const std::string& device, const TriSurface& surface
 PackedMessage pack_status(const std::string& device, int code, std::int64_t subcode, const std::string& error_name,
                           const std::string& text, TimeStamp t);
 
+// Query replies (PROTOCOL.md 16.6). Their device name is the query's, as the
+// protocol asks, so it may be empty or fill all 20 bytes.
+struct ImageMetaEntry {
+  std::string name;    // description, at most 64 characters
+  std::string device;  // the name GET_IMAGE takes
+  std::array<int, 3> dims{};
+  int scalar_type = 0;  // ::igtl::ImageMessage::TYPE_*
+  TimeStamp time;
+};
+struct LabelMetaEntry {
+  std::string name;    // the structure, at most 64 characters
+  std::string device;  // the label map's name for GET_IMAGE
+  std::string owner;   // the image it belongs to
+  std::uint8_t value = 0;
+  LabelColour colour{};
+  std::array<int, 3> dims{};
+};
+PackedMessage pack_image_meta(const std::string& device, const std::vector<ImageMetaEntry>& entries, TimeStamp t);
+PackedMessage pack_label_meta(const std::string& device, const std::vector<LabelMetaEntry>& entries, TimeStamp t);
+// Any type with the given body, packed from the header struct: the
+// null-body reply of a GET_ for data that is not there, and RTS_ replies
+// (one status byte, 0 = done, as the library's RTS_TDATA).
+PackedMessage pack_raw(const std::string& type, const std::string& device, std::string body, TimeStamp t);
+
 // A done scan's result, decoded from the store.
 struct ResultContent {
   std::string scan_id;
@@ -88,6 +114,9 @@ struct ResultContent {
 
 // The STATUS text: JSON {"scan_id", "client_scan_id"?, "kind", "reason", "finished_at", "problems"?}.
 std::string status_text(const ResultContent& r);
+
+// The STATUS that closes a result (also GET_STATUS's reply).
+PackedMessage pack_result_status(const std::string& device, const ResultContent& r);
 
 // Field, warped image, warped labels, the models (in structure order), then
 // the STATUS, which closes the result: a receiver has the whole set when it

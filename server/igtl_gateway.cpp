@@ -17,20 +17,15 @@
 
 #include <spdlog/spdlog.h>
 
-#include "core/errors.h"
-#include "image/nifti_io.h"
-#include "mesh/vtk_io.h"
-#include "protocol/events.h"
+#include <igtlMessageHeader.h>
+
 #include "protocol/timing_log.h"
-#include "protocol/result_outputs.h"
 
 namespace brainshift::server {
 namespace {
 
-using protocol::ResultPart;
-
-// Our own outputs: bounded only so that a corrupt header cannot ask for more.
-constexpr std::size_t kMaxResultImageBytes = std::size_t{4} << 30;
+// RTS_ status byte (as the library's RTS_TDATA): 0 done, 1 not served.
+constexpr char kRtsDone = 0, kRtsRefused = 1;
 
 std::string errno_text() { return std::strerror(errno); }
 
@@ -65,57 +60,14 @@ int listen_on(const std::string& bind, int port, int* bound_port) {
   return fd;
 }
 
-std::optional<std::pair<std::string, std::string>> read_part(const CaseStore& store, const std::string& scan_id,
-                                                              ResultPart part) {
-  for (const auto& name : protocol::stored_file_names(part))
-    if (auto bytes = store.read_result_file(scan_id, name)) return std::make_pair(name, std::move(*bytes));
-  return std::nullopt;
-}
-
-// Runs decode; a failure becomes a problem named in the STATUS, not a lost result.
-template <class Decode>
-void try_decode(igtl::ResultContent& r, const std::string& name, Decode decode) {
-  try {
-    decode();
-  } catch (const std::exception& e) {
-    spdlog::error("OpenIGTLink: scan {}: {} not sent: {}", r.scan_id, name, e.what());
-    r.problems.push_back(name + ": " + e.what());
-  }
-}
-
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
 }  // namespace
 
-igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id, const LabelTable& labels) {
-  const auto record = store.find(scan_id);
-  if (!record || record->state != StoredScanState::done) throw InputError("scan " + scan_id + " has no result");
-  igtl::ResultContent r;
-  r.scan_id = scan_id;
-  r.client_scan_id = record->client_scan_id;
-  r.kind = record->result_kind;
-  r.fallback_reason = record->fallback_reason;
-  r.finished_at = record->finished_at.value_or(protocol::utc_now());
-  if (auto f = read_part(store, scan_id, ResultPart::kDisplacement))
-    try_decode(r, f->first, [&] { r.field = vector_image_from_bytes(f->second, f->first, kMaxResultImageBytes); });
-  if (auto f = read_part(store, scan_id, ResultPart::kWarpedImage))
-    try_decode(r, f->first,
-               [&] { r.warped_image = scalar_image_from_bytes(f->second, f->first, kMaxResultImageBytes); });
-  if (auto f = read_part(store, scan_id, ResultPart::kWarpedLabels))
-    try_decode(r, f->first,
-               [&] { r.warped_labels = label_image_from_bytes(f->second, f->first, kMaxResultImageBytes); });
-  for (const LabelEntry& e : labels.entries) {
-    const std::string name = protocol::model_file_name(e.name);
-    if (auto bytes = store.read_result_file(scan_id, name))
-      try_decode(r, name, [&] { r.models.emplace_back(short_name_of(e), read_vtp_bytes(*bytes, name)); });
-  }
-  return r;
-}
-
 IgtlGateway::IgtlGateway(const OpenIgtlinkSettings& settings, const CaseStore& store, LabelTable labels)
-    : settings_(settings), store_(store), labels_(std::move(labels)) {
+    : settings_(settings), store_(store), labels_(std::move(labels)), catalog_(store_, labels_) {
   listen_fd_ = listen_on(settings_.bind, settings_.port, &port_);
   wake_fd_ = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
   if (wake_fd_ < 0) {
@@ -171,7 +123,10 @@ void IgtlGateway::run() {
   for (;;) {
     fds.assign({{wake_fd_, POLLIN, 0}, {listen_fd_, POLLIN, 0}});
     for (const auto& c : clients_)
-      fds.push_back({c.fd, static_cast<short>(POLLIN | (c.queue.empty() ? 0 : POLLOUT)), 0});
+      fds.push_back({c.fd,
+                     static_cast<short>((c.has_room(settings_.queue_messages) ? POLLIN : 0) |
+                                        (c.queue.empty() ? 0 : POLLOUT)),
+                     0});
     if (::poll(fds.data(), fds.size(), 1000) < 0 && errno != EINTR) {
       spdlog::error("OpenIGTLink: poll(): {}", errno_text());
       std::this_thread::sleep_for(std::chrono::milliseconds(100));
@@ -193,6 +148,7 @@ void IgtlGateway::run() {
       const short ev = fds[i + 2].revents;
       if (ev & POLLIN) gone[i] = !drain_input(clients_[i]);
       if (!gone[i] && (ev & POLLOUT)) gone[i] = !write_some(clients_[i]);
+      if (!gone[i]) handle_inbox(clients_[i]);  // queries held back while the queue was full
       if (!gone[i] && (ev & (POLLERR | POLLNVAL | POLLHUP))) {
         close_client(clients_[i], ev & POLLHUP ? "hung up" : "socket error");
         gone[i] = true;
@@ -217,6 +173,7 @@ void IgtlGateway::load_and_send(const std::string& scan_id) {
       read_s = seconds_since(t0);
       t1 = std::chrono::steady_clock::now();
       packed = igtl::encode_result(content);
+      catalog_.remember(content);
     }
     std::vector<Shared> messages;
     std::size_t bytes = 0;
@@ -225,7 +182,8 @@ void IgtlGateway::load_and_send(const std::string& scan_id) {
       messages.push_back(std::make_shared<const igtl::PackedMessage>(std::move(m)));
     }
     latest_ = messages;
-    for (auto& c : clients_) enqueue(c, messages);
+    for (auto& c : clients_)
+      if (c.pushes) enqueue(c, messages);
     spdlog::info("OpenIGTLink: scan {}: {} messages, {:.1f} MB (read {:.3f} s, packed {:.3f} s) to {} client(s)",
                  scan_id, messages.size(), bytes / 1e6, read_s, seconds_since(t1), clients_.size());
   } catch (const std::exception& e) {
@@ -237,18 +195,22 @@ void IgtlGateway::enqueue(Client& c, const std::vector<Shared>& messages) {
   // A new result supersedes what a client has not begun to receive of older
   // ones: a stalled client then holds at most one old message and the
   // latest result, however many results go by (a whole-head field is
-  // ~130 MB).
+  // ~130 MB). Replies to its queries stay.
   const std::size_t keep = c.written > 0 ? 1 : 0;
-  if (c.queue.size() > keep) {
-    dropped_ += c.queue.size() - keep;
-    c.queue.erase(c.queue.begin() + static_cast<std::ptrdiff_t>(keep), c.queue.end());
-  }
+  for (std::size_t i = c.queue.size(); i-- > keep;)
+    if (!c.queue[i].reply) {
+      c.queue.erase(c.queue.begin() + static_cast<std::ptrdiff_t>(i));
+      ++dropped_;
+    }
   for (const auto& m : messages) {
-    c.queue.push_back(m);
-    // The front message may be half written: it stays, the next one goes.
-    while (c.queue.size() > settings_.queue_messages) {
-      const auto victim = c.queue.begin() + (c.written > 0 ? 1 : 0);
-      c.queue.erase(victim);
+    c.queue.push_back({m, false});
+    // The front message may be half written: it stays, the oldest other push goes.
+    for (std::size_t i = keep; c.queue.size() > settings_.queue_messages && i < c.queue.size();) {
+      if (c.queue[i].reply) {
+        ++i;
+        continue;
+      }
+      c.queue.erase(c.queue.begin() + static_cast<std::ptrdiff_t>(i));
       ++dropped_;
     }
   }
@@ -279,8 +241,8 @@ void IgtlGateway::accept_clients() {
     // A peer that vanished without a FIN is found by keepalive, not kept forever.
     setsockopt(fd, SOL_SOCKET, SO_KEEPALIVE, &on, sizeof on);
     setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &on, sizeof on);
-    clients_.push_back(Client{fd, peer, {}, 0});
-    enqueue(clients_.back(), latest_);
+    clients_.push_back(Client{fd, peer, settings_.push, {}, 0, {}, 0});
+    if (settings_.push) enqueue(clients_.back(), latest_);
     connected_ = clients_.size();
     spdlog::info("OpenIGTLink: client {} connected ({} message(s) of the latest result queued)", peer,
                  latest_.size());
@@ -289,7 +251,7 @@ void IgtlGateway::accept_clients() {
 
 bool IgtlGateway::write_some(Client& c) {
   while (!c.queue.empty()) {
-    const std::string_view bytes = c.queue.front()->bytes;
+    const std::string_view bytes = c.queue.front().message->bytes;
     const ssize_t n = ::send(c.fd, bytes.data() + c.written, bytes.size() - c.written, MSG_NOSIGNAL);
     if (n < 0) {
       if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) return true;
@@ -306,14 +268,19 @@ bool IgtlGateway::write_some(Client& c) {
   return true;
 }
 
-// The gateway only sends; what a client sends (Slicer may send its own
-// messages or queries) is read and discarded so its socket never backs up.
+// What a client sends is read at once (so its socket never backs up) and
+// parsed: queries are answered, any other message (Slicer may send its own)
+// is skipped without being kept.
 bool IgtlGateway::drain_input(Client& c) {
   char buf[16384];
-  // Bounded per round, so a client that floods cannot starve the others.
+  // Bounded per round, so a client that floods cannot starve the others;
+  // the inbox holds at most these bytes beyond what was parsed.
   for (int round = 0; round < 64; ++round) {
     const ssize_t n = ::recv(c.fd, buf, sizeof buf, 0);
-    if (n > 0) continue;
+    if (n > 0) {
+      c.inbox.append(buf, static_cast<std::size_t>(n));
+      continue;
+    }
     if (n == 0) {
       close_client(c, "disconnected");
       return false;
@@ -323,6 +290,56 @@ bool IgtlGateway::drain_input(Client& c) {
     return false;
   }
   return true;
+}
+
+void IgtlGateway::handle_inbox(Client& c) {
+  std::size_t at = 0;
+  auto header = ::igtl::MessageHeader::New();
+  while (c.has_room(settings_.queue_messages)) {
+    if (c.skip > 0) {
+      const std::size_t n = static_cast<std::size_t>(std::min<std::uint64_t>(c.skip, c.inbox.size() - at));
+      at += n;
+      c.skip -= n;
+      if (c.skip > 0) break;
+    }
+    header->InitPack();
+    const auto header_bytes = static_cast<std::size_t>(header->GetPackSize());
+    if (c.inbox.size() - at < header_bytes) break;
+    std::memcpy(header->GetPackPointer(), c.inbox.data() + at, header_bytes);
+    at += header_bytes;
+    header->Unpack();
+    c.skip = static_cast<std::uint64_t>(header->GetBodySizeToRead());  // queries have no body; others are skipped
+    handle_query(c, header->GetDeviceType(), header->GetDeviceName());
+  }
+  c.inbox.erase(0, at);
+}
+
+void IgtlGateway::handle_query(Client& c, const std::string& type, const std::string& device) {
+  const std::string prefix = type.substr(0, 4), what = type.size() > 4 ? type.substr(4) : "";
+  std::vector<Shared> replies;
+  if (prefix == "GET_" && !what.empty()) {
+    replies.push_back(std::make_shared<const igtl::PackedMessage>(catalog_.answer_get(what, device)));
+  } else if ((prefix == "STT_" || prefix == "STP_") && !what.empty()) {
+    // The pushes are one stream (a result's messages belong together), so
+    // starting or stopping any of its types starts or stops all of it.
+    const bool ours = what == "IMAGE" || what == "POLYDATA" || what == "STATUS";
+    replies.push_back(std::make_shared<const igtl::PackedMessage>(
+        igtl::pack_raw("RTS_" + what, device, std::string(1, ours ? kRtsDone : kRtsRefused), {})));
+    if (ours) {
+      const bool start = prefix == "STT_";
+      spdlog::info("OpenIGTLink: client {}: pushes {} ({} \"{}\")", c.peer, start ? "started" : "stopped", type, device);
+      if (start && !c.pushes) {
+        c.pushes = true;
+        for (const auto& r : replies) c.queue.push_back({r, true});
+        enqueue(c, latest_);  // the current result at once, as on connect
+        return;
+      }
+      c.pushes = start;
+    }
+  } else {
+    return;  // a message of its own: nothing to answer
+  }
+  for (const auto& r : replies) c.queue.push_back({r, true});
 }
 
 void IgtlGateway::close_client(Client& c, const char* why) {

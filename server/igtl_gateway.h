@@ -17,7 +17,8 @@
 // info().messages_dropped. A message being written is always finished, so
 // the stream stays well-formed. A result's messages are shared by all
 // clients, not copied: a stalled client holds at most one old message and
-// the latest result.
+// the latest result. Replies to queries are never dropped; instead a
+// client's input is not read while its queue is full (TCP back-pressure).
 #include <atomic>
 #include <cstdint>
 #include <deque>
@@ -31,15 +32,11 @@
 #include "protocol/message.h"
 #include "protocol/requests.h"
 #include "server/case_store.h"
+#include "server/igtl_catalog.h"
 #include "server/igtl_encoder.h"
 #include "server/server_settings.h"
 
 namespace brainshift::server {
-
-// A done scan's result read back from the store; unreadable parts are left
-// out and named in problems.
-// labels names the models' devices (their short names).
-igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id, const LabelTable& labels);
 
 class IgtlGateway {
  public:
@@ -58,11 +55,19 @@ class IgtlGateway {
 
  private:
   using Shared = std::shared_ptr<const igtl::PackedMessage>;
+  struct Queued {
+    Shared message;
+    bool reply = false;  // a query's answer: never dropped for a newer result
+  };
   struct Client {
     int fd = -1;
     std::string peer;
-    std::deque<Shared> queue;
+    bool pushes = true;  // results are sent unasked (settings.push, STT_/STP_)
+    std::deque<Queued> queue;
     std::size_t written = 0;  // bytes of queue.front() already sent
+    std::string inbox;        // received bytes not yet parsed
+    std::uint64_t skip = 0;   // body bytes of the current message still to discard
+    bool has_room(std::size_t bound) const { return queue.size() < bound; }
   };
 
   void run();
@@ -71,6 +76,8 @@ class IgtlGateway {
   void accept_clients();
   bool write_some(Client& c);  // false: the client is gone
   bool drain_input(Client& c);  // false: the client is gone
+  void handle_inbox(Client& c);  // answers the complete queries received
+  void handle_query(Client& c, const std::string& type, const std::string& device);
   void close_client(Client& c, const char* why);
   void wake();
 
@@ -88,6 +95,7 @@ class IgtlGateway {
   // The gateway thread's own state.
   std::vector<Client> clients_;
   std::vector<Shared> latest_;
+  IgtlCatalog catalog_;
 
   std::atomic<std::uint64_t> connected_{0}, sent_{0}, dropped_{0};
   std::thread thread_;

@@ -91,6 +91,7 @@ OpenIgtlinkSettings read_openigtlink(TomlSection& root) {
   // At least one whole result (three images, four models, a status) fits.
   t.read("queue_messages", o.queue_messages, 8, 1024);
   t.read("max_clients", o.max_clients, 1, 64);
+  t.read("push", o.push);
   t.reject_unknown_keys();
   return o;
 }

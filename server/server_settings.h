@@ -53,6 +53,7 @@ struct OpenIgtlinkSettings {
   bool allow_non_loopback = false;   // required for a bind outside 127.0.0.0/8
   std::size_t queue_messages = 32;   // per client; beyond it the oldest unsent message is dropped
   std::size_t max_clients = 8;       // connections beyond it are closed at once
+  bool push = true;                  // results sent unasked; false: only after a client's STT_ (queries always)
 };
 
 struct ServerSettings {

@@ -17,6 +17,7 @@
 #include "image/nifti_io.h"
 #include "mesh/vtk_io.h"
 #include "server/igtl_gateway.h"
+#include "igtl_test_store.h"
 #include "test_support.h"
 
 using namespace brainshift;
@@ -24,43 +25,10 @@ using namespace brainshift::server;
 using namespace std::chrono_literals;
 using test::IgtlReceived;
 using test::IgtlReceiver;
+using test::any_port;
+using test::store_result;
 
 namespace {
-
-TriSurface triangle_fan(double z) {
-  TriSurface s;
-  s.vertices_mm = {{0, 0, z}, {10, 0, z}, {0, 10, z}, {-10, 0, z}};
-  s.triangles = {{0, 1, 2}, {0, 2, 3}};
-  return s;
-}
-
-// Stores a done scan whose field is `value` everywhere, on an n^3 oblique grid.
-std::string store_result(CaseStore& store, float value, int n = 12,
-                         const std::string& kind = "nonrigid", const std::string& reason = "") {
-  const LabelImage labels = test::ball_labels(n);
-  const ScanInput input{label_image_to_bytes(labels, true), std::nullopt};
-  const ScanRecord rec = store.add_scan(input, std::nullopt, content_digest(input), "preop-1");
-  VectorImage3 field(labels.grid);
-  for (auto& v : field.vectors) v = Eigen::Vector3f(value, -value, 2 * value);
-  std::map<std::string, std::string> files;
-  files["field.nii"] = displacement_field_to_bytes(field, false);
-  files["warped_image.nii"] = scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, false);
-  files["warped_labels.nii.gz"] = label_image_to_bytes(labels, true);
-  files["models/brain.vtp"] = vtp_bytes(triangle_fan(value));
-  files["models/tumor.vtp"] = vtp_bytes(triangle_fan(-value));
-  files["timings.json"] = "{}";
-  store.save_result(rec.scan_id, files, kind, reason);
-  return rec.scan_id;
-}
-
-OpenIgtlinkSettings any_port(std::size_t queue = 32, std::size_t max_clients = 8) {
-  OpenIgtlinkSettings s;
-  s.enabled = true;
-  s.port = 0;
-  s.queue_messages = queue;
-  s.max_clients = max_clients;
-  return s;
-}
 
 std::string status_scan(const std::vector<IgtlReceived>& result) {
   return nlohmann::json::parse(result.back().status()->GetStatusString()).at("scan_id");

@@ -5,10 +5,13 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <cstring>
 #include <stdexcept>
 #include <string>
 
 #include <igtlMessageHeader.h>
+#include <igtl_header.h>
 
 namespace brainshift::test {
 
@@ -27,10 +30,19 @@ std::optional<IgtlReceived> IgtlReceiver::next() {
   r.type = header->GetDeviceType();
   r.device = header->GetDeviceName();
   header->GetTimeStamp(&r.seconds, &r.fraction);
+  r.body_size = static_cast<std::uint64_t>(header->GetBodySizeToRead());
+  if (r.body_size == 0) return r;  // a null-body reply: the data asked for is not there
   if (r.type == "IMAGE") r.message = igtl::ImageMessage::New().GetPointer();
   else if (r.type == "POLYDATA") r.message = igtl::PolyDataMessage::New().GetPointer();
   else if (r.type == "STATUS") r.message = igtl::StatusMessage::New().GetPointer();
-  else throw std::runtime_error("unexpected OpenIGTLink message type " + r.type);
+  else if (r.type == "IMGMETA") r.message = igtl::ImageMetaMessage::New().GetPointer();
+  else if (r.type == "LBMETA") r.message = igtl::LabelMetaMessage::New().GetPointer();
+  else if (r.body_size <= 4096) {
+    r.raw_body.resize(static_cast<std::size_t>(r.body_size));
+    if (socket_->Receive(r.raw_body.data(), static_cast<int>(r.body_size)) != static_cast<int>(r.body_size))
+      return std::nullopt;
+    return r;
+  } else throw std::runtime_error("unexpected OpenIGTLink message type " + r.type);
   r.message->SetMessageHeader(header);
   r.message->AllocatePack();
   const int body = r.message->GetPackBodySize();
@@ -49,6 +61,15 @@ std::vector<IgtlReceived> IgtlReceiver::next_result() {
     out.push_back(*m);
     if (out.back().type == "STATUS") return out;
   }
+}
+
+void IgtlReceiver::send_query(const std::string& type, const std::string& device) {
+  igtl_header h{};
+  h.version = IGTL_HEADER_VERSION;
+  std::memcpy(h.name, type.data(), std::min<std::size_t>(type.size(), IGTL_HEADER_TYPE_SIZE));
+  std::memcpy(h.device_name, device.data(), std::min<std::size_t>(device.size(), IGTL_HEADER_NAME_SIZE));
+  igtl_header_convert_byte_order(&h);  // body size 0, CRC of nothing 0
+  if (socket_->Send(&h, IGTL_HEADER_SIZE) != 1) throw std::runtime_error("cannot send " + type);
 }
 
 Eigen::Matrix4d igtl_world_from_voxel(igtl::ImageMessage& image) {

@@ -4,6 +4,7 @@
 // message Unpack with CRC check), and the geometry a receiver derives from an
 // IMAGE, computed the way Slicer's OpenIGTLinkIF does.
 #include <chrono>
+#include <cstdint>
 #include <optional>
 #include <string>
 #include <vector>
@@ -11,6 +12,8 @@
 #include <Eigen/Dense>
 #include <igtlClientSocket.h>
 #include <igtlImageMessage.h>
+#include <igtlImageMetaMessage.h>
+#include <igtlLabelMetaMessage.h>
 #include <igtlMessageBase.h>
 #include <igtlPolyDataMessage.h>
 #include <igtlStatusMessage.h>
@@ -20,8 +23,14 @@ namespace brainshift::test {
 struct IgtlReceived {
   std::string type, device;
   unsigned seconds = 0, fraction = 0;  // header time stamp
-  igtl::MessageBase::Pointer message;  // an unpacked ImageMessage, PolyDataMessage or StatusMessage
+  // An unpacked ImageMessage, PolyDataMessage, StatusMessage, ImageMetaMessage
+  // or LabelMetaMessage; null for a null body or another type (raw_body).
+  igtl::MessageBase::Pointer message;
+  std::uint64_t body_size = 0;
+  std::string raw_body;  // the body of a type not unpacked (e.g. RTS_IMAGE)
   igtl::ImageMessage* image() const { return dynamic_cast<igtl::ImageMessage*>(message.GetPointer()); }
+  igtl::ImageMetaMessage* image_meta() const { return dynamic_cast<igtl::ImageMetaMessage*>(message.GetPointer()); }
+  igtl::LabelMetaMessage* label_meta() const { return dynamic_cast<igtl::LabelMetaMessage*>(message.GetPointer()); }
   igtl::PolyDataMessage* polydata() const { return dynamic_cast<igtl::PolyDataMessage*>(message.GetPointer()); }
   igtl::StatusMessage* status() const { return dynamic_cast<igtl::StatusMessage*>(message.GetPointer()); }
 };
@@ -36,6 +45,8 @@ class IgtlReceiver {
   // Messages up to and including the next STATUS (one whole result); throws
   // when it does not arrive in time.
   std::vector<IgtlReceived> next_result();
+  // Sends a header-only message (a query: GET_IMAGE, STT_IMAGE, ...).
+  void send_query(const std::string& type, const std::string& device);
   igtl::ClientSocket& socket() { return *socket_; }
 
  private:
