@@ -210,6 +210,7 @@ int cmd_load_preop(const NetworkOptions& o, const LoadPreopArgs& a) {
 
 struct PushArgs {
   std::string labels, image, id;
+  std::string dicom, series;  // the image as a DICOM series, converted here
   bool wait = false;
   double wait_s = 600;
 };
@@ -292,6 +293,17 @@ int cmd_push(const NetworkOptions& o, const PushArgs& a) {
   ScanPushRequest r;
   r.labels = nifti_file_frame("labels", a.labels);
   if (!a.image.empty()) r.image = nifti_file_frame("image", a.image);
+  if (!a.dicom.empty()) {
+    if (!a.image.empty()) throw CommandError(kExitUsage, "give --image or --dicom, not both");
+    if (!o.dicom_nifti) throw CommandError(kExitUsage, "--dicom needs brainshift-offline (DICOM is read there)");
+    try {
+      r.image = media::nifti_frame("image", o.dicom_nifti(a.dicom, a.series));
+    } catch (const InputError& e) {
+      throw CommandError(kExitUsage, e.what());
+    }
+  } else if (!a.series.empty()) {
+    throw CommandError(kExitUsage, "--series needs --dicom");
+  }
   if (!a.id.empty()) r.client_scan_id = a.id;
   // Subscribed before the push so that no event of this scan is missed.
   std::optional<EventStream> events;
@@ -516,6 +528,8 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   auto* push = app.add_subcommand("push", "send an intraop scan; prints its scan id on the first line");
   push->add_option("--labels", pa->labels, "intraop labels (1 brain, 2 ventricles), NIfTI")->required();
   push->add_option("--image", pa->image, "intraop T1 on the labels' grid, NIfTI");
+  push->add_option("--dicom", pa->dicom, "intraop T1 as a DICOM series folder (sent as NIfTI), instead of --image");
+  push->add_option("--series", pa->series, "SeriesInstanceUID in --dicom when the folder holds several");
   push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");
   push->add_flag("--wait", pa->wait, "return once the result is ready (exit 4: affine-only fallback, 5: the scan failed)");
   push->add_option("--wait-timeout", pa->wait_s, "seconds to wait with --wait");

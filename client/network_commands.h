@@ -24,6 +24,10 @@ struct NetworkOptions {
   // links the configuration reader; the engine-free brainshift hands
   // `pull --scene` to brainshift-offline instead (offline_forwarding.h).
   std::function<std::vector<SceneLabel>(const std::string& labels_toml)> scene_labels;
+  // `push --dicom DIR [--series UID]`: the series as NIfTI bytes (the wire
+  // stays NIfTI). Set by brainshift-offline (DCMTK is linked there); the
+  // engine-free brainshift hands such a push to it.
+  std::function<std::string(const std::string& dir, const std::string& series_uid)> dicom_nifti;
 };
 
 // The CURVE keys the options name (nullopt: plain TCP). Throws

@@ -14,6 +14,7 @@
 #include "core/errors.h"
 #include "core/timer.h"
 #include "fem/petsc_session.h"
+#include "image/dicom_series.h"
 #include "image/nifti_io.h"
 #include "phantom/brain_shift_phantom.h"
 #include "pipeline/engine_session.h"
@@ -31,19 +32,31 @@ fs::path default_atlas_cache() {
 
 struct PreopPaths {
   std::string image, labels, atlas_cache;
+  std::string dicom, series;  // the preop image as a DICOM series instead of image
 };
+
+// A scalar image given as a NIfTI file or as a DICOM series folder (one of them).
+ImageF read_scalar_input(const std::string& nifti, const std::string& dicom, const std::string& series,
+                         const std::string& option, std::size_t max_bytes) {
+  if (!nifti.empty() && !dicom.empty()) throw InputError("give --" + option + "-image or --" + option + "-dicom, not both");
+  if (!series.empty() && dicom.empty()) throw InputError("--" + option + "-series needs --" + option + "-dicom");
+  if (!dicom.empty()) return read_dicom_series(dicom, series, max_bytes);
+  return read_scalar_image(nifti, max_bytes);
+}
 
 // Reads the preop pair, or the default atlas (in the table's values) when
 // neither path is given.
 PreopInput read_preop(const PreopPaths& paths, const LabelTable& table) {
-  if (paths.image.empty() != paths.labels.empty())
-    throw InputError("give both --preop-image and --preop-labels, or neither (default atlas)");
-  if (paths.image.empty()) {
+  const bool has_image = !paths.image.empty() || !paths.dicom.empty();
+  if (has_image != !paths.labels.empty())
+    throw InputError("give both --preop-image (or --preop-dicom) and --preop-labels, or neither (default atlas)");
+  if (!has_image) {
     const fs::path cache = paths.atlas_cache.empty() ? default_atlas_cache() : fs::path(paths.atlas_cache);
     DefaultAtlas atlas = load_or_build_default_atlas(cache);
     return PreopInput{std::move(atlas.t1), atlas_labels_for(atlas.labels, table)};
   }
-  return PreopInput{read_scalar_image(paths.image), read_label_image(paths.labels)};
+  return PreopInput{read_scalar_input(paths.image, paths.dicom, paths.series, "preop", static_cast<std::size_t>(-1)),
+                    read_label_image(paths.labels)};
 }
 
 PipelineParameters read_parameters(const std::string& config_path) {
@@ -61,6 +74,7 @@ void print_progress(const std::string& phase, const std::string& stage, double f
 struct RegisterOptions {
   PreopPaths preop;
   std::string intraop_labels, intraop_image, out, config;
+  std::string intraop_dicom, intraop_series;
 };
 
 int run_register_rank0(const RegisterOptions& o) {
@@ -69,9 +83,11 @@ int run_register_rank0(const RegisterOptions& o) {
   // instead of after minutes of meshing the preop.
   Stopwatch read_clock;
   IntraopInput intraop{read_label_image(o.intraop_labels, params.max_image_bytes), std::nullopt};
-  if (!o.intraop_image.empty()) intraop.t1 = read_scalar_image(o.intraop_image, params.max_image_bytes);
+  if (!o.intraop_image.empty() || !o.intraop_dicom.empty())
+    intraop.t1 = read_scalar_input(o.intraop_image, o.intraop_dicom, o.intraop_series, "intraop", params.max_image_bytes);
   if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid))
-    throw InputError(o.intraop_image + ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
+    throw InputError((o.intraop_image.empty() ? o.intraop_dicom : o.intraop_image) +
+                     ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
   const double read_seconds = read_clock.seconds();
 
   EngineSession session(MPI_COMM_WORLD, params);
@@ -181,6 +197,8 @@ int run_phantom(const PhantomOptions& o) {
 void add_preop_options(CLI::App* cmd, PreopPaths& p) {
   cmd->add_option("--preop-image", p.image, "preop T1 (NIfTI); default: the built-in Colin27 atlas");
   cmd->add_option("--preop-labels", p.labels, "preop label map on the T1's grid (NIfTI)");
+  cmd->add_option("--preop-dicom", p.dicom, "preop T1 as a DICOM series folder, instead of --preop-image");
+  cmd->add_option("--preop-series", p.series, "SeriesInstanceUID in --preop-dicom when it holds several");
   cmd->add_option("--atlas-cache", p.atlas_cache, "where the default atlas is cached (default ~/.cache/brainshift/atlas)");
 }
 
@@ -192,6 +210,8 @@ void add_offline_commands(CLI::App& app, int* exit_code) {
   add_preop_options(r, reg->preop);
   r->add_option("--intraop-labels", reg->intraop_labels, "intraop label map (1 brain, 2 lateral ventricles)")->required();
   r->add_option("--intraop-image", reg->intraop_image, "intraop T1 on the labels' grid (optional)");
+  r->add_option("--intraop-dicom", reg->intraop_dicom, "intraop T1 as a DICOM series folder, instead of --intraop-image");
+  r->add_option("--intraop-series", reg->intraop_series, "SeriesInstanceUID in --intraop-dicom when it holds several");
   r->add_option("--out", reg->out, "output folder (written atomically)")->required();
   r->add_option("--config", reg->config, "configuration TOML (default: the built-in config/brainshiftd.toml)");
   r->callback([reg, exit_code] { *exit_code = run_register(*reg); });

@@ -46,6 +46,16 @@ bool is_scene_pull(int argc, char** argv) {
   return false;
 }
 
+bool is_dicom_push(int argc, char** argv) {
+  bool push = false;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "push") push = true;
+    else if (push && (a == "--dicom" || a.rfind("--dicom=", 0) == 0)) return true;
+  }
+  return false;
+}
+
 void add_offline_forwarding(CLI::App& app, int argc, char** argv, int* exit_code) {
   for (const auto& [name, what] : {std::pair{"register", "one-shot registration in this process (no daemon)"},
                                    std::pair{"phantom", "make a synthetic brain-shift case with a known field"}}) {

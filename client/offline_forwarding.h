@@ -25,5 +25,7 @@ int exec_offline(int argc, char** argv);
 
 // `pull ... --scene`: the scene's label table is read by brainshift-offline.
 bool is_scene_pull(int argc, char** argv);
+// `push ... --dicom`: the series is read (DCMTK) by brainshift-offline.
+bool is_dicom_push(int argc, char** argv);
 
 }  // namespace brainshift::cli

@@ -23,6 +23,10 @@ find_package(Threads REQUIRED)
 # NIFTI::znz at a file Debian does not ship.
 find_path(NIFTI_HEADERS_DIR nifti/nifti2.h REQUIRED)
 
+# DCMTK (Debian's libdcmtk-dev): DICOM series in (engine/image/dicom_series.h,
+# dcmdata only); the tests write their DICOM series with it too.
+find_package(DCMTK REQUIRED CONFIG)
+
 # OpenIGTLink 1.11 (protocol version 2: IMAGE, POLYDATA, STATUS), for the
 # gateway to 3D Slicer. Debian installs OpenIGTLinkConfig.cmake under
 # /usr/lib/openigtlink, which find_package searches by name; it defines paths

@@ -8,6 +8,9 @@
 #include <fstream>
 
 #include "client/exit_codes.h"
+#include "dicom_writer.h"
+#include "image/dicom_series.h"
+#include "synthetic_head.h"
 #include "image/nifti_io.h"
 #include "server/daemon.h"
 #include "tests/e2e/process.h"
@@ -84,6 +87,46 @@ TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
   const std::string failed_id = r.out.substr(0, r.out.find('\n'));
   r = d.client({"pull", "--scan", failed_id, "--out", (d.dir.path() / "pulled").string(), "--parts", "metrics"});
   EXPECT_EQ(r.code, cli::kExitScanFailed) << r.err;
+}
+
+// `push --dicom`: the series is read in the client (brainshift hands the
+// command to brainshift-offline) and arrives as the NIfTI image of the scan.
+TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
+  LoopbackDaemon d;
+  test::DicomSeriesSpec spec;
+  spec.columns = 20;
+  spec.rows = 18;
+  spec.slices = 12;
+  spec.rescale_slope = 0.5;
+  test::write_dicom_series(test::synthetic_head().t1, d.dir.path() / "series", spec);
+  LabelImage labels(test::dicom_series_grid_ras(spec));
+  for (int k = 2; k < 10; ++k)
+    for (int j = 3; j < 15; ++j)
+      for (int i = 3; i < 17; ++i) labels.at(i, j, k) = (i > 8 && i < 12 && j > 7 && j < 11) ? 2 : 1;
+  const fs::path labels_file = d.write("dicom_labels.nii.gz", label_image_to_bytes(labels, true));
+  ASSERT_EQ(d.client({"load-preop", "--image",
+                      d.write("t1.nii.gz", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true))
+                          .string(),
+                      "--labels", labels_file.string(), "--wait"})
+                .code,
+            cli::kExitOk);
+
+  e2e::RunResult r = d.client({"push", "--labels", labels_file.string(), "--dicom", (d.dir.path() / "series").string(),
+                               "--wait", "--wait-timeout", "30"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+  ASSERT_TRUE(d.engine.last_scan_image.has_value());
+  const ImageF expected = read_dicom_series(d.dir.path() / "series", "", std::size_t{1} << 30);
+  EXPECT_TRUE(d.engine.last_scan_image->grid.same_geometry(expected.grid));
+  EXPECT_EQ(d.engine.last_scan_image->voxels, expected.voxels);
+
+  // Refusals are usage errors naming the folder's problem.
+  r = d.client({"push", "--labels", labels_file.string(), "--dicom", (d.dir.path() / "nowhere").string()});
+  EXPECT_EQ(r.code, cli::kExitUsage);
+  EXPECT_NE(r.err.find("not a folder"), std::string::npos) << r.err;
+  r = d.client({"push", "--labels", labels_file.string(), "--dicom", (d.dir.path() / "series").string(), "--image",
+                labels_file.string()});
+  EXPECT_EQ(r.code, cli::kExitUsage);
+  EXPECT_NE(r.err.find("not both"), std::string::npos) << r.err;
 }
 
 }  // namespace

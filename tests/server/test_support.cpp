@@ -102,6 +102,7 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
     out.files["metrics.json"] = R"({"result": "affine_only_fallback", "fallback_reason": "fake: surface match diverged"})";
   }
   report_due_ = image.has_value();
+  last_scan_image = image;
   return out;
 }
 

@@ -63,6 +63,7 @@ class FakeEngine : public server::EnginePort {
   bool fail_preop = false;       // InputError from load_preop
   std::optional<TetMesh> last_stored_mesh;
   server::PreopImages last_preop;
+  std::optional<ImageF> last_scan_image;  // the intraop image of the last register_scan
   int scans_run = 0;
   bool stopped = false;
 
