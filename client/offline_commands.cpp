@@ -17,6 +17,7 @@
 #include "image/dicom_series.h"
 #include "image/nifti_io.h"
 #include "phantom/brain_shift_phantom.h"
+#include "phantom/phantom_dicom.h"
 #include "pipeline/engine_session.h"
 #include "pipeline/scan_outputs.h"
 
@@ -157,6 +158,7 @@ struct PhantomOptions {
   std::string preset, out;
   unsigned seed = 1;
   bool list = false;
+  bool dicom = false;  // also the intraop T1 as a DICOM series (intraop_dicom/)
 };
 
 int run_phantom(const PhantomOptions& o) {
@@ -186,6 +188,7 @@ int run_phantom(const PhantomOptions& o) {
     }
     const PhantomCase c = make_phantom(preop.t1, preop.labels, spec);
     write_phantom_case(c, o.out);
+    if (o.dicom) write_dicom_series(c.intraop_t1, fs::path(o.out) / "intraop_dicom", dicom_series_spec_of(c.intraop_t1));
     std::cout << "wrote " << o.out << '\n';
     return kExitOk;
   } catch (const std::exception& e) {
@@ -223,6 +226,7 @@ void add_offline_commands(CLI::App& app, int* exit_code) {
   p->add_option("--seed", ph->seed, "random seed (noise, landmarks)");
   p->add_option("--out", ph->out, "output folder");
   p->add_flag("--list", ph->list, "list the presets and exit");
+  p->add_flag("--dicom", ph->dicom, "also write the intraop T1 as a DICOM series (OUT/intraop_dicom), as a scanner would");
   p->callback([ph, exit_code] {
     if (!ph->list && (ph->preset.empty() || ph->out.empty())) {
       std::fprintf(stderr, "error: phantom needs --preset and --out (or --list)\n");

@@ -9,6 +9,8 @@
 #   6. pull report.png, print the timing table, write everything to OUT_DIR,
 #   7. stop the daemon (also on any error or Ctrl-C: see the trap).
 # Usage: tests/demo.sh BUILD_DIR OUT_DIR [PRESET]
+# DEMO_DICOM=1: the scanner's T1 is a DICOM series (the phantom written with
+# DCMTK, OUT_DIR/phantom/intraop_dicom), pushed with `push --dicom`.
 set -euo pipefail
 
 if [[ $# -lt 2 ]]; then
@@ -94,10 +96,16 @@ echo "demo: ready after $(( $(date +%s) - start )) s"
 bs status
 
 echo "demo: making a phantom intraop scan ($PRESET)"
-"$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --preset "$PRESET" --out "$OUT/phantom" >/dev/null
+DICOM_FLAG=(); [[ ${DEMO_DICOM:-0} == 1 ]] && DICOM_FLAG=(--dicom)
+"$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --preset "$PRESET" --out "$OUT/phantom" "${DICOM_FLAG[@]}" >/dev/null
 
 echo "demo: pushing it as the scanner would"
-SCAN=$(bs push --labels "$OUT/phantom/intraop_labels.nii.gz" --image "$OUT/phantom/intraop_t1.nii.gz" \
+IMAGE=(--image "$OUT/phantom/intraop_t1.nii.gz")
+if [[ ${DEMO_DICOM:-0} == 1 ]]; then
+  IMAGE=(--dicom "$OUT/phantom/intraop_dicom")
+  echo "demo: the intraop T1 is the DICOM series $OUT/phantom/intraop_dicom ($(ls "$OUT/phantom/intraop_dicom" | wc -l) slices)"
+fi
+SCAN=$(bs push --labels "$OUT/phantom/intraop_labels.nii.gz" "${IMAGE[@]}" \
           --id "demo-$PRESET" --wait | head -n 1)
 echo "demo: scan $SCAN registered"
 

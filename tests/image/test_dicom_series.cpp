@@ -1,5 +1,5 @@
 // The DICOM series reader against series written here from a phantom volume
-// with DCMTK (tests/support/dicom_writer.h) and against Debian's dcm2niix, a
+// with DCMTK (engine/phantom/phantom_dicom.h) and against Debian's dcm2niix, a
 // converter nobody here wrote, on the same files: same voxels, same world
 // geometry within 1e-3 mm at the corners, for axial, coronal, sagittal and
 // oblique slices and several patient positions; and every refusal.
@@ -9,7 +9,7 @@
 #include <fstream>
 
 #include "core/errors.h"
-#include "dicom_writer.h"
+#include "phantom/phantom_dicom.h"
 #include "e2e/process.h"
 #include "image/dicom_series.h"
 #include "image/nifti_io.h"
@@ -87,8 +87,8 @@ std::vector<Case> cases() {
   };
 }
 
-test::DicomSeriesSpec spec_for(const Case& c) {
-  test::DicomSeriesSpec s;
+DicomSeriesSpec spec_for(const Case& c) {
+  DicomSeriesSpec s;
   s.row_dir_lps = c.row;
   s.col_dir_lps = c.col;
   s.patient_position = c.patient_position;
@@ -112,9 +112,9 @@ TEST(DicomSeries, EveryOrientationAsWrittenAndAsDcm2niixReadsIt) {
     const fs::path series = dir.path() / c.name;
     const auto spec = spec_for(c);
     ImageF expected;
-    test::write_dicom_series(phantom(), series, spec, &expected);
+    write_dicom_series(phantom(), series, spec, &expected);
     const ImageF ours = read_dicom_series(series, "", kMaxBytes);
-    EXPECT_LT(ours.grid.max_voxel_offset_mm(test::dicom_series_grid_ras(spec)), 1e-6);
+    EXPECT_LT(ours.grid.max_voxel_offset_mm(dicom_series_grid_ras(spec)), 1e-6);
     ASSERT_EQ(ours.voxels.size(), expected.voxels.size());
     EXPECT_EQ(ours.voxels, expected.voxels);
     // Not a blank volume: the phantom's brain is in it.
@@ -126,9 +126,9 @@ TEST(DicomSeries, EveryOrientationAsWrittenAndAsDcm2niixReadsIt) {
 TEST(DicomSeries, ShuffledFileNamesAreSortedByPositionNotByName) {
   test::TempDir dir;
   auto spec = spec_for(cases()[5]);
-  test::write_dicom_series(phantom(), dir.path() / "ordered", spec);
+  write_dicom_series(phantom(), dir.path() / "ordered", spec);
   spec.shuffle_seed = 7;
-  test::write_dicom_series(phantom(), dir.path() / "shuffled", spec);
+  write_dicom_series(phantom(), dir.path() / "shuffled", spec);
   const ImageF a = read_dicom_series(dir.path() / "ordered", "", kMaxBytes);
   const ImageF b = read_dicom_series(dir.path() / "shuffled", "", kMaxBytes);
   EXPECT_TRUE(a.grid.same_geometry(b.grid));
@@ -137,7 +137,7 @@ TEST(DicomSeries, ShuffledFileNamesAreSortedByPositionNotByName) {
 
 TEST(DicomSeries, MissingSlicesAreRefusedNamingWhatIsMissing) {
   test::TempDir dir;
-  const auto files = test::write_dicom_series(phantom(), dir.path() / "s", spec_for(cases()[0]));
+  const auto files = write_dicom_series(phantom(), dir.path() / "s", spec_for(cases()[0]));
   fs::remove(files[7]);  // InstanceNumber 8
   fs::remove(files[8]);
   const std::string why = refusal(dir.path() / "s");
@@ -152,8 +152,8 @@ TEST(DicomSeries, SeveralSeriesAreListedAndOneIsChosenByUid) {
   auto b = spec_for(cases()[3]);
   b.series_uid = "1.2.826.0.1.3680043.2.1125.1.2";
   b.series_description = "coronal";
-  test::write_dicom_series(phantom(), dir.path() / "exam" / "a", a);
-  test::write_dicom_series(phantom(), dir.path() / "exam" / "b", b);
+  write_dicom_series(phantom(), dir.path() / "exam" / "a", a);
+  write_dicom_series(phantom(), dir.path() / "exam" / "b", b);
   const std::string why = refusal(dir.path() / "exam");
   EXPECT_NE(why.find("2 series"), std::string::npos) << why;
   EXPECT_NE(why.find(a.series_uid), std::string::npos) << why;
@@ -161,7 +161,7 @@ TEST(DicomSeries, SeveralSeriesAreListedAndOneIsChosenByUid) {
   const auto listed = list_dicom_series(dir.path() / "exam");
   ASSERT_EQ(listed.size(), 2u);
   const ImageF chosen = read_dicom_series(dir.path() / "exam", b.series_uid, kMaxBytes);
-  EXPECT_LT(chosen.grid.max_voxel_offset_mm(test::dicom_series_grid_ras(b)), 1e-6);
+  EXPECT_LT(chosen.grid.max_voxel_offset_mm(dicom_series_grid_ras(b)), 1e-6);
   EXPECT_NE(refusal(dir.path() / "exam", "1.2.3").find("no series 1.2.3"), std::string::npos);
 }
 
@@ -169,7 +169,7 @@ TEST(DicomSeries, GantryTiltAndBadFoldersAreRefused) {
   test::TempDir dir;
   auto spec = spec_for(cases()[0]);
   spec.tilt_mm_per_slice = 0.8;  // about 10 degrees at 4.5 mm slices
-  test::write_dicom_series(phantom(), dir.path() / "tilt", spec);
+  write_dicom_series(phantom(), dir.path() / "tilt", spec);
   EXPECT_NE(refusal(dir.path() / "tilt").find("gantry tilt"), std::string::npos) << refusal(dir.path() / "tilt");
 
   fs::create_directories(dir.path() / "none");
@@ -178,12 +178,12 @@ TEST(DicomSeries, GantryTiltAndBadFoldersAreRefused) {
   EXPECT_NE(refusal(dir.path() / "absent").find("not a folder"), std::string::npos);
 
   // Two copies of one slice (a file copied twice under another name).
-  const auto files = test::write_dicom_series(phantom(), dir.path() / "dup", spec_for(cases()[0]));
+  const auto files = write_dicom_series(phantom(), dir.path() / "dup", spec_for(cases()[0]));
   fs::copy_file(files[3], dir.path() / "dup" / "copy.dcm");
   EXPECT_NE(refusal(dir.path() / "dup").find("at one position"), std::string::npos) << refusal(dir.path() / "dup");
 
   // Too many voxels for the bound.
-  test::write_dicom_series(phantom(), dir.path() / "big", spec_for(cases()[0]));
+  write_dicom_series(phantom(), dir.path() / "big", spec_for(cases()[0]));
   try {
     read_dicom_series(dir.path() / "big", "", 1000);
     FAIL() << "no bound";

@@ -8,7 +8,7 @@
 #include <fstream>
 
 #include "client/exit_codes.h"
-#include "dicom_writer.h"
+#include "phantom/phantom_dicom.h"
 #include "image/dicom_series.h"
 #include "synthetic_head.h"
 #include "image/nifti_io.h"
@@ -93,13 +93,13 @@ TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
 // command to brainshift-offline) and arrives as the NIfTI image of the scan.
 TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
   LoopbackDaemon d;
-  test::DicomSeriesSpec spec;
+  DicomSeriesSpec spec;
   spec.columns = 20;
   spec.rows = 18;
   spec.slices = 12;
   spec.rescale_slope = 0.5;
-  test::write_dicom_series(test::synthetic_head().t1, d.dir.path() / "series", spec);
-  LabelImage labels(test::dicom_series_grid_ras(spec));
+  write_dicom_series(test::synthetic_head().t1, d.dir.path() / "series", spec);
+  LabelImage labels(dicom_series_grid_ras(spec));
   for (int k = 2; k < 10; ++k)
     for (int j = 3; j < 15; ++j)
       for (int i = 3; i < 17; ++i) labels.at(i, j, k) = (i > 8 && i < 12 && j > 7 && j < 11) ? 2 : 1;

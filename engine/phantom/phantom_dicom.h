@@ -1,8 +1,9 @@
 #pragma once
-// Writes a DICOM MR series with DCMTK (tests only): the slices of a phantom
-// volume resampled onto the slice grid a scanner would describe, one
-// single-frame file per slice, int16 stored values with a rescale. The test
-// series are made here, never downloaded.
+// A phantom as the scanner would send it: a DICOM MR series written with
+// DCMTK, the slices of a volume resampled onto the slice grid a scanner
+// would describe, one single-frame file per slice, int16 stored values with a
+// rescale. `brainshift phantom --dicom` and the tests' DICOM series (made
+// here, never downloaded).
 #include <filesystem>
 #include <string>
 #include <vector>
@@ -11,7 +12,7 @@
 
 #include "core/image.h"
 
-namespace brainshift::test {
+namespace brainshift {
 
 struct DicomSeriesSpec {
   // ImageOrientationPatient: the row direction (along which the column index
@@ -40,4 +41,10 @@ Grid3 dicom_series_grid_ras(const DicomSeriesSpec& spec);
 std::vector<std::filesystem::path> write_dicom_series(const ImageF& phantom, const std::filesystem::path& dir,
                                                       const DicomSeriesSpec& spec, ImageF* expected_values = nullptr);
 
-}  // namespace brainshift::test
+// The spec of a series on image's own grid (a reader gives back that grid),
+// the rescale chosen to keep the values to 1/30000 of their range. Throws
+// InputError when the grid's third axis is not row x column in LPS (a
+// series' slices stack along their normal).
+DicomSeriesSpec dicom_series_spec_of(const ImageF& image);
+
+}  // namespace brainshift

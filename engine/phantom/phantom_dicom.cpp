@@ -1,4 +1,4 @@
-#include "dicom_writer.h"
+#include "phantom/phantom_dicom.h"
 
 #include <dcmtk/config/osconfig.h>
 #include <dcmtk/dcmdata/dcdeftag.h>
@@ -12,10 +12,11 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "core/errors.h"
 #include "field/lps.h"
 #include "image/resample.h"
 
-namespace brainshift::test {
+namespace brainshift {
 namespace fs = std::filesystem;
 namespace {
 
@@ -48,6 +49,28 @@ Grid3 dicom_series_grid_ras(const DicomSeriesSpec& s) {
   g.dims = {s.columns, s.rows, s.slices};
   g.world_from_voxel = ras_world_from_lps_world_matrix(lps);
   return g;
+}
+
+DicomSeriesSpec dicom_series_spec_of(const ImageF& image) {
+  const Eigen::Matrix4d lps = lps_world_from_ras_world_matrix(image.grid.world_from_voxel);
+  const Eigen::Vector3d spacing = image.grid.spacing_mm();
+  DicomSeriesSpec s;
+  s.row_dir_lps = lps.block<3, 1>(0, 0) / spacing[0];
+  s.col_dir_lps = lps.block<3, 1>(0, 1) / spacing[1];
+  if ((s.row_dir_lps.cross(s.col_dir_lps) - lps.block<3, 1>(0, 2) / spacing[2]).norm() > 1e-6)
+    throw InputError("the image's third axis is not row x column (LPS): a DICOM series cannot hold its grid");
+  s.first_position_lps = lps.block<3, 1>(0, 3);
+  s.columns = image.grid.dims[0];
+  s.rows = image.grid.dims[1];
+  s.slices = image.grid.dims[2];
+  s.column_spacing_mm = spacing[0];
+  s.row_spacing_mm = spacing[1];
+  s.slice_spacing_mm = spacing[2];
+  s.slice_thickness_mm = spacing[2];
+  const auto [lo, hi] = std::minmax_element(image.voxels.begin(), image.voxels.end());
+  const double range = std::max(std::abs(static_cast<double>(*lo)), std::abs(static_cast<double>(*hi)));
+  s.rescale_slope = range > 0 ? range / 30000.0 : 1.0;
+  return s;
 }
 
 std::vector<fs::path> write_dicom_series(const ImageF& phantom, const fs::path& dir, const DicomSeriesSpec& s,
@@ -128,4 +151,4 @@ std::vector<fs::path> write_dicom_series(const ImageF& phantom, const fs::path& 
   return files;
 }
 
-}  // namespace brainshift::test
+}  // namespace brainshift
