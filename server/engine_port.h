@@ -16,6 +16,7 @@
 #include "core/image.h"
 #include "core/label_table.h"
 #include "core/tet_mesh.h"
+#include "protocol/common.h"
 
 namespace brainshift::server {
 
@@ -34,8 +35,7 @@ struct EngineScanOutput {
   // models/<structure>.vtp, timings.json. The client gzips plain NIfTI when
   // it writes register's .nii.gz names.
   std::map<std::string, std::string> files;
-  std::string kind = "nonrigid";  // or "affine_only_fallback"
-  std::string fallback_reason;
+  protocol::ResultKindInfo result;  // nonrigid, or the affine-only fallback and why
   double intraop_seconds = 0.0;
 };
 

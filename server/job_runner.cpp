@@ -170,15 +170,14 @@ std::shared_ptr<const ServerCore::UnwrittenResult> ServerCore::publish_result(co
   result->record = record;
   result->record.state = StoredScanState::done;
   result->record.finished_at = utc_now();
-  result->record.result_kind = out.kind;
-  result->record.fallback_reason = out.fallback_reason;
+  result->record.result = out.result;
   result->files = std::move(out.files);
   {
     std::lock_guard lock(mutex_);
     unwritten_results_[record.scan_id] = result;
   }
-  spdlog::info("scan {} done ({}) in {:.3f} s", record.scan_id, result->record.result_kind, seconds);
-  emit(make_event(ScanDoneEvent{record.scan_id, record.client_scan_id, seconds}));
+  spdlog::info("scan {} done ({}) in {:.3f} s", record.scan_id, to_string(out.result.kind), seconds);
+  emit(make_event(ScanDoneEvent{record.scan_id, record.client_scan_id, seconds, out.result}));
   return result;
 }
 
@@ -186,7 +185,7 @@ bool ServerCore::write_result(const UnwrittenResult& result, const std::string& 
   const ScanRecord& r = result.record;
   const auto t0 = Clock::now();
   try {
-    store_.save_result(r.scan_id, result.files, r.result_kind, r.fallback_reason, r.finished_at.value_or(""));
+    store_.save_result(r.scan_id, result.files, r.result, r.finished_at.value_or(""));
   } catch (const std::exception& e) {  // StoreWriteError, or a result that did not read back
     {
       std::lock_guard lock(mutex_);

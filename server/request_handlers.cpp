@@ -46,6 +46,7 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const s
                                       const ScanRecord& record, bool deferred_pending) {
   ScanResultReply reply;
   reply.scan_id = request.scan_id;
+  reply.result = record.result;
   auto add = [&](const std::string& frame, const std::vector<std::string>& files, const char* why_missing) {
     for (const auto& file : files) {
       auto bytes = read_file(file);
@@ -284,8 +285,10 @@ Message ServerCore::on_scan_list(const Message& m) {
     s.client_scan_id = r.client_scan_id;
     s.received_at = r.received_at;
     s.finished_at = r.finished_at;
-    if (r.state == StoredScanState::done) s.state = ScanState::kDone;
-    else if (r.state == StoredScanState::failed) {
+    if (r.state == StoredScanState::done) {
+      s.state = ScanState::kDone;
+      s.result = r.result;
+    } else if (r.state == StoredScanState::failed) {
       s.state = ScanState::kFailed;
       s.error = ErrorInfo{error_code_from_string(r.error_code).value_or(ErrorCode::kScanFailed),
                           r.error_message};

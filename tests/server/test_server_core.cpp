@@ -2,6 +2,7 @@
 // checked for its type or its typed error, and the server keeps serving.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <mutex>
 
 #include "image/nifti_io.h"
@@ -387,6 +388,43 @@ TEST(ServerCore, OversizedFrameIsRefused) {
   ScanPushRequest r;
   r.labels = media::nifti_frame("labels", label_image_to_bytes(intraop_labels(20), false));
   expect_error(h.call(make_scan_push_request("big", r)), ErrorCode::kTooLarge);
+}
+
+TEST(ServerCore, ResultKindTravelsWithScanDoneTheResultAndTheListBeforeTheMetrics) {
+  Harness h;
+  h.load_preop();
+  h.engine.fallback_next_scan = true;
+  const auto id = parse_scan_push_reply(h.push(intraop_labels(), std::string("fb"))).scan_id;
+  std::optional<ScanResultReply> during;
+  std::optional<ScanListReply> listed;
+  h.engine.while_rendering_metrics = [&] {  // metrics.json not made yet
+    during = parse_scan_result_reply(h.call(make_scan_result_request("r", {id, {ResultPart::kMetrics}, {}})));
+    listed = parse_scan_list_reply(h.call(make_scan_list_request("l")));
+  };
+  ASSERT_TRUE(h.core->step(10ms));
+  const ResultKindInfo fallback{ResultKind::affine_only_fallback, "fake: surface match diverged"};
+  {
+    std::lock_guard lock(h.events_mutex);
+    const auto done = std::find_if(h.events.begin(), h.events.end(),
+                                   [](const Message& e) { return e.type() == MessageType::kEventScanDone; });
+    ASSERT_NE(done, h.events.end());
+    EXPECT_EQ(parse_scan_done_event(*done).result, fallback);
+  }
+  ASSERT_TRUE(during.has_value());
+  EXPECT_EQ(during->result, fallback);
+  ASSERT_EQ(during->unavailable.size(), 1u);
+  EXPECT_TRUE(during->unavailable[0].pending);
+  EXPECT_EQ(listed->scans.at(0).result, fallback);
+  // Stored with the result: the same after the metrics, from the store.
+  EXPECT_EQ(h.store->find(id)->result, fallback);
+  const auto after = parse_scan_result_reply(h.call(make_scan_result_request("r", {id, {ResultPart::kMetrics}, {}})));
+  EXPECT_EQ(after.result, fallback);
+  EXPECT_NE(after.find("metrics"), nullptr);
+  // A non-rigid result says so too.
+  const auto id2 = parse_scan_push_reply(h.push(intraop_labels())).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  const auto second = parse_scan_result_reply(h.call(make_scan_result_request("r", {id2, {ResultPart::kTimings}, {}})));
+  EXPECT_EQ(second.result, ResultKindInfo{});
 }
 
 TEST(ServerCore, EngineFailureIsStoredReportedAndServedAsScanFailed) {

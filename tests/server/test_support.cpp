@@ -3,6 +3,7 @@
 
 #include <chrono>
 #include <fstream>
+#include <utility>
 
 #include <nlohmann/json.hpp>
 
@@ -97,9 +98,10 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
   out.files = files_for(labels, image.has_value());
   if (fallback_next_scan) {
     fallback_next_scan = false;
-    out.kind = "affine_only_fallback";
-    out.fallback_reason = "fake: surface match diverged";
-    out.files["metrics.json"] = R"({"result": "affine_only_fallback", "fallback_reason": "fake: surface match diverged"})";
+    out.result = {protocol::ResultKind::affine_only_fallback, "fake: surface match diverged"};
+    // Deferred, as the real adapter makes it: the kind travels with scan.done.
+    out.files.erase("metrics.json");
+    deferred_metrics_ = R"({"result": "affine_only_fallback", "fallback_reason": "fake: surface match diverged"})";
   }
   report_due_ = image.has_value();
   return out;
@@ -111,6 +113,10 @@ const std::string FakeEngine::kReportPng(
     69);
 
 void FakeEngine::render_deferred(const std::string& /*scan_id*/, const DeferredOutputFn& add) {
+  if (deferred_metrics_) {
+    if (while_rendering_metrics) while_rendering_metrics();
+    add("metrics.json", *std::exchange(deferred_metrics_, std::nullopt));
+  }
   if (!report_due_) return;
   report_due_ = false;
   if (while_rendering_report) while_rendering_report();

@@ -55,10 +55,13 @@ class FakeEngine : public server::EnginePort {
   // A valid 1x1 RGB PNG standing in for report.png.
   static const std::string kReportPng;
   std::function<void()> while_rendering_report;  // called inside render_deferred
+  // Called inside render_deferred before a fallback's deferred metrics.json.
+  std::function<void()> while_rendering_metrics;
 
   LabelTable table = config::default_label_table();  // the shipped labels.toml unless a test sets another
   bool fail_next_scan = false;   // ComputeError from the next register_scan
-  // The next scan's result is the affine-only fallback (metrics.json says so).
+  // The next scan's result is the affine-only fallback (its kind says so, and
+  // its metrics.json, made deferred).
   bool fallback_next_scan = false;
   bool fail_preop = false;       // InputError from load_preop
   std::optional<TetMesh> last_stored_mesh;
@@ -69,6 +72,7 @@ class FakeEngine : public server::EnginePort {
  private:
   bool ready_ = false;
   bool report_due_ = false;
+  std::optional<std::string> deferred_metrics_;
   TetMesh mesh_;
 };
 
