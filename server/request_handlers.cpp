@@ -64,20 +64,15 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const s
         add(model_frame_name(s), {model_file_name(s)}, "no model of this structure (label absent from the preop)");
       continue;
     }
-    const char* why = "not in this result";
-    bool pending = false;
-    if (part == ResultPart::kReport) {
-      why = !record.has_image ? "no intraop image was pushed (the report draws on it)"
-            : deferred_pending ? "report.png is being rendered; ask again shortly"
-                               : "report.png was not rendered (see the server log)";
-      pending = deferred_pending && record.has_image;
-    } else if (result_output(part).deferred) {
-      if (deferred_pending) why = "being written just after the field; ask again shortly";
-      pending = deferred_pending;
-    } else if (part == ResultPart::kWarpedImage) {
-      why = "the engine wrote no warped image";
-    }
-    if (!add(frame_name(part), stored_file_names(part), why) && pending) reply.unavailable.back().pending = true;
+    // Why a part is missing, from its row (result_outputs.h).
+    const ResultOutput& row = result_output(part);
+    const std::string_view not_expected = why_not_expected(part, ScanFacts{record.has_image});
+    const bool pending = not_expected.empty() && row.deferred && deferred_pending;
+    const std::string why = !not_expected.empty() ? std::string(not_expected)
+                            : pending             ? "made just after the answer; ask again shortly"
+                            : row.deferred ? std::string(row.stored) + " was not made (see the server log)"
+                                           : "not in this result";
+    if (!add(frame_name(part), stored_file_names(part), why.c_str()) && pending) reply.unavailable.back().pending = true;
   }
   return reply;
 }

@@ -77,7 +77,7 @@ TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
   // the deferred metrics.json is held back until the command has exited.
   d.engine.fallback_next_scan = true;
   std::atomic<bool> client_exited{false}, metrics_held{false};
-  d.engine.while_rendering_metrics = [&] {
+  d.engine.while_rendering_deferred = [&] {
     metrics_held = true;
     for (int i = 0; i < 800 && !client_exited; ++i) std::this_thread::sleep_for(50ms);
   };
