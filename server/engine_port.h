@@ -3,7 +3,9 @@
 // implements it over EngineSession (engine_adapter.h); tests may substitute a
 // double, so the protocol, store and queue logic is tested without PETSc.
 //
-// All methods are called on rank 0's engine thread only (MPI_THREAD_FUNNELED).
+// The methods that run the engine are called on rank 0's engine thread only
+// (MPI_THREAD_FUNNELED); label_table() and max_image_bytes() read what was
+// fixed at construction and are also called on the socket thread.
 #include <cstddef>
 #include <filesystem>
 #include <functional>
