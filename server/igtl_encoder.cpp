@@ -236,7 +236,8 @@ PackedMessage pack_raw(const std::string& type, const std::string& device, std::
 }
 
 std::string status_text(const ResultContent& r) {
-  nlohmann::json j{{"scan_id", r.scan_id}, {"kind", r.kind}, {"reason", r.fallback_reason},
+  nlohmann::json j{{"scan_id", r.scan_id}, {"kind", std::string(protocol::to_string(r.result.kind))},
+                   {"reason", r.result.fallback_reason},
                    {"finished_at", r.finished_at}};
   if (r.client_scan_id) j["client_scan_id"] = *r.client_scan_id;
   if (!r.problems.empty()) j["problems"] = r.problems;
@@ -244,7 +245,7 @@ std::string status_text(const ResultContent& r) {
 }
 
 PackedMessage pack_result_status(const std::string& device, const ResultContent& r) {
-  const bool fallback = r.kind == "affine_only_fallback";
+  const bool fallback = r.result.kind == protocol::ResultKind::affine_only_fallback;
   // The error name field is 20 bytes, and a receiver reads a name that fills
   // them past the end (libopenigtlink 1.11): "affine_only_fallback" is 20.
   return pack_status(device, ::igtl::StatusMessage::STATUS_OK, fallback ? kAffineFallbackSubcode : kNonrigidSubcode,

@@ -6,6 +6,7 @@
 
 #include "image/nifti_io.h"
 #include "mesh/vtk_io.h"
+#include "protocol/common.h"
 #include "server/case_store.h"
 #include "server/server_settings.h"
 #include "test_support.h"
@@ -21,7 +22,7 @@ inline TriSurface triangle_fan(double z) {
 
 // Stores a done scan whose field is `value` everywhere, on an n^3 oblique grid.
 inline std::string store_result(server::CaseStore& store, float value, int n = 12,
-                         const std::string& kind = "nonrigid", const std::string& reason = "") {
+                                protocol::ResultKindInfo result = {}) {
   const LabelImage labels = test::ball_labels(n);
   const server::ScanInput input{label_image_to_bytes(labels, true), std::nullopt};
   const server::ScanRecord rec = store.add_scan(input, std::nullopt, server::content_digest(input), "preop-1");
@@ -34,7 +35,7 @@ inline std::string store_result(server::CaseStore& store, float value, int n = 1
   files["models/brain.vtp"] = vtp_bytes(triangle_fan(value));
   files["models/tumor.vtp"] = vtp_bytes(triangle_fan(-value));
   files["timings.json"] = "{}";
-  store.save_result(rec.scan_id, files, kind, reason);
+  store.save_result(rec.scan_id, files, result);
   return rec.scan_id;
 }
 

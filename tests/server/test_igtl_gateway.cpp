@@ -62,7 +62,7 @@ TEST(IgtlGateway, LatestResultOnConnectThenEveryNewResultToEveryClient) {
   EXPECT_EQ(v[1], -1.5f);
   EXPECT_EQ(v[2], 3.0f);
 
-  const std::string second = store_result(store, 2.5f, 12, "affine_only_fallback", "Jacobian folded");
+  const std::string second = store_result(store, 2.5f, 12, {protocol::ResultKind::affine_only_fallback, "Jacobian folded"});
   gateway.publish(second);
   const auto pushed = a.next_result();
   EXPECT_EQ(status_scan(pushed), second);
