@@ -11,7 +11,7 @@
 #include "network_commands.h"
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
 #include "offline_commands.h"
-#include "dicom_input.h"
+#include "format_conversion.h"
 #include "scene_labels.h"
 #else
 #include "offline_forwarding.h"
@@ -21,8 +21,8 @@ int main(int argc, char** argv) {
 #ifndef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
   // The Slicer scene needs the label-table reader (the configuration, which
   // links the engine): that pull runs in brainshift-offline.
-  // So does a push of a DICOM series (DCMTK).
-  if (brainshift::cli::is_scene_pull(argc, argv) || brainshift::cli::is_dicom_push(argc, argv))
+  // So does a push of a DICOM series (DCMTK) or of NRRD files.
+  if (brainshift::cli::is_scene_pull(argc, argv) || brainshift::cli::is_converting_push(argc, argv))
     return brainshift::cli::exec_offline(argc, argv);
 #endif
   CLI::App app{"brainshift: client of the brainshiftd registration daemon"};
@@ -42,6 +42,8 @@ int main(int argc, char** argv) {
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
   options.scene_labels = brainshift::cli::scene_labels_from_toml;
   options.dicom_nifti = brainshift::cli::dicom_series_nifti;
+  options.nrrd_nifti = brainshift::cli::nrrd_nifti;
+  options.nrrd_outputs = brainshift::cli::write_nrrd_outputs;
 #endif
   int exit_code = 0;
   brainshift::cli::add_network_commands(app, options, &exit_code);

@@ -17,6 +17,7 @@
 
 #include "core/errors.h"
 #include "connection.h"
+#include "offline_forwarding.h"
 #include "pulled_files.h"
 #include "slicer_scene.h"
 #include "protocol/events.h"
@@ -67,6 +68,17 @@ Frame nifti_file_frame(const std::string& name, const std::string& path) {
     throw CommandError(kExitUsage, path + ": " + e.what());
   }
   return f;
+}
+
+// A NIfTI file as it is, or a NRRD file converted by brainshift-offline.
+Frame input_frame(const NetworkOptions& o, const std::string& name, const std::string& path, bool labels) {
+  if (!is_nrrd_name(path)) return nifti_file_frame(name, path);
+  if (!o.nrrd_nifti) throw CommandError(kExitUsage, path + ": NRRD needs brainshift-offline (NRRD is read there)");
+  try {
+    return media::nifti_frame(name, o.nrrd_nifti(path, labels));
+  } catch (const InputError& e) {
+    throw CommandError(kExitUsage, e.what());
+  }
 }
 
 template <class Fn>
@@ -300,8 +312,8 @@ int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, do
 
 int cmd_push(const NetworkOptions& o, const PushArgs& a) {
   ScanPushRequest r;
-  r.labels = nifti_file_frame("labels", a.labels);
-  if (!a.image.empty()) r.image = nifti_file_frame("image", a.image);
+  r.labels = input_frame(o, "labels", a.labels, true);
+  if (!a.image.empty()) r.image = input_frame(o, "image", a.image, false);
   if (!a.dicom.empty()) {
     if (!a.image.empty()) throw CommandError(kExitUsage, "give --image or --dicom, not both");
     if (!o.dicom_nifti) throw CommandError(kExitUsage, "--dicom needs brainshift-offline (DICOM is read there)");
@@ -331,6 +343,7 @@ struct PullArgs {
   std::vector<std::string> parts;
   bool scene = false;
   std::string scene_labels, preop_image, intraop_image;
+  std::string format = "nifti";  // "nrrd": also NRRD copies, and the scene uses them
 };
 
 // What scene.mrml shows that the daemon sends (the preop and intraop images
@@ -388,6 +401,7 @@ void write_scene(const NetworkOptions& o, const PullArgs& a) {
   contents.labels = scene_labels(o, a.scene_labels);
   if (!a.preop_image.empty()) contents.preop_image = copy_into(out, a.preop_image, "preop_image");
   if (!a.intraop_image.empty()) contents.intraop_image = copy_into(out, a.intraop_image, "intraop_image");
+  contents.nrrd = a.format == "nrrd";
   try {
     write_slicer_scene(out, contents);
   } catch (const std::runtime_error& e) {
@@ -403,6 +417,9 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
   // What the scene shows must be in the folder.
   if (a.scene)
     for (ResultPart p : kScenePartsFromTheDaemon) parts.emplace_back(result_output(p).cli);
+  if (a.scene && a.format == "nrrd") parts.emplace_back(result_output(ResultPart::kDisplacement).cli);
+  if (a.format == "nrrd" && !o.nrrd_outputs)
+    throw CommandError(kExitUsage, "--format nrrd needs brainshift-offline (NRRD is written there)");
   else if (!a.preop_image.empty() || !a.intraop_image.empty() || !a.scene_labels.empty())
     throw CommandError(kExitUsage, "--preop-image, --intraop-image and --scene-labels go with --scene");
   for (const auto& name : parts) {
@@ -424,6 +441,13 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
                                                " still being produced after " + std::to_string(int(timeout_s)) + " s");
     std::this_thread::sleep_for(200ms);
     req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
+  }
+  if (a.format == "nrrd") {
+    try {
+      o.nrrd_outputs(a.out);
+    } catch (const std::exception& e) {
+      throw CommandError(kExitError, std::string("writing NRRD: ") + e.what());
+    }
   }
   if (a.scene) write_scene(o, a);
   return kExitOk;
@@ -536,8 +560,8 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
 
   auto pa = std::make_shared<PushArgs>();
   auto* push = app.add_subcommand("push", "send an intraop scan; prints its scan id on the first line");
-  push->add_option("--labels", pa->labels, "intraop labels (1 brain, 2 ventricles), NIfTI")->required();
-  push->add_option("--image", pa->image, "intraop T1 on the labels' grid, NIfTI");
+  push->add_option("--labels", pa->labels, "intraop labels (1 brain, 2 ventricles): NIfTI, NRRD or Slicer .seg.nrrd")->required();
+  push->add_option("--image", pa->image, "intraop T1 on the labels' grid, NIfTI or NRRD");
   push->add_option("--dicom", pa->dicom, "intraop T1 as a DICOM series folder (sent as NIfTI), instead of --image");
   push->add_option("--series", pa->series, "SeriesInstanceUID in --dicom when the folder holds several");
   push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");
@@ -551,6 +575,10 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   pull->add_option("--scan", pl->scan, "scan id")->required();
   pull->add_option("--out", pl->out, "output folder")->required();
   pull->add_option("--parts", pl->parts, cli_part_names())->delimiter(',');
+  pull->add_option("--format", pl->format,
+                   "nrrd: also write field.nrrd (a 3D Slicer grid transform), warped_image.nrrd and "
+                   "warped_labels.nrrd, and the scene uses them")
+      ->check(CLI::IsMember({"nifti", "nrrd"}));
   pull->add_flag("--scene", pl->scene,
                  "also write scene.mrml, a 3D Slicer scene of the result (pulls field_h5, warped_image, "
                  "warped_labels and models)");

@@ -28,6 +28,10 @@ struct NetworkOptions {
   // stays NIfTI). Set by brainshift-offline (DCMTK is linked there); the
   // engine-free brainshift hands such a push to it.
   std::function<std::string(const std::string& dir, const std::string& series_uid)> dicom_nifti;
+  // `push` of .nrrd/.nhdr files (labels: a label map or Slicer .seg.nrrd), likewise.
+  std::function<std::string(const std::string& path, bool labels)> nrrd_nifti;
+  // `pull --format nrrd`: NRRD copies of the pulled images and field.
+  std::function<void(const std::string& out_dir)> nrrd_outputs;
 };
 
 // The CURVE keys the options name (nullopt: plain TCP). Throws

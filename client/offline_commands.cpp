@@ -16,6 +16,7 @@
 #include "fem/petsc_session.h"
 #include "image/dicom_series.h"
 #include "image/nifti_io.h"
+#include "image/nrrd_io.h"
 #include "phantom/brain_shift_phantom.h"
 #include "phantom/phantom_dicom.h"
 #include "pipeline/engine_session.h"
@@ -42,7 +43,16 @@ ImageF read_scalar_input(const std::string& nifti, const std::string& dicom, con
   if (!nifti.empty() && !dicom.empty()) throw InputError("give --" + option + "-image or --" + option + "-dicom, not both");
   if (!series.empty() && dicom.empty()) throw InputError("--" + option + "-series needs --" + option + "-dicom");
   if (!dicom.empty()) return read_dicom_series(dicom, series, max_bytes);
+  if (is_nrrd_path(nifti)) return read_nrrd_scalar(nifti, max_bytes);
   return read_scalar_image(nifti, max_bytes);
+}
+
+// A label map as NIfTI, NRRD or a Slicer segmentation (segment names mapped
+// to the label table).
+LabelImage read_label_input(const std::string& path, const LabelTable& table, std::size_t max_bytes) {
+  if (is_slicer_segmentation_path(path)) return read_slicer_segmentation(path, table, max_bytes);
+  if (is_nrrd_path(path)) return read_nrrd_labels(path, max_bytes);
+  return read_label_image(path, max_bytes);
 }
 
 // Reads the preop pair, or the default atlas (in the table's values) when
@@ -57,7 +67,7 @@ PreopInput read_preop(const PreopPaths& paths, const LabelTable& table) {
     return PreopInput{std::move(atlas.t1), atlas_labels_for(atlas.labels, table)};
   }
   return PreopInput{read_scalar_input(paths.image, paths.dicom, paths.series, "preop", static_cast<std::size_t>(-1)),
-                    read_label_image(paths.labels)};
+                    read_label_input(paths.labels, table, static_cast<std::size_t>(-1))};
 }
 
 PipelineParameters read_parameters(const std::string& config_path) {
@@ -83,7 +93,7 @@ int run_register_rank0(const RegisterOptions& o) {
   // The intraop files are read first: a broken scan is refused in a moment
   // instead of after minutes of meshing the preop.
   Stopwatch read_clock;
-  IntraopInput intraop{read_label_image(o.intraop_labels, params.max_image_bytes), std::nullopt};
+  IntraopInput intraop{read_label_input(o.intraop_labels, params.label_table, params.max_image_bytes), std::nullopt};
   if (!o.intraop_image.empty() || !o.intraop_dicom.empty())
     intraop.t1 = read_scalar_input(o.intraop_image, o.intraop_dicom, o.intraop_series, "intraop", params.max_image_bytes);
   if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid))
@@ -199,7 +209,7 @@ int run_phantom(const PhantomOptions& o) {
 
 void add_preop_options(CLI::App* cmd, PreopPaths& p) {
   cmd->add_option("--preop-image", p.image, "preop T1 (NIfTI); default: the built-in Colin27 atlas");
-  cmd->add_option("--preop-labels", p.labels, "preop label map on the T1's grid (NIfTI)");
+  cmd->add_option("--preop-labels", p.labels, "preop label map on the T1's grid (NIfTI, NRRD or Slicer .seg.nrrd)");
   cmd->add_option("--preop-dicom", p.dicom, "preop T1 as a DICOM series folder, instead of --preop-image");
   cmd->add_option("--preop-series", p.series, "SeriesInstanceUID in --preop-dicom when it holds several");
   cmd->add_option("--atlas-cache", p.atlas_cache, "where the default atlas is cached (default ~/.cache/brainshift/atlas)");
@@ -211,7 +221,8 @@ void add_offline_commands(CLI::App& app, int* exit_code) {
   auto reg = std::make_shared<RegisterOptions>();
   CLI::App* r = app.add_subcommand("register", "one-shot registration in this process (no daemon)");
   add_preop_options(r, reg->preop);
-  r->add_option("--intraop-labels", reg->intraop_labels, "intraop label map (1 brain, 2 lateral ventricles)")->required();
+  r->add_option("--intraop-labels", reg->intraop_labels,
+                "intraop label map (1 brain, 2 lateral ventricles): NIfTI, NRRD or Slicer .seg.nrrd")->required();
   r->add_option("--intraop-image", reg->intraop_image, "intraop T1 on the labels' grid (optional)");
   r->add_option("--intraop-dicom", reg->intraop_dicom, "intraop T1 as a DICOM series folder, instead of --intraop-image");
   r->add_option("--intraop-series", reg->intraop_series, "SeriesInstanceUID in --intraop-dicom when it holds several");

@@ -2,6 +2,7 @@
 
 #include <unistd.h>
 
+#include <cctype>
 #include <cerrno>
 #include <cstring>
 #include <filesystem>
@@ -41,17 +42,28 @@ bool is_scene_pull(int argc, char** argv) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "pull") pull = true;
-    else if (pull && a == "--scene") return true;
+    else if (pull && (a == "--scene" || a == "--format" || a.rfind("--format=", 0) == 0)) return true;
   }
   return false;
 }
 
-bool is_dicom_push(int argc, char** argv) {
+bool is_nrrd_name(const std::string& path) {
+  auto ends = [&](const char* e) {
+    const std::size_t n = std::strlen(e);
+    if (path.size() < n) return false;
+    for (std::size_t i = 0; i < n; ++i)
+      if (std::tolower(static_cast<unsigned char>(path[path.size() - n + i])) != e[i]) return false;
+    return true;
+  };
+  return ends(".nrrd") || ends(".nhdr");
+}
+
+bool is_converting_push(int argc, char** argv) {
   bool push = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "push") push = true;
-    else if (push && (a == "--dicom" || a.rfind("--dicom=", 0) == 0)) return true;
+    else if (push && (a == "--dicom" || a.rfind("--dicom=", 0) == 0 || is_nrrd_name(a))) return true;
   }
   return false;
 }

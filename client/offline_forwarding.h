@@ -9,6 +9,8 @@
 // same arguments.
 #include <CLI/CLI.hpp>
 
+#include <string>
+
 namespace brainshift::cli {
 
 // The name of the full CLI beside this executable.
@@ -23,9 +25,13 @@ void add_offline_forwarding(CLI::App& app, int argc, char** argv, int* exit_code
 // returns kExitUsage (with a message) only when that fails.
 int exec_offline(int argc, char** argv);
 
-// `pull ... --scene`: the scene's label table is read by brainshift-offline.
+// `pull ... --scene` (the scene's label table is read by brainshift-offline)
+// or `pull ... --format` (NRRD is written there).
 bool is_scene_pull(int argc, char** argv);
-// `push ... --dicom`: the series is read (DCMTK) by brainshift-offline.
-bool is_dicom_push(int argc, char** argv);
+// `push ... --dicom`, or a push of .nrrd/.nhdr files: brainshift-offline
+// reads them (input_conversion.h) and sends NIfTI.
+bool is_converting_push(int argc, char** argv);
+// A .nrrd or .nhdr file name (a .seg.nrrd too), by its extension.
+bool is_nrrd_name(const std::string& path);
 
 }  // namespace brainshift::cli

@@ -143,9 +143,12 @@ void write_text(const fs::path& path, const std::string& text) {
 
 void write_slicer_scene(const fs::path& dir, const SceneContents& c) {
   using protocol::ResultPart;
-  const std::string field_h5(protocol::result_output(ResultPart::kDisplacementItk).file);
-  const std::string warped_image(protocol::result_output(ResultPart::kWarpedImage).file);
-  const std::string warped_labels(protocol::result_output(ResultPart::kWarpedLabels).file);
+  const std::string field_h5 =
+      c.nrrd ? "field.nrrd" : std::string(protocol::result_output(ResultPart::kDisplacementItk).file);
+  const std::string warped_image =
+      c.nrrd ? "warped_image.nrrd" : std::string(protocol::result_output(ResultPart::kWarpedImage).file);
+  const std::string warped_labels =
+      c.nrrd ? "warped_labels.nrrd" : std::string(protocol::result_output(ResultPart::kWarpedLabels).file);
   for (const auto& f : {field_h5, warped_image, warped_labels}) require(dir, f);
   if (c.preop_image) require(dir, *c.preop_image);
   if (c.intraop_image) require(dir, *c.intraop_image);

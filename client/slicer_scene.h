@@ -43,6 +43,9 @@ struct SceneContents {
   std::optional<std::string> preop_image;    // e.g. "preop_t1.nii.gz"
   std::optional<std::string> intraop_image;  // e.g. "intraop_t1.nii.gz"
   std::vector<SceneLabel> labels;            // the label table, in table order
+  // pull --format nrrd: the scene loads field.nrrd (a Slicer grid transform),
+  // warped_image.nrrd and warped_labels.nrrd instead of field.h5 and the NIfTI files.
+  bool nrrd = false;
 };
 
 inline constexpr const char* kSceneFile = "scene.mrml";

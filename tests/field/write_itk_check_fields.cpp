@@ -1,7 +1,8 @@
 // Writes the fixture of the ITK reader check (itk/): one smooth, non-trivial
 // pull-back field on an oblique, left-handed (LAS-like) grid, as register
 // writes it: field.nii.gz (NIfTI DISPVECT, RAS vectors), field.h5 (double, as
-// `brainshift register`) and field_float.h5 (float, as the daemon).
+// `brainshift register`) and field_float.h5 (float, as the daemon); and the
+// NRRD files of a field, an image and labels with their NIfTI twins.
 //   write_itk_check_fields OUT_DIR
 #include <cmath>
 #include <filesystem>
@@ -9,6 +10,7 @@
 
 #include "field/itk_transform_io.h"
 #include "image/nifti_io.h"
+#include "image/nrrd_io.h"
 
 int main(int argc, char** argv) {
   namespace bs = brainshift;
@@ -45,6 +47,18 @@ int main(int argc, char** argv) {
     bs::ItkTransformWriteOptions single;
     single.single_precision = true;
     bs::write_itk_displacement_transform(out / "field_float.h5", field, single);
+    // The NRRD files 3D Slicer would load, beside their NIfTI twins.
+    bs::write_nrrd_displacement(out / "field.nrrd", field);
+    bs::ImageF image(g);
+    bs::LabelImage labels(g);
+    for (std::size_t v = 0; v < image.voxels.size(); ++v) {
+      image.voxels[v] = 0.75f * static_cast<float>(v % 97) - 20.5f;
+      labels.voxels[v] = static_cast<std::uint16_t>((v * 7) % 5);
+    }
+    bs::write_scalar_image(out / "image.nii.gz", image);
+    bs::write_nrrd_scalar(out / "image.nrrd", image);
+    bs::write_label_image(out / "labels.nii.gz", labels);
+    bs::write_nrrd_labels(out / "labels.nrrd", labels);
   } catch (const std::exception& e) {
     std::cerr << "write_itk_check_fields: " << e.what() << '\n';
     return 1;

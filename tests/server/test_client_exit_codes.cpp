@@ -12,6 +12,7 @@
 #include "client/exit_codes.h"
 #include "phantom/phantom_dicom.h"
 #include "image/dicom_series.h"
+#include "image/nrrd_io.h"
 #include "synthetic_head.h"
 #include "image/nifti_io.h"
 #include "server/daemon.h"
@@ -131,6 +132,28 @@ TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
   const ImageF expected = read_dicom_series(d.dir.path() / "series", "", std::size_t{1} << 30);
   EXPECT_TRUE(d.engine.last_scan_image->grid.same_geometry(expected.grid));
   EXPECT_EQ(d.engine.last_scan_image->voxels, expected.voxels);
+
+  // The T1 as NRRD (as Slicer saves it): converted to NIfTI by the client too.
+  write_nrrd_scalar(d.dir.path() / "t1.nrrd", expected);
+  r = d.client({"push", "--labels", labels_file.string(), "--image", (d.dir.path() / "t1.nrrd").string(), "--wait",
+                "--wait-timeout", "30"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+  EXPECT_TRUE(d.engine.last_scan_image->grid.same_geometry(expected.grid));
+  EXPECT_EQ(d.engine.last_scan_image->voxels, expected.voxels);
+  const std::string scan = r.out.substr(0, r.out.find('\n'));
+
+  // pull --format nrrd: NRRD copies of the images and field, and the Slicer scene uses them.
+  const fs::path out = d.dir.path() / "pulled";
+  r = d.client({"pull", "--scan", scan, "--out", out.string(), "--format", "nrrd", "--scene"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+  for (const char* f : {"field.nrrd", "warped_image.nrrd", "warped_labels.nrrd"})
+    EXPECT_TRUE(fs::is_regular_file(out / f)) << f << "\n" << r.out;
+  EXPECT_EQ(read_nrrd_labels(out / "warped_labels.nrrd", std::size_t{1} << 30).voxels,
+            read_label_image(out / "warped_labels.nii.gz").voxels);
+  const std::string scene = e2e::read_file(out / "scene.mrml");
+  EXPECT_NE(scene.find("field.nrrd"), std::string::npos) << scene;
+  EXPECT_NE(scene.find("warped_labels.nrrd"), std::string::npos);
+  EXPECT_NE(e2e::read_file(out / "field.nrrd").find("displacement field type:=resampling"), std::string::npos);
 
   // Refusals are usage errors naming the folder's problem.
   r = d.client({"push", "--labels", labels_file.string(), "--dicom", (d.dir.path() / "nowhere").string()});
