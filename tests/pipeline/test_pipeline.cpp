@@ -336,6 +336,11 @@ void floppy_outer_membrane(PipelineParameters& p) {
   p.outer_surface.edge_weight = 0.0;
   p.outer_surface.max_step_mm = 20.0;
   p.outer_surface.max_iterations = 200;
+  // Without the match's own defences (one level, no fold guard, no normal
+  // search), so that the crossing the repair must handle happens.
+  p.outer_surface.stiffness_levels = 1;
+  p.outer_surface.fold_guard_enabled = false;
+  p.outer_surface.normal_search_mm = 0.0;
 }
 
 TEST_F(PipelineTest, ASurfaceMatchThatCrossesItselfIsRefusedWithoutRepair) {
