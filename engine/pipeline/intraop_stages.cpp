@@ -234,7 +234,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
     result.kind = ResultKind::affine_only_fallback;
     result.fallback_reason = failure;
   }
-  metrics["result"] = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
+  metrics["result"] = std::string(protocol::to_string(result.kind));
   if (!failure.empty()) metrics["fallback_reason"] = failure;
   result.metrics = std::move(metrics);
   result.timings = {{"intraop", timings},
