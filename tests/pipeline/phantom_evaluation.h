@@ -19,6 +19,7 @@ struct CaseResult {
   double max_true_displacement_mm = 0;
   double intraop_total_seconds = 0;
   bool fallback = false;
+  std::string fallback_reason;  // when fallback
   std::vector<double> nonrigid_errors_mm;  // per landmark
   nlohmann::json timings, metrics;
 };
