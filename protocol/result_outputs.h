@@ -21,6 +21,7 @@ enum class ResultPart {
   kMetrics,          // JSON
   kTimings,          // JSON, see timing_log.h ScanTimings
   kReport,           // report.png (image/png), rendered after the scan is done
+  kUncertainty,      // float32 NIfTI, intraop grid: 95 % band radius (mm) of the answer; after the scan is done
 };
 
 enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
@@ -39,7 +40,7 @@ struct ResultOutput {
   bool deferred;
 };
 
-inline constexpr std::array<ResultOutput, 8> kResultOutputs{{
+inline constexpr std::array<ResultOutput, 9> kResultOutputs{{
     {ResultPart::kDisplacement, "displacement", "field", "field.nii.gz", "field.nii", MediaKind::kNifti, false},
     {ResultPart::kDisplacementItk, "displacement_itk", "field_h5", "field.h5", "field.h5", MediaKind::kItkH5, true},
     {ResultPart::kWarpedImage, "warped_image", "warped_image", "warped_image.nii.gz", "warped_image.nii",
@@ -51,6 +52,8 @@ inline constexpr std::array<ResultOutput, 8> kResultOutputs{{
     {ResultPart::kMetrics, "metrics", "metrics", "metrics.json", "metrics.json", MediaKind::kJson, true},
     {ResultPart::kTimings, "timings", "timings", "timings.json", "timings.json", MediaKind::kJson, false},
     {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true},
+    {ResultPart::kUncertainty, "uncertainty", "uncertainty", "uncertainty.nii.gz", "uncertainty.nii",
+     MediaKind::kNifti, true},
 }};
 
 const ResultOutput& result_output(ResultPart part);
