@@ -99,11 +99,23 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
     not_tissue.voxels[v] = !t;
   }
   const ImageF depth_mm = distance_to_mask_mm(not_tissue);
-  // The map is also evaluated a cell and a half beyond the coarse tissue (a
-  // fine tissue voxel lies within half a cell of it, its interpolation
+  // Where an answer is claimed: the brain with its cavities (ventricles, an
+  // enclosed resection), and one voxel beyond its outline, which is itself
+  // only known to a voxel (a landmark just outside a segmentation is still
+  // in the brain).
+  Mask region(fine);
+  for (std::size_t v = 0; v < region.voxels.size(); ++v) region.voxels[v] = in.intraop_labels.voxels[v] != 0;
+  region = dilate(fill_holes(region), fine.spacing_mm().maxCoeff());
+  Mask coarse_region(coarse);
+  for (std::size_t v = 0; v < coarse.voxel_count(); ++v) {
+    std::size_t f;
+    coarse_region.voxels[v] = nearest_voxel(fine, on_fine.voxel(voxel_centre(coarse, v)), &f) && region.voxels[f];
+  }
+  // The map is also evaluated a cell and a half beyond the coarse region (a
+  // fine region voxel lies within half a cell of it, its interpolation
   // corners within a cell of that), so the interpolation to the fine grid
   // does not fade it toward the boundary.
-  const ImageF outside_mm = distance_to_mask_mm(tissue);
+  const ImageF outside_mm = distance_to_mask_mm(coarse_region);
   const double reach_mm = 1.5 * coarse.spacing_mm().norm();
 
   // Preop point of each coarse tissue voxel, and its non-rigid displacement.
@@ -134,13 +146,11 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
       band_coarse.voxels[where[i]] = static_cast<float>(kBand95PerRms * std::sqrt(noise2 + model * model));
     }
   }
-  // To the intraop grid, kept to the tissue.
+  // To the intraop grid, kept to the region.
   ImageF band = resample_linear(band_coarse, fine);
   std::vector<double> inside;
   for (std::size_t v = 0; v < band.voxels.size(); ++v) {
-    const std::uint16_t l = in.intraop_labels.voxels[v];
-    const bool t = std::find(in.tissue_labels.begin(), in.tissue_labels.end(), l) != in.tissue_labels.end();
-    if (!t) band.voxels[v] = 0.f;
+    if (!region.voxels[v]) band.voxels[v] = 0.f;
     else inside.push_back(band.voxels[v]);
   }
   if (summary && !inside.empty()) {

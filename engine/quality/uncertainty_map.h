@@ -1,7 +1,9 @@
 #pragma once
 // How far the served answer can be trusted, voxel by voxel: the radius (mm)
 // of the 95 % band around the matched preop point x + u(x), on the intraop
-// grid (uncertainty.nii.gz; 0 outside the brain, where no answer is claimed).
+// grid (uncertainty.nii.gz). It covers the brain with its cavities and one
+// voxel beyond the segmented outline (which is only known to a voxel); 0
+// farther out, where no answer is claimed.
 //
 // Two independent sources, added in quadrature (DESIGN.md, "Uncertainty map"):
 //  1. The surface data's noise, propagated through the elastic model by Monte
