@@ -54,9 +54,7 @@ std::string check_input_plausibility(const WarmState& warm, const IntraopInput& 
 std::string check_field_plausibility(const WarmState& warm, const std::vector<Eigen::Vector3d>& nonrigid_mm,
                                      const PipelineParameters& params, PlausibilityReport& report) {
   if (!params.plausibility.enabled) return {};
-  std::vector<char> surface_node(warm.fem.mesh().node_count(), 0);
-  for (int n : warm.fem.fixed_nodes()) surface_node[n] = 1;
-  return add_all(report, field_gates(warm.fem.mesh(), nonrigid_mm, surface_node, params.plausibility));
+  return add_all(report, field_gates(warm.fem.mesh(), nonrigid_mm, params.plausibility));
 }
 
 std::string check_image_plausibility(const WarmState& warm, const IntraopInput& input, const Mask& brain_region,

@@ -113,26 +113,15 @@ std::vector<GateResult> affine_gates(const Eigen::Matrix4d& A, const Plausibilit
 }
 
 std::vector<GateResult> field_gates(const TetMesh& mesh, const std::vector<Eigen::Vector3d>& w,
-                                    const std::vector<char>& surface_node, const PlausibilityLimits& limits) {
-  double surface_max = 0, interior_max = 0;
-  for (std::size_t i = 0; i < w.size() && i < surface_node.size(); ++i) {
-    double& m = surface_node[i] ? surface_max : interior_max;
-    m = std::max(m, w[i].norm());
-  }
+                                    const PlausibilityLimits& limits) {
+  double largest_mm = 0;
+  for (const auto& x : w) largest_mm = std::max(largest_mm, x.norm());
   GateResult largest;
   largest.name = "max_displacement";
-  largest.value = std::max(surface_max, interior_max);
+  largest.value = largest_mm;
   largest.limit = "<= " + fixed(limits.max_displacement_mm, 1) + " mm";
   largest.passed = largest.value <= limits.max_displacement_mm;
   largest.detail = "largest non-rigid displacement (mm, beyond the affine)";
-
-  GateResult interior;
-  interior.name = "interior_displacement";
-  interior.value = interior_max;
-  const double bound = limits.max_interior_over_surface * surface_max + limits.interior_slack_mm;
-  interior.limit = "<= " + fixed(bound, 2) + " mm";
-  interior.passed = interior_max <= bound;
-  interior.detail = "largest interior displacement against the surface data's largest (" + fixed(surface_max, 2) + " mm)";
 
   // RMS small strain sym(grad w) over the mesh volume, w linear in each tet.
   double strain2 = 0, volume = 0;
@@ -156,7 +145,7 @@ std::vector<GateResult> field_gates(const TetMesh& mesh, const std::vector<Eigen
   strain.limit = "<= " + fixed(limits.max_rms_strain);
   strain.passed = strain.value <= limits.max_rms_strain;
   strain.detail = "RMS small strain of the non-rigid field over the brain (strain energy per volume / shear modulus)";
-  return {largest, interior, strain};
+  return {largest, strain};
 }
 
 double squared_correlation(const std::vector<double>& a, const std::vector<double>& b) {

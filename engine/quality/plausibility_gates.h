@@ -29,19 +29,18 @@ struct PlausibilityLimits {
   // them at most; a ventricle label covering brain tissue multiplies them.
   double max_ventricle_volume_ratio = 3.0;
   // Principal stretches of the affine within [1/(1+d), 1+d] (scale and shear).
-  double max_affine_stretch_deviation = 0.10;
+  double max_affine_stretch_deviation = 0.15;
   // Rotation angle of the affine's rotation part.
   double max_head_rotation_deg = 90.0;
   // Left-right: a test prefers one side when its score beats the other's by
   // this much (label overlap, and squared image correlation).
   double left_right_overlap_margin = 0.05;
   double left_right_r2_margin = 0.02;
-  // The field: largest non-rigid displacement anywhere, interior against the
-  // surface data, and the RMS small-strain over the brain.
+  // The field: largest non-rigid displacement anywhere and the RMS small
+  // strain over the brain. (Motion beyond what the surface data ask for is
+  // QualityGates::max_unsupported_displacement_mm's gate.)
   double max_displacement_mm = 40.0;
-  double max_interior_over_surface = 1.5;
-  double interior_slack_mm = 2.0;
-  double max_rms_strain = 0.15;
+  double max_rms_strain = 0.20;
   // The warped preop T1 may not match the intraop image worse than the affine
   // alone by more than this (squared correlation).
   double image_r2_tolerance = 0.01;
@@ -80,11 +79,10 @@ GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen
 // Principal stretches and rotation angle of the affine (polar decomposition).
 std::vector<GateResult> affine_gates(const Eigen::Matrix4d& intraop_from_preop, const PlausibilityLimits& limits);
 
-// The solved non-rigid displacement at the mesh nodes: largest displacement,
-// interior against the surface data (surface_node[i] true for nodes the
-// surface match drove), RMS small strain over the mesh volume.
+// The solved non-rigid displacement at the mesh nodes: largest displacement
+// and RMS small strain over the mesh volume.
 std::vector<GateResult> field_gates(const TetMesh& preop_mesh, const std::vector<Eigen::Vector3d>& nonrigid_mm,
-                                    const std::vector<char>& surface_node, const PlausibilityLimits& limits);
+                                    const PlausibilityLimits& limits);
 
 // Squared correlation of the intraop T1 with the preop T1 pulled back by the
 // served field, against the same through the affine alone, over the intraop

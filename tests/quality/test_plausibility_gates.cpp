@@ -89,10 +89,11 @@ TEST(AffineGates, AHeadMovingPassesScaleShearAndFlipsFail) {
   };
   EXPECT_TRUE(passes(Eigen::Matrix4d::Identity()));
   EXPECT_TRUE(passes(rotation_deg(40, {1, 0.3, 0.2}) * linear(Eigen::Vector3d(1.03, 0.98, 1.01).asDiagonal())));
+  EXPECT_TRUE(passes(linear(Eigen::Vector3d(1.0, 1.0, 1.1).asDiagonal()))) << "an affine dragged by a deep sink";
   EXPECT_FALSE(passes(linear(Eigen::Vector3d(1.0, 1.0, 1.2).asDiagonal()))) << "scale";
-  EXPECT_FALSE(passes(linear(Eigen::Vector3d(0.85, 1.0, 1.0).asDiagonal()))) << "shrink";
+  EXPECT_FALSE(passes(linear(Eigen::Vector3d(0.8, 1.0, 1.0).asDiagonal()))) << "shrink";
   Eigen::Matrix3d shear = Eigen::Matrix3d::Identity();
-  shear(0, 1) = 0.3;
+  shear(0, 1) = 0.4;
   EXPECT_FALSE(passes(linear(shear))) << "shear";
   EXPECT_FALSE(passes(linear(Eigen::Vector3d(-1, 1, 1).asDiagonal()))) << "mirror";
   const auto turned = affine_gates(rotation_deg(120, {0, 0, 1}), limits);
@@ -103,34 +104,27 @@ TEST(AffineGates, AHeadMovingPassesScaleShearAndFlipsFail) {
 
 TEST(FieldGates, RmsStrainOfAUniformStretchIsItsStrain) {
   const test::BoxMesh box = test::make_box_mesh({6, 6, 6}, {0, 0, 0}, {60, 60, 60});
-  std::vector<char> surface(box.mesh.node_count(), 0);
-  for (int n : box.boundary_nodes) surface[n] = 1;
   const auto stretch = [&](double e) {
     std::vector<Eigen::Vector3d> w;
     for (const auto& p : box.mesh.nodes_mm) w.emplace_back(e * (p.x() - 30), 0, 0);
-    return field_gates(box.mesh, w, surface, PlausibilityLimits{});
+    return field_gates(box.mesh, w, PlausibilityLimits{});
   };
   const auto small = stretch(0.05);
-  EXPECT_NEAR(small[2].value, 0.05, 1e-9);
-  EXPECT_TRUE(small[0].passed && small[1].passed && small[2].passed);
+  EXPECT_NEAR(small[1].value, 0.05, 1e-9);
+  EXPECT_TRUE(small[0].passed && small[1].passed);
   const auto large = stretch(0.3);
-  EXPECT_FALSE(large[2].passed) << "RMS strain 0.3 over the whole brain";
+  EXPECT_FALSE(large[1].passed) << "RMS strain 0.3 over the whole brain";
   // A rigid translation has no strain at all.
   std::vector<Eigen::Vector3d> shift(box.mesh.node_count(), Eigen::Vector3d(3, -2, 1));
-  EXPECT_NEAR(field_gates(box.mesh, shift, surface, PlausibilityLimits{})[2].value, 0.0, 1e-12);
+  EXPECT_NEAR(field_gates(box.mesh, shift, PlausibilityLimits{})[1].value, 0.0, 1e-12);
 }
 
-TEST(FieldGates, InteriorMotionTheSurfaceDataDoesNotJustifyFails) {
+TEST(FieldGates, MoreThanAnyBrainShiftFails) {
   const test::BoxMesh box = test::make_box_mesh({6, 6, 6}, {0, 0, 0}, {60, 60, 60});
-  std::vector<char> surface(box.mesh.node_count(), 0);
-  for (int n : box.boundary_nodes) surface[n] = 1;
-  std::vector<Eigen::Vector3d> w(box.mesh.node_count(), Eigen::Vector3d(1, 0, 0));  // 1 mm everywhere
-  EXPECT_TRUE(field_gates(box.mesh, w, surface, PlausibilityLimits{})[1].passed);
-  w[box.interior_nodes[box.interior_nodes.size() / 2]] = {8, 0, 0};
-  const auto g = field_gates(box.mesh, w, surface, PlausibilityLimits{});
-  EXPECT_FALSE(g[1].passed) << g[1].limit;
+  std::vector<Eigen::Vector3d> w(box.mesh.node_count(), Eigen::Vector3d(0, 0, 25));
+  EXPECT_TRUE(field_gates(box.mesh, w, PlausibilityLimits{})[0].passed) << "25 mm";
   w.assign(box.mesh.node_count(), Eigen::Vector3d(0, 0, 45));
-  EXPECT_FALSE(field_gates(box.mesh, w, surface, PlausibilityLimits{})[0].passed) << "45 mm";
+  EXPECT_FALSE(field_gates(box.mesh, w, PlausibilityLimits{})[0].passed) << "45 mm";
 }
 
 TEST(LeftRightGate, TheScanAsGivenPassesItsMirrorImageFails) {
