@@ -168,6 +168,30 @@ LabelImage add_specks(const LabelImage& labels, const HeadLabels& l, int count, 
   return out;
 }
 
+namespace {
+
+// Issue 17's runaway kind, drawn from a seed: proportions 0.9-1.1 per axis,
+// a 3-6 mm reshaping, a 12-20 mm tumour 2 mm lateral (left or right) of the
+// ventricles compressing them; odd seeds keep the tumour label, even seeds
+// paint it as brain (a map that does not label the tumour).
+LabelImage searched_head(const LabelImage& atlas, const HeadLabels& l, unsigned seed) {
+  std::mt19937 rng(seed);
+  auto uniform = [&](double lo, double hi) { return lo + (hi - lo) * static_cast<double>(rng() % 10001) / 10000.0; };
+  const Eigen::Vector3d scale(uniform(0.9, 1.1), uniform(0.9, 1.1), uniform(0.9, 1.1));
+  const double bump = uniform(3, 6), radius = uniform(12, 20);
+  const Eigen::Vector3d lateral((rng() % 2) ? 1.0 : -1.0, 0, 0);
+  const LabelImage head = reshape_head(atlas, l, scale, bump, seed);
+  const Eigen::Vector3d c = point_at_distance_from_label(head, l.ventricles, label_centroid_mm(head, l.ventricles),
+                                                         lateral, radius + 2.0);
+  LabelImage out = collapse_ventricles_near(add_tumour_with_mass_effect(head, l, c, radius), l, c, 0.4);
+  if (seed % 2 == 0)
+    for (auto& v : out.voxels)
+      if (v == l.tumour) v = l.brain;
+  return out;
+}
+
+}  // namespace
+
 std::vector<std::string> head_case_names() {
   return {"atlas",           "enlarged_ventricles_x1.8", "enlarged_ventricles_x2.4",
           "compressed_ventricles", "reshaped",           "reshaped_compressed",
@@ -206,6 +230,7 @@ HeadCase make_head_case(const std::string& name, const LabelImage& atlas, const 
     return {name, out};
   }
   if (name == "specks") return {name, add_specks(atlas, l, 300, 7)};
+  if (name.rfind("search_", 0) == 0) return {name, searched_head(atlas, l, static_cast<unsigned>(std::stoul(name.substr(7))))};
   throw InputError("make_head_case: unknown case " + name);
 }
 
