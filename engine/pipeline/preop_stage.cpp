@@ -99,8 +99,11 @@ std::vector<ResectableWall> resectable_walls(const TetMesh& mesh, const LabelTab
   return out;
 }
 
+// The whole-brain model (every label inside the outer surface) takes the
+// parenchyma's name from the table: the gateway, the default pull and the
+// Slicer scene look it up by that name.
 std::vector<StructureDefinition> structures_for(const LabelTable& table) {
-  StructureDefinition brain{"brain", {}};
+  StructureDefinition brain{table.find(table.brain_label())->name, {}};
   std::vector<StructureDefinition> out;
   for (const auto& e : table.entries) {
     brain.labels.push_back(e.value);
