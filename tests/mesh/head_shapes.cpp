@@ -201,7 +201,7 @@ std::vector<std::string> head_case_names() {
 // Sizes: a 15 mm tumour 2 mm from the ventricle pushes its near wall ~5.5 mm
 // and its far wall (~10 mm on) ~1.6 mm, and the 40 % of the ventricles
 // nearest to it collapse (CSF is pressed out; tissue is not). Proportions 0.9-1.1 per axis with a 4-5 mm reshaping are those
-// of issue 17's second set of cases.
+// of the independent cases that once made the mesher run away.
 HeadCase make_head_case(const std::string& name, const LabelImage& atlas, const HeadLabels& l) {
   const Eigen::Vector3d lateral(1, 0, 0);
   auto compressed = [&](const LabelImage& head) {
