@@ -174,13 +174,25 @@ namespace {
 // a 3-6 mm reshaping, a 12-20 mm tumour 2 mm lateral (left or right) of the
 // ventricles compressing them; odd seeds keep the tumour label, even seeds
 // paint it as brain (a map that does not label the tumour).
-LabelImage searched_head(const LabelImage& atlas, const HeadLabels& l, unsigned seed) {
+// rescale_voxels: the proportions are given to the voxels instead (the same
+// label array on voxels of 0.9-1.1 mm per axis), then a 2 mm smooth reshaping.
+LabelImage searched_head(const LabelImage& atlas, const HeadLabels& l, unsigned seed, bool rescale_voxels = false) {
   std::mt19937 rng(seed);
   auto uniform = [&](double lo, double hi) { return lo + (hi - lo) * static_cast<double>(rng() % 10001) / 10000.0; };
   const Eigen::Vector3d scale(uniform(0.9, 1.1), uniform(0.9, 1.1), uniform(0.9, 1.1));
   const double bump = uniform(3, 6), radius = uniform(12, 20);
   const Eigen::Vector3d lateral((rng() % 2) ? 1.0 : -1.0, 0, 0);
-  const LabelImage head = reshape_head(atlas, l, scale, bump, seed);
+  LabelImage head;
+  if (rescale_voxels) {
+    LabelImage scaled = atlas;
+    const Eigen::Vector3d c = label_centroid_mm(atlas, l.brain);
+    scaled.grid.world_from_voxel.topLeftCorner<3, 3>() = scale.asDiagonal() * atlas.grid.world_from_voxel.topLeftCorner<3, 3>();
+    scaled.grid.world_from_voxel.topRightCorner<3, 1>() =
+        c + scale.asDiagonal() * (atlas.grid.world_from_voxel.topRightCorner<3, 1>() - c);
+    head = reshape_head(scaled, l, Eigen::Vector3d::Ones(), 2.0, seed);
+  } else {
+    head = reshape_head(atlas, l, scale, bump, seed);
+  }
   const Eigen::Vector3d c = point_at_distance_from_label(head, l.ventricles, label_centroid_mm(head, l.ventricles),
                                                          lateral, radius + 2.0);
   LabelImage out = collapse_ventricles_near(add_tumour_with_mass_effect(head, l, c, radius), l, c, 0.4);
@@ -230,6 +242,8 @@ HeadCase make_head_case(const std::string& name, const LabelImage& atlas, const 
     return {name, out};
   }
   if (name == "specks") return {name, add_specks(atlas, l, 300, 7)};
+  if (name.rfind("search_voxels_", 0) == 0)
+    return {name, searched_head(atlas, l, static_cast<unsigned>(std::stoul(name.substr(14))), true)};
   if (name.rfind("search_", 0) == 0) return {name, searched_head(atlas, l, static_cast<unsigned>(std::stoul(name.substr(7))))};
   throw InputError("make_head_case: unknown case " + name);
 }
