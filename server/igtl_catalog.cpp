@@ -14,16 +14,13 @@ namespace {
 
 using protocol::ResultPart;
 
-// Our own outputs: bounded only so that a corrupt header cannot ask for more.
-constexpr std::size_t kMaxResultImageBytes = std::size_t{4} << 30;
+constexpr std::size_t kMaxResultImageBytes = kMaxIgtlImageBytes;
 // How far back the store's index is searched for done scans (failed ones between).
 constexpr std::size_t kScanLookback = 1000;
 
 std::optional<std::pair<std::string, std::string>> read_part(const CaseStore& store, const std::string& scan_id,
                                                               ResultPart part) {
-  for (const auto& name : protocol::stored_file_names(part))
-    if (auto bytes = store.read_result_file(scan_id, name)) return std::make_pair(name, std::move(*bytes));
-  return std::nullopt;
+  return read_result_part(store, scan_id, part);
 }
 
 bool has_part(const std::vector<std::string>& files, ResultPart part) {
@@ -63,6 +60,13 @@ igtl::PackedMessage null_reply(const std::string& type, const std::string& devic
 }
 
 }  // namespace
+
+std::optional<std::pair<std::string, std::string>> read_result_part(const CaseStore& store, const std::string& scan_id,
+                                                                    protocol::ResultPart part) {
+  for (const auto& name : protocol::stored_file_names(part))
+    if (auto bytes = store.read_result_file(scan_id, name)) return std::make_pair(name, std::move(*bytes));
+  return std::nullopt;
+}
 
 igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& scan_id, const LabelTable& labels) {
   const auto record = store.find(scan_id);

@@ -16,10 +16,19 @@
 #include <vector>
 
 #include "core/label_table.h"
+#include "protocol/result_outputs.h"
 #include "server/case_store.h"
 #include "server/igtl_encoder.h"
 
 namespace brainshift::server {
+
+// Our own outputs: bounded only so that a corrupt header cannot ask for more.
+inline constexpr std::size_t kMaxIgtlImageBytes = std::size_t{4} << 30;
+
+// A stored part's file name and bytes (the first of its stored names
+// present); nullopt when the scan has none.
+std::optional<std::pair<std::string, std::string>> read_result_part(const CaseStore& store, const std::string& scan_id,
+                                                                    protocol::ResultPart part);
 
 // A done scan's result read back from the store; unreadable parts are left
 // out and named in problems. labels names the models' devices (their short names).
