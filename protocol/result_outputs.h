@@ -21,6 +21,11 @@ enum class ResultPart {
   kMetrics,          // JSON
   kTimings,          // JSON, see timing_log.h ScanTimings
   kReport,           // report.png (image/png), rendered after the scan is done
+  // Present only when the engine derived them (a scan pushed as an image
+  // without labels): the segmentation the registration used, in the label
+  // table's values, and the posterior of each voxel's chosen tissue.
+  kIntraopLabels,
+  kSegmentationConfidence,
 };
 
 enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
@@ -39,7 +44,7 @@ struct ResultOutput {
   bool deferred;
 };
 
-inline constexpr std::array<ResultOutput, 8> kResultOutputs{{
+inline constexpr std::array<ResultOutput, 10> kResultOutputs{{
     {ResultPart::kDisplacement, "displacement", "field", "field.nii.gz", "field.nii", MediaKind::kNifti, false},
     {ResultPart::kDisplacementItk, "displacement_itk", "field_h5", "field.h5", "field.h5", MediaKind::kItkH5, true},
     {ResultPart::kWarpedImage, "warped_image", "warped_image", "warped_image.nii.gz", "warped_image.nii",
@@ -51,6 +56,10 @@ inline constexpr std::array<ResultOutput, 8> kResultOutputs{{
     {ResultPart::kMetrics, "metrics", "metrics", "metrics.json", "metrics.json", MediaKind::kJson, true},
     {ResultPart::kTimings, "timings", "timings", "timings.json", "timings.json", MediaKind::kJson, false},
     {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true},
+    {ResultPart::kIntraopLabels, "intraop_labels", "intraop_labels", "intraop_labels.nii.gz", "intraop_labels.nii",
+     MediaKind::kNifti, false},
+    {ResultPart::kSegmentationConfidence, "segmentation_confidence", "segmentation_confidence",
+     "segmentation_confidence.nii.gz", "segmentation_confidence.nii", MediaKind::kNifti, false},
 }};
 
 const ResultOutput& result_output(ResultPart part);

@@ -122,7 +122,7 @@ void solve_with_resection(WarmState& warm, const IntraopInput& input, const Mask
 }  // namespace
 
 ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                       const ProgressFn& progress, bool with_quality_metrics) {
+                       const ProgressFn& progress, bool with_quality_metrics, const std::string& forced_fallback) {
   const LabelTable& table = params.label_table;
   Stopwatch total;
   ScanResult result;
@@ -154,8 +154,8 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
                        {"inlier_fraction", affine.inlier_fraction}, {"message", affine.message}};
   clock.done("affine");
 
-  std::string failure;
-  if (!affine.converged) failure = "affine registration did not converge: " + affine.message;
+  std::string failure = forced_fallback;
+  if (failure.empty() && !affine.converged) failure = "affine registration did not converge: " + affine.message;
 
   clock.start("surface");
   std::vector<Eigen::Vector3d> fixed_values;
