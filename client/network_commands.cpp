@@ -101,6 +101,7 @@ std::string describe_event(const Message& e) {
       const auto d = parse_scan_done_event(e);
       std::snprintf(buf, sizeof buf, "%.3f s", d.seconds);
       os << "done     " << d.scan_id << ' ' << buf;
+      if (d.result) os << ' ' << to_string(d.result->kind);
       break;
     }
     case MessageType::kEventScanFailed: {
@@ -230,19 +231,25 @@ bool still_pending(const ScanResultReply& r, std::string_view part) {
                      [&](const UnavailablePart& u) { return u.part == part && u.pending; });
 }
 
-// metrics.result is "nonrigid" or "affine_only_fallback" (PROTOCOL.md 16).
+int exit_code_of(const ResultKindInfo& result) {
+  if (result.kind == ResultKind::nonrigid) return kExitOk;
+  std::cerr << "WARNING: non-rigid registration refused ("
+            << (result.fallback_reason.empty() ? "no reason given" : result.fallback_reason)
+            << "); the result is the AFFINE-ONLY fallback\n";
+  return kExitFallback;
+}
+
+// A server before revision 2 of protocol version 1 names the kind only in
+// the deferred metrics.json ("result", "fallback_reason"; PROTOCOL.md 10).
 int exit_code_of_metrics(const std::string& metrics_json) {
   try {
     const auto metrics = nlohmann::json::parse(metrics_json);
-    if (metrics.value("result", "") == "affine_only_fallback") {
-      std::cerr << "WARNING: non-rigid registration refused (" << metrics.value("fallback_reason", "no reason given")
-                << "); the result is the AFFINE-ONLY fallback\n";
-      return kExitFallback;
-    }
+    const auto kind = result_kind_from_string(metrics.value("result", ""));
+    if (!kind) throw std::runtime_error("\"result\" is neither nonrigid nor affine_only_fallback");
+    return exit_code_of({*kind, metrics.value("fallback_reason", "")});
   } catch (const std::exception& e) {
     throw CommandError(kExitError, std::string("unreadable metrics from the server: ") + e.what());
   }
-  return kExitOk;
 }
 
 int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, double wait_s) {
@@ -273,8 +280,10 @@ int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, do
         announced = true;
         announce_result(r);
       }
-      // metrics is deferred (PROTOCOL.md 5.4): it says whether the result is
-      // the affine-only fallback, so wait for it too.
+      // The reply says whether the result is the affine-only fallback, so the
+      // wait ends with scan.done; only an older server makes it wait for the
+      // deferred metrics, the one place it says so there.
+      if (r.result) return exit_code_of(*r.result);
       if (const Frame* m = r.find("metrics")) return exit_code_of_metrics(m->bytes);
       if (still_pending(r, "metrics")) continue;
       std::cerr << "note: " << scan_id << " has no metrics; cannot tell a non-rigid result from the fallback\n";
@@ -417,6 +426,7 @@ int cmd_list(const NetworkOptions& o, std::uint64_t limit) {
     std::cout << s.scan_id << '\t' << to_string(s.state) << '\t' << s.received_at << '\t'
               << s.client_scan_id.value_or("-");
     if (s.stage) std::cout << "\tstage " << *s.stage;
+    if (s.result) std::cout << '\t' << to_string(s.result->kind);
     if (s.error) std::cout << '\t' << s.error->message;
     std::cout << '\n';
   }

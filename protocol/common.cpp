@@ -24,4 +24,18 @@ ErrorInfo error_info_from_json(const nlohmann::json& j, const std::string& conte
   return {*code, f.text("message")};
 }
 
+void add_result_kind(nlohmann::json& object, const ResultKindInfo& result) {
+  object["kind"] = std::string(to_string(result.kind));
+  if (result.kind == ResultKind::affine_only_fallback) object["fallback_reason"] = result.fallback_reason;
+}
+
+std::optional<ResultKindInfo> result_kind_from_json(const nlohmann::json& object, const std::string& context) {
+  const detail::FieldReader f(object, context);
+  const auto text = f.opt_string("kind");
+  if (!text) return std::nullopt;
+  const auto kind = result_kind_from_string(*text);
+  if (!kind) f.fail("kind", "must be \"nonrigid\" or \"affine_only_fallback\"");
+  return ResultKindInfo{*kind, f.text("fallback_reason")};
+}
+
 }  // namespace brainshift::protocol

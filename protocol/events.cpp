@@ -63,6 +63,7 @@ Message make_event(const ScanDoneEvent& e) {
   Message m = event(MessageType::kEventScanDone);
   m.header.update({{"scan_id", e.scan_id}, {"seconds", e.seconds}});
   if (e.client_scan_id) m.header["client_scan_id"] = *e.client_scan_id;
+  if (e.result) add_result_kind(m.header, *e.result);
   return m;
 }
 
@@ -107,7 +108,8 @@ ScanProgressEvent parse_scan_progress_event(const Message& m) {
 
 ScanDoneEvent parse_scan_done_event(const Message& m) {
   const auto f = open_event(m, MessageType::kEventScanDone);
-  return {f.string("scan_id"), f.opt_string("client_scan_id"), f.number("seconds")};
+  return {f.string("scan_id"), f.opt_string("client_scan_id"), f.number("seconds"),
+          result_kind_from_json(m.header, "event.scan.done")};
 }
 
 ScanFailedEvent parse_scan_failed_event(const Message& m) {

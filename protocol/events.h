@@ -42,6 +42,7 @@ struct ScanDoneEvent {
   std::string scan_id{};
   std::optional<std::string> client_scan_id{};
   double seconds = 0.0;  // intraop total
+  std::optional<ResultKindInfo> result{};  // always sent; absent from older servers
   bool operator==(const ScanDoneEvent&) const = default;
 };
 struct ScanFailedEvent {

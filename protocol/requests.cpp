@@ -359,6 +359,7 @@ const Frame* ScanResultReply::find(std::string_view name) const {
 Message make_scan_result_reply(const std::string& request_id, const ScanResultReply& r) {
   Message m = with_frames(make_message(MessageType::kScanResultReply, request_id), r.frames);
   m.header["scan_id"] = r.scan_id;
+  if (r.result) add_result_kind(m.header, *r.result);
   json unavailable = json::array();
   for (const auto& u : r.unavailable) {
     json entry{{"part", u.part}, {"reason", u.reason}};
@@ -383,6 +384,7 @@ ScanResultReply parse_scan_result_reply(const Message& m) {
   const FieldReader f(m.header, "scan.result.reply");
   ScanResultReply r;
   r.scan_id = f.string("scan_id");
+  r.result = result_kind_from_json(m.header, "scan.result.reply");
   for (const auto& frame : m.frames) {
     if (!result_media_ok(frame.name, frame.media_type))
       throw ProtocolError(ErrorCode::kInvalidRequest,
@@ -430,6 +432,7 @@ Message make_scan_list_reply(const std::string& request_id, const ScanListReply&
     if (s.finished_at) j["finished_at"] = *s.finished_at;
     if (s.stage) j["stage"] = *s.stage;
     if (s.error) j["error"] = to_json_value(*s.error);
+    if (s.result) add_result_kind(j, *s.result);
     scans.push_back(std::move(j));
   }
   m.header["scans"] = std::move(scans);
@@ -453,6 +456,7 @@ ScanListReply parse_scan_list_reply(const Message& m) {
     sum.finished_at = s.opt_string("finished_at");
     sum.stage = s.opt_string("stage");
     if (const json* e = s.opt_object("error")) sum.error = error_info_from_json(*e, "scan.list.reply.scans[].error");
+    sum.result = result_kind_from_json(item, "scan.list.reply.scans[]");
     r.scans.push_back(std::move(sum));
   }
   return r;

@@ -143,6 +143,7 @@ struct UnavailablePart {
 };
 struct ScanResultReply {
   std::string scan_id{};
+  std::optional<ResultKindInfo> result{};  // always sent; absent from older servers
   std::vector<Frame> frames{};  // named by frame_name / model_frame_name
   std::vector<UnavailablePart> unavailable{};
   const Frame* find(std::string_view name) const;
@@ -168,6 +169,7 @@ struct ScanSummary {
   std::optional<std::string> finished_at{};  // done or failed
   std::optional<std::string> stage{};        // running stage while kProcessing
   std::optional<ErrorInfo> error{};          // when kFailed
+  std::optional<ResultKindInfo> result{};    // when kDone (absent from older servers)
   bool operator==(const ScanSummary&) const = default;
 };
 struct ScanListReply {

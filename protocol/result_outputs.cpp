@@ -38,6 +38,18 @@ std::optional<ResultPart> result_part_from_cli(std::string_view cli) {
   return std::nullopt;
 }
 
+bool part_expected(ResultPart part, const ScanFacts& scan) { return why_not_expected(part, scan).empty(); }
+
+std::string_view why_not_expected(ResultPart part, const ScanFacts& scan) {
+  switch (result_output(part).presence) {
+    case PartPresence::kEveryScan: return "";
+    case PartPresence::kWithIntraopImage: return scan.has_image ? "" : "no intraop image was pushed";
+    case PartPresence::kWithoutIntraopLabels:
+      return scan.has_labels ? "intraop labels were pushed (only a segmentation the engine made is a result part)" : "";
+  }
+  return "";
+}
+
 std::string frame_name(ResultPart part) {
   if (part == ResultPart::kModels)
     throw std::invalid_argument("frame_name: models travel as model.<structure> frames");

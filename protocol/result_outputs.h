@@ -1,9 +1,14 @@
 #pragma once
 // The parts of a registration result and every name each goes by: the wire
 // (scan.result "parts" and frame names), the CLI (`pull --parts`), the files
-// `brainshift register --out` and `pull` write, and the daemon's store. One
-// table; the engine's encoder, the daemon, the OpenIGTLink gateway and the
-// client all look names up here (PROTOCOL.md section 5.4 quotes it).
+// `brainshift register --out` and `pull` write, and the daemon's store; and
+// what the daemon does with each: whether it is made after the answer
+// (deferred, by which stage), which scans have it, how a crash that lost it
+// is repaired. One table; the engine's encoder, the daemon (crash recovery,
+// pending parts, unavailable reasons), the OpenIGTLink gateway and the
+// client all look parts up here (PROTOCOL.md section 5.4 quotes it). A new
+// part is one row (and its enumerator); tests/protocol/test_result_outputs.cpp
+// and tests/server/test_result_rows.cpp check every row.
 #include <array>
 #include <optional>
 #include <string>
@@ -30,6 +35,21 @@ enum class ResultPart {
 
 enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
 
+// Which scans have a part. A row present for some scans only names what
+// decides it; the daemon asks part_expected() with what it knows of the scan
+// (ScanFacts), so a new condition is an enumerator and a field there.
+enum class PartPresence {
+  kEveryScan,
+  kWithIntraopImage,  // only when scan.push carried an "image"
+  kWithoutIntraopLabels,  // only when the scan came without "labels" (the engine segmented the image)
+};
+
+// What the daemon knows of a scan that decides which parts it has.
+struct ScanFacts {
+  bool has_image = false;  // scan.push carried an intraop image
+  bool has_labels = true;  // scan.push carried intraop labels
+};
+
 struct ResultOutput {
   ResultPart part;
   std::string_view wire;   // part and frame name; models: part "models", frames "model.<structure>"
@@ -39,33 +59,53 @@ struct ResultOutput {
   // gzip of the 47 MB field alone cost the daemon ~1.5 s of latency).
   std::string_view stored;
   MediaKind media;
-  // Made off the latency path, after event.scan.done: a pull may find it
-  // "pending" for a moment.
+  // Made off the latency path, after event.scan.done, by the timing-log
+  // stage deferred_stage (stage_names.h): a pull finds it "pending" until it
+  // is stored. Not deferred: part of the answer, deferred_stage empty.
   bool deferred;
+  std::string_view deferred_stage;
+  PartPresence presence;
+  // A deferred part that re-encodes another stored part is made again from
+  // it when a crash lost it (field.h5 from field.nii); any other lost
+  // deferred part by registering the stored scan again.
+  std::optional<ResultPart> remade_from;
 };
 
-inline constexpr std::array<ResultOutput, 10> kResultOutputs{{
-    {ResultPart::kDisplacement, "displacement", "field", "field.nii.gz", "field.nii", MediaKind::kNifti, false},
-    {ResultPart::kDisplacementItk, "displacement_itk", "field_h5", "field.h5", "field.h5", MediaKind::kItkH5, true},
+// part, wire, cli, file, stored, media, deferred, deferred_stage, presence, remade_from
+inline constexpr ResultOutput kResultOutputs[] = {
+    {ResultPart::kDisplacement, "displacement", "field", "field.nii.gz", "field.nii", MediaKind::kNifti, false, "",
+     PartPresence::kEveryScan, std::nullopt},
+    {ResultPart::kDisplacementItk, "displacement_itk", "field_h5", "field.h5", "field.h5", MediaKind::kItkH5, true,
+     "itk_field", PartPresence::kEveryScan, ResultPart::kDisplacement},
     {ResultPart::kWarpedImage, "warped_image", "warped_image", "warped_image.nii.gz", "warped_image.nii",
-     MediaKind::kNifti, false},
+     MediaKind::kNifti, false, "", PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kWarpedLabels, "warped_labels", "warped_labels", "warped_labels.nii.gz", "warped_labels.nii",
-     MediaKind::kNifti, false},
+     MediaKind::kNifti, false, "", PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kModels, "models", "models", "models/<structure>.vtp", "models/<structure>.vtp", MediaKind::kVtp,
-     false},
-    {ResultPart::kMetrics, "metrics", "metrics", "metrics.json", "metrics.json", MediaKind::kJson, true},
-    {ResultPart::kTimings, "timings", "timings", "timings.json", "timings.json", MediaKind::kJson, false},
-    {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true},
+     false, "", PartPresence::kEveryScan, std::nullopt},
+    {ResultPart::kMetrics, "metrics", "metrics", "metrics.json", "metrics.json", MediaKind::kJson, true, "metrics",
+     PartPresence::kEveryScan, std::nullopt},
+    {ResultPart::kTimings, "timings", "timings", "timings.json", "timings.json", MediaKind::kJson, false, "",
+     PartPresence::kEveryScan, std::nullopt},
+    {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true, "report",
+     PartPresence::kWithIntraopImage, std::nullopt},
     {ResultPart::kIntraopLabels, "intraop_labels", "intraop_labels", "intraop_labels.nii.gz", "intraop_labels.nii",
-     MediaKind::kNifti, false},
+     MediaKind::kNifti, false, "", PartPresence::kWithoutIntraopLabels, std::nullopt},
     {ResultPart::kSegmentationConfidence, "segmentation_confidence", "segmentation_confidence",
-     "segmentation_confidence.nii.gz", "segmentation_confidence.nii", MediaKind::kNifti, false},
-}};
+     "segmentation_confidence.nii.gz", "segmentation_confidence.nii", MediaKind::kNifti, false, "",
+     PartPresence::kWithoutIntraopLabels, std::nullopt},
+};
 
 const ResultOutput& result_output(ResultPart part);
 std::string_view to_string(ResultPart p);  // the wire name
 std::optional<ResultPart> result_part_from_string(std::string_view wire);
 std::optional<ResultPart> result_part_from_cli(std::string_view cli);
+
+// Whether a scan with these facts has the part (its row's presence).
+bool part_expected(ResultPart part, const ScanFacts& scan);
+// Why a scan lacks a part it is not expected to have, for scan.result's
+// "unavailable" ("no intraop image was pushed"); "" when it is expected.
+std::string_view why_not_expected(ResultPart part, const ScanFacts& scan);
 
 // Frame name carrying a single-file part ("displacement", ...); throws
 // std::invalid_argument for kModels (one model_frame_name per structure).

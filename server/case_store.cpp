@@ -231,8 +231,9 @@ std::optional<CaseStore::Entry> CaseStore::read_scan_dir(const fs::path& sdir) c
       r.error_stage = meta.at("error_stage").get<std::string>();
     } else {
       r.state = StoredScanState::done;
-      r.result_kind = meta.at("kind").get<std::string>();
-      r.fallback_reason = meta.value("fallback_reason", "");
+      const auto kind = protocol::result_kind_from_string(meta.at("kind").get<std::string>());
+      if (!kind) throw std::runtime_error("unknown result kind " + meta.at("kind").dump());
+      r.result = {*kind, meta.value("fallback_reason", "")};
       for (const auto& f : meta.at("files")) {
         const std::string ds = f.at("dataset").get<std::string>();
         entry.files[f.at("name").get<std::string>()] =
@@ -445,12 +446,12 @@ void CaseStore::write_result_file(const std::string& scan_id, const std::string&
 }
 
 void CaseStore::save_result(const std::string& scan_id, const std::map<std::string, std::string>& files,
-                            const std::string& kind, const std::string& fallback_reason,
-                            const std::string& finished_at) {
+                            const protocol::ResultKindInfo& result, const std::string& finished_at) {
   if (!find(scan_id)) throw std::invalid_argument("store: unknown scan " + scan_id);
   json meta{{"format", kStoreFormat}, {"state", "done"},
             {"finished_at", finished_at.empty() ? protocol::utc_now() : finished_at},
-            {"kind", kind}, {"fallback_reason", fallback_reason}, {"files", json::array()}};
+            {"kind", std::string(protocol::to_string(result.kind))}, {"fallback_reason", result.fallback_reason},
+            {"files", json::array()}};
   std::size_t i = 0;
   for (const auto& [name, bytes] : files)
     meta["files"].push_back({{"name", name}, {"dataset", "files/" + std::to_string(i++)}, {"size", bytes.size()}});

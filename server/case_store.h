@@ -30,6 +30,7 @@
 
 #include "core/image.h"
 #include "core/tet_mesh.h"
+#include "protocol/common.h"
 
 namespace brainshift::server {
 
@@ -63,8 +64,8 @@ struct ScanRecord {
   std::optional<std::string> finished_at;
   // Set when failed: protocol error code name, message and failing stage.
   std::string error_code, error_message, error_stage;
-  // Set when done: "nonrigid" or "affine_only_fallback", and why.
-  std::string result_kind, fallback_reason;
+  // Set when done: nonrigid, or the affine-only fallback and why.
+  protocol::ResultKindInfo result;
 };
 
 struct ScanInput {
@@ -107,8 +108,7 @@ class CaseStore {
   // "models/brain.vtp") and marks the scan done, finished at finished_at
   // (ISO-8601 UTC; now when empty).
   void save_result(const std::string& scan_id, const std::map<std::string, std::string>& files,
-                   const std::string& kind, const std::string& fallback_reason,
-                   const std::string& finished_at = "");
+                   const protocol::ResultKindInfo& result, const std::string& finished_at = "");
   void save_failure(const std::string& scan_id, const std::string& error_code,
                     const std::string& message, const std::string& stage);
   // A result or failure that could not be written: the index shows the scan

@@ -7,6 +7,7 @@
 #include <spdlog/spdlog.h>
 
 #include "core/errors.h"
+#include "protocol/result_outputs.h"
 #include "server/label_mapping.h"
 #include "server/server_core_internal.h"
 
@@ -52,34 +53,57 @@ void ServerCore::start() {
   }
 }
 
-// The deferred outputs (metrics.json, field.h5, report.png) are stored after
-// the result; a daemon killed in between leaves a done scan without some of
-// them. field.h5 is the stored field.nii re-encoded, so it is made again here,
-// exactly. metrics.json and report.png need the registration's images: the
-// scan is registered again from its stored input (repair_scan) and only the
-// missing files are added; result.h5 is never touched.
+namespace {
+
+// The stored name of a part the result has, if any.
+std::optional<std::string> stored_name(ResultPart part, const std::vector<std::string>& names) {
+  for (const auto& n : stored_file_names(part))
+    if (std::find(names.begin(), names.end(), n) != names.end()) return n;
+  return std::nullopt;
+}
+
+}  // namespace
+
+// The deferred parts (result_outputs.h) are stored after the result; a
+// daemon killed in between leaves a done scan without some of them. One that
+// re-encodes a stored part (field.h5: field.nii in ITK's encoding) is made
+// again from it here, exactly (remake_part). The others need the
+// registration's images: the scan is registered again from its stored input
+// (repair_scan) and only the missing files are added; result.h5 is never
+// touched. Which parts a scan should have is its rows' presence (report.png
+// only with an intraop image).
 void ServerCore::find_incomplete_results() {
   for (const auto& r : store_.list_newest_first(std::numeric_limits<std::size_t>::max())) {
     if (r.state != StoredScanState::done) continue;
     const auto names = store_.result_file_names(r.scan_id);
-    auto has = [&](const char* n) { return std::find(names.begin(), names.end(), n) != names.end(); };
-    if (!has("field.h5") && has("field.nii")) {
-      try {
-        const auto h5 = engine_.itk_field_from_nifti(store_.read_result_file(r.scan_id, "field.nii").value());
-        if (h5) {
-          store_.add_result_file(r.scan_id, "field.h5", *h5);
-          spdlog::warn("scan {}: field.h5 was missing (stopped before it was stored); made again from field.nii",
-                       r.scan_id);
-        }
-      } catch (const std::exception& e) {
-        spdlog::error("scan {}: field.h5 missing and could not be made again: {}", r.scan_id, e.what());
+    bool register_again = false;
+    for (const auto& row : kResultOutputs) {
+      if (!row.deferred || !part_expected(row.part, ScanFacts{r.has_image}) || stored_name(row.part, names)) continue;
+      if (!row.remade_from) {
+        register_again = true;
+      } else if (const auto source = stored_name(*row.remade_from, names)) {
+        remake_part(r.scan_id, row.part, *source);
       }
     }
-    if (!has("metrics.json") || (r.has_image && !has("report.png"))) {
+    if (register_again) {
       repairs_.push_back(r.scan_id);
       std::lock_guard lock(mutex_);
       deferred_pending_.insert(r.scan_id);  // pulls answer "pending" until the repair ends
     }
+  }
+}
+
+void ServerCore::remake_part(const std::string& scan_id, ResultPart part, const std::string& source) {
+  const std::string name(result_output(part).stored);
+  try {
+    std::optional<std::string> bytes;
+    if (part == ResultPart::kDisplacementItk)
+      bytes = engine_.itk_field_from_nifti(store_.read_result_file(scan_id, source).value());
+    if (!bytes) throw std::runtime_error("the engine cannot make it from " + source);
+    store_.add_result_file(scan_id, name, *bytes);
+    spdlog::warn("scan {}: {} was missing (stopped before it was stored); made again from {}", scan_id, name, source);
+  } catch (const std::exception& e) {
+    spdlog::error("scan {}: {} missing and could not be made again: {}", scan_id, name, e.what());
   }
 }
 

@@ -43,8 +43,7 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
   EngineScanOutput output;
   output.files = encode_scan_outputs(result, ImageEncoding::plain);
   progress("outputs", 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
-  output.kind = result.kind == ResultKind::nonrigid ? "nonrigid" : "affine_only_fallback";
-  output.fallback_reason = result.fallback_reason;
+  output.result = {result.kind, result.fallback_reason};
   output.intraop_seconds = intraop.value("total", 0.0);
   deferred_ = std::make_unique<Deferred>(Deferred{IntraopInput{labels, image}, std::move(result)});
   return output;

@@ -3,7 +3,9 @@
 // implements it over EngineSession (engine_adapter.h); tests may substitute a
 // double, so the protocol, store and queue logic is tested without PETSc.
 //
-// All methods are called on rank 0's engine thread only (MPI_THREAD_FUNNELED).
+// The methods that run the engine are called on rank 0's engine thread only
+// (MPI_THREAD_FUNNELED); label_table() and max_image_bytes() read what was
+// fixed at construction and are also called on the socket thread.
 #include <cstddef>
 #include <filesystem>
 #include <functional>
@@ -16,6 +18,7 @@
 #include "core/image.h"
 #include "core/label_table.h"
 #include "core/tet_mesh.h"
+#include "protocol/common.h"
 
 namespace brainshift::server {
 
@@ -34,8 +37,7 @@ struct EngineScanOutput {
   // models/<structure>.vtp, timings.json. The client gzips plain NIfTI when
   // it writes register's .nii.gz names.
   std::map<std::string, std::string> files;
-  std::string kind = "nonrigid";  // or "affine_only_fallback"
-  std::string fallback_reason;
+  protocol::ResultKindInfo result;  // nonrigid, or the affine-only fallback and why
   double intraop_seconds = 0.0;
 };
 

@@ -154,7 +154,8 @@ PackedMessage pack_status(const std::string& device, int code, std::int64_t subc
 }
 
 std::string status_text(const ResultContent& r) {
-  nlohmann::json j{{"scan_id", r.scan_id}, {"kind", r.kind}, {"reason", r.fallback_reason},
+  nlohmann::json j{{"scan_id", r.scan_id}, {"kind", std::string(protocol::to_string(r.result.kind))},
+                   {"reason", r.result.fallback_reason},
                    {"finished_at", r.finished_at}};
   if (r.client_scan_id) j["client_scan_id"] = *r.client_scan_id;
   if (!r.problems.empty()) j["problems"] = r.problems;
@@ -178,7 +179,7 @@ std::vector<PackedMessage> encode_result(const ResultContent& r) {
     add([&] { return pack_labels(kWarpedLabelsDevice, *r.warped_labels, t); });
   for (const auto& [short_name, surface] : r.models)
     add([&] { return pack_polydata(model_device(short_name), surface, t); });
-  const bool fallback = r.kind == "affine_only_fallback";
+  const bool fallback = r.result.kind == protocol::ResultKind::affine_only_fallback;
   // The error name field is 20 bytes, and a receiver reads a name that fills
   // them past the end (libopenigtlink 1.11): "affine_only_fallback" is 20.
   out.push_back(pack_status(kStatusDevice, ::igtl::StatusMessage::STATUS_OK,

@@ -76,8 +76,7 @@ PackedMessage pack_status(const std::string& device, int code, std::int64_t subc
 struct ResultContent {
   std::string scan_id;
   std::optional<std::string> client_scan_id;
-  std::string kind;             // "nonrigid" or "affine_only_fallback"
-  std::string fallback_reason;  // why the fallback; "" for nonrigid
+  protocol::ResultKindInfo result;  // nonrigid, or the fallback and why
   std::string finished_at;      // ISO-8601 UTC: every message's time stamp
   std::optional<VectorImage3> field;
   std::optional<ImageF> warped_image;

@@ -95,8 +95,7 @@ igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& 
   igtl::ResultContent r;
   r.scan_id = scan_id;
   r.client_scan_id = record->client_scan_id;
-  r.kind = record->result_kind;
-  r.fallback_reason = record->fallback_reason;
+  r.result = record->result;
   r.finished_at = record->finished_at.value_or(protocol::utc_now());
   if (auto f = read_part(store, scan_id, ResultPart::kDisplacement))
     try_decode(r, f->first, [&] { r.field = vector_image_from_bytes(f->second, f->first, kMaxResultImageBytes); });

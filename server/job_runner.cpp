@@ -7,6 +7,7 @@
 #include "core/errors.h"
 #include "image/nifti_io.h"
 #include "protocol/events.h"
+#include "protocol/result_outputs.h"
 #include "server/label_mapping.h"
 #include "server/server_core_internal.h"
 
@@ -134,26 +135,26 @@ void ServerCore::result_not_stored(const ScanRecord& record, const std::string& 
   emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, "store", ErrorInfo{ErrorCode::kInternal, message}}));
 }
 
-// metrics.json (label overlap figures that judge the result), field.h5
-// (field.nii again, in ITK's encoding) and report.png (a picture for the
-// record) are made after the scan was announced, so they never delay the
-// field; each is stored durably as soon as it is ready. A failure is logged
-// and never fails the scan. Meanwhile the socket thread answers pulls of them
+// The deferred parts (result_outputs.h: metrics.json, the label overlap
+// figures that judge the result; field.h5, field.nii again in ITK's
+// encoding; report.png, a picture for the record) are made after the scan
+// was announced, so they never delay the field; each is stored durably as
+// soon as it is ready and timed as its row's stage. A failure is logged and
+// never fails the scan. Meanwhile the socket thread answers pulls of them
 // with a "pending" unavailable entry.
 void ServerCore::add_deferred_outputs(const std::string& scan_id, const std::string& preop_id) {
   auto t0 = Clock::now();
   try {
     engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
       store_.add_result_file(scan_id, name, bytes);
-      const std::string stage = name == "report.png"     ? "report"
-                                : name == "field.h5"     ? "itk_field"
-                                : name == "metrics.json" ? "metrics"
-                                                         : "deferred";
-      log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, stage, seconds_since(t0), ""});
+      const auto part = part_of_file(name);
+      const std::string_view stage = part ? result_output(*part).deferred_stage : "";
+      if (stage.empty()) spdlog::error("scan {}: {} came after the answer but is no deferred part", scan_id, name);
+      else log_stage(StageTiming{StageScope::kIntraop, scan_id, preop_id, std::string(stage), seconds_since(t0), ""});
       t0 = Clock::now();
     });
   } catch (const std::exception& e) {
-    spdlog::error("scan {}: deferred outputs (metrics.json, field.h5, report.png) incomplete: {}", scan_id, e.what());
+    spdlog::error("scan {}: deferred outputs incomplete: {}", scan_id, e.what());
   }
   std::lock_guard lock(mutex_);
   deferred_pending_.erase(scan_id);
@@ -170,15 +171,14 @@ std::shared_ptr<const ServerCore::UnwrittenResult> ServerCore::publish_result(co
   result->record = record;
   result->record.state = StoredScanState::done;
   result->record.finished_at = utc_now();
-  result->record.result_kind = out.kind;
-  result->record.fallback_reason = out.fallback_reason;
+  result->record.result = out.result;
   result->files = std::move(out.files);
   {
     std::lock_guard lock(mutex_);
     unwritten_results_[record.scan_id] = result;
   }
-  spdlog::info("scan {} done ({}) in {:.3f} s", record.scan_id, result->record.result_kind, seconds);
-  emit(make_event(ScanDoneEvent{record.scan_id, record.client_scan_id, seconds}));
+  spdlog::info("scan {} done ({}) in {:.3f} s", record.scan_id, to_string(out.result.kind), seconds);
+  emit(make_event(ScanDoneEvent{record.scan_id, record.client_scan_id, seconds, out.result}));
   return result;
 }
 
@@ -186,7 +186,7 @@ bool ServerCore::write_result(const UnwrittenResult& result, const std::string& 
   const ScanRecord& r = result.record;
   const auto t0 = Clock::now();
   try {
-    store_.save_result(r.scan_id, result.files, r.result_kind, r.fallback_reason, r.finished_at.value_or(""));
+    store_.save_result(r.scan_id, result.files, r.result, r.finished_at.value_or(""));
   } catch (const std::exception& e) {  // StoreWriteError, or a result that did not read back
     {
       std::lock_guard lock(mutex_);

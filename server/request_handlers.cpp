@@ -46,6 +46,7 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const s
                                       const ScanRecord& record, bool deferred_pending) {
   ScanResultReply reply;
   reply.scan_id = request.scan_id;
+  reply.result = record.result;
   auto add = [&](const std::string& frame, const std::vector<std::string>& files, const char* why_missing) {
     for (const auto& file : files) {
       auto bytes = read_file(file);
@@ -63,20 +64,15 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const s
         add(model_frame_name(s), {model_file_name(s)}, "no model of this structure (label absent from the preop)");
       continue;
     }
-    const char* why = "not in this result";
-    bool pending = false;
-    if (part == ResultPart::kReport) {
-      why = !record.has_image ? "no intraop image was pushed (the report draws on it)"
-            : deferred_pending ? "report.png is being rendered; ask again shortly"
-                               : "report.png was not rendered (see the server log)";
-      pending = deferred_pending && record.has_image;
-    } else if (result_output(part).deferred) {
-      if (deferred_pending) why = "being written just after the field; ask again shortly";
-      pending = deferred_pending;
-    } else if (part == ResultPart::kWarpedImage) {
-      why = "the engine wrote no warped image";
-    }
-    if (!add(frame_name(part), stored_file_names(part), why) && pending) reply.unavailable.back().pending = true;
+    // Why a part is missing, from its row (result_outputs.h).
+    const ResultOutput& row = result_output(part);
+    const std::string_view not_expected = why_not_expected(part, ScanFacts{record.has_image});
+    const bool pending = not_expected.empty() && row.deferred && deferred_pending;
+    const std::string why = !not_expected.empty() ? std::string(not_expected)
+                            : pending             ? "made just after the answer; ask again shortly"
+                            : row.deferred ? std::string(row.stored) + " was not made (see the server log)"
+                                           : "not in this result";
+    if (!add(frame_name(part), stored_file_names(part), why.c_str()) && pending) reply.unavailable.back().pending = true;
   }
   return reply;
 }
@@ -284,8 +280,10 @@ Message ServerCore::on_scan_list(const Message& m) {
     s.client_scan_id = r.client_scan_id;
     s.received_at = r.received_at;
     s.finished_at = r.finished_at;
-    if (r.state == StoredScanState::done) s.state = ScanState::kDone;
-    else if (r.state == StoredScanState::failed) {
+    if (r.state == StoredScanState::done) {
+      s.state = ScanState::kDone;
+      s.result = r.result;
+    } else if (r.state == StoredScanState::failed) {
       s.state = ScanState::kFailed;
       s.error = ErrorInfo{error_code_from_string(r.error_code).value_or(ErrorCode::kScanFailed),
                           r.error_message};

@@ -107,6 +107,9 @@ class ServerCore {
                  const std::string& stage);
   void result_not_stored(const ScanRecord& record, const std::string& why);
   void find_incomplete_results();
+  // Makes a lost deferred part again from the stored part it re-encodes
+  // (result_outputs.h remade_from); logs when it cannot.
+  void remake_part(const std::string& scan_id, protocol::ResultPart part, const std::string& source_file);
   void repair_scan(const std::string& scan_id);
   void emit(protocol::Message event);
   void log_stage(protocol::StageTiming timing);

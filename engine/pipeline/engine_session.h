@@ -21,6 +21,7 @@
 #include "core/image.h"
 #include "core/tet_mesh.h"
 #include "pipeline/pipeline_parameters.h"
+#include "protocol/result_kind.h"
 
 namespace brainshift {
 
@@ -47,10 +48,9 @@ struct ScanInput {
   std::optional<ImageF> image;  // same grid as labels when both are given
 };
 
-enum class ResultKind {
-  nonrigid,            // the full pipeline succeeded
-  affine_only_fallback // a non-rigid stage failed a quality gate; the field is the affine alone
-};
+// nonrigid, or affine_only_fallback when a non-rigid stage failed a quality
+// gate (the field is then the affine alone): the protocol's one enum.
+using ResultKind = protocol::ResultKind;
 
 struct ScanResult {
   ResultKind kind = ResultKind::nonrigid;

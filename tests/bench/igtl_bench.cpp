@@ -95,7 +95,7 @@ int main(int argc, char** argv) {
                                              {"warped_labels.nii", label_image_to_bytes(labels, false)}};
     for (const char* s : {"brain", "ventricles", "corticospinal_tract", "tumor"})
       files[std::string("models/") + s + ".vtp"] = vtp_bytes(sphere(model_vertices, 50));
-    store.save_result(rec.scan_id, files, "nonrigid", "");
+    store.save_result(rec.scan_id, files, {});
 
     const std::uint64_t rss_before = vm_rss_kib();
     std::vector<server::igtl::PackedMessage> latest;  // as the gateway keeps the latest result

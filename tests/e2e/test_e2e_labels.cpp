@@ -176,4 +176,40 @@ TEST_F(LabelTableE2E, AFifthStructureIsCarriedPulledAndNamedLikeTheOthers) {
   daemon.process().wait(60);
 }
 
+TEST_F(LabelTableE2E, ARenamedParenchymaNamesTheWholeBrainModelEverywhere) {
+  std::string table = read_file(fs::path(BRAINSHIFT_SOURCE_DIR) / "config" / "labels.toml");
+  const std::string from = "name = \"brain\"";
+  ASSERT_NE(table.find(from), std::string::npos);
+  table.replace(table.find(from), from.size(), "name = \"cerebrum\"");
+  std::ofstream(dir / "labels5.toml") << table;  // the name config_text() gives
+  std::ofstream(dir / "test.toml") << config_text();
+  write_synthetic_preop(dir);
+  write_synthetic_scan(dir, "scan", kShiftMm);
+
+  DaemonSpec spec;
+  spec.work_dir = dir;
+  spec.config = dir / "test.toml";
+  spec.store = dir / "store";
+  spec.name = "renamed";
+  Daemon daemon(spec);
+  RunResult r = cli(daemon, {"load-preop", "--image", (dir / "preop_t1.nii.gz").string(), "--labels",
+                             (dir / "preop_labels.nii.gz").string(), "--wait"});
+  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
+  r = cli(daemon, {"push", "--labels", (dir / "scan_labels.nii.gz").string(), "--image",
+                   (dir / "scan_t1.nii.gz").string(), "--wait"});
+  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
+  const std::string scan_id = r.out.substr(0, r.out.find('\n'));
+  // The default pull asks for the table's structures: the whole brain among them.
+  r = cli(daemon, {"pull", "--scan", scan_id, "--out", (dir / "pulled").string(), "--scene", "--scene-labels",
+                   (dir / "labels5.toml").string()});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err.find("model.cerebrum not available"), std::string::npos) << r.err;
+  ASSERT_TRUE(fs::exists(dir / "pulled" / "models" / "cerebrum.vtp"));
+  EXPECT_FALSE(fs::exists(dir / "pulled" / "models" / "brain.vtp"));
+  EXPECT_GT(read_vtp_bytes(read_file(dir / "pulled" / "models" / "cerebrum.vtp")).vertices_mm.size(), 100u);
+  EXPECT_NE(read_file(dir / "pulled" / "scene.mrml").find("models/cerebrum.vtp"), std::string::npos);
+  EXPECT_EQ(cli(daemon, {"shutdown", "--reason", "test"}).code, 0);
+  daemon.process().wait(60);
+}
+
 }  // namespace

@@ -21,8 +21,11 @@ TEST(Events, EveryEventRoundTrips) {
   EXPECT_EQ(bp::parse_stage_event(wire_trip(bp::make_event(stage))), stage);
   const bp::ScanProgressEvent scan_progress{"s-1", "solve", 0.6};
   EXPECT_EQ(bp::parse_scan_progress_event(wire_trip(bp::make_event(scan_progress))), scan_progress);
-  const bp::ScanDoneEvent done{"s-1", "c-1", 3.25};
+  const bp::ScanDoneEvent done{"s-1", "c-1", 3.25, bp::ResultKindInfo{}};
   EXPECT_EQ(bp::parse_scan_done_event(wire_trip(bp::make_event(done))), done);
+  const bp::ScanDoneEvent fallback{"s-2", std::nullopt, 1.5,
+                                   bp::ResultKindInfo{bp::ResultKind::affine_only_fallback, "Jacobian folded"}};
+  EXPECT_EQ(bp::parse_scan_done_event(wire_trip(bp::make_event(fallback))), fallback);
   const bp::ScanFailedEvent scan_failed{"s-1", std::nullopt, "solve", {ErrorCode::kInternal, "solver diverged"}};
   EXPECT_EQ(bp::parse_scan_failed_event(wire_trip(bp::make_event(scan_failed))), scan_failed);
   const bp::ServerShutdownEvent bye{"admin request"};
@@ -36,6 +39,23 @@ TEST(Events, HaveNoRequestIdAndAPublicationTime) {
   EXPECT_EQ(m.request_id(), "");
   EXPECT_TRUE(bp::is_iso8601_utc(m.header.at("t").get<std::string>()));
   EXPECT_EQ(bp::kind_of(m.type()), bp::MessageKind::kEvent);
+}
+
+TEST(Events, ScanDoneCarriesTheResultKindAndReadsAnOlderServersWithout) {
+  const auto m = bp::make_event(
+      bp::ScanDoneEvent{"s-1", std::nullopt, 1.0, bp::ResultKindInfo{bp::ResultKind::affine_only_fallback, "why"}});
+  EXPECT_EQ(m.header.at("kind"), "affine_only_fallback");
+  EXPECT_EQ(m.header.at("fallback_reason"), "why");
+  const auto nonrigid = bp::make_event(bp::ScanDoneEvent{"s-1", std::nullopt, 1.0, bp::ResultKindInfo{}});
+  EXPECT_EQ(nonrigid.header.at("kind"), "nonrigid");
+  EXPECT_FALSE(nonrigid.header.contains("fallback_reason"));
+  // A revision 1 server sends no kind (PROTOCOL.md 10): read as unknown.
+  auto older = nonrigid;
+  older.header.erase("kind");
+  EXPECT_EQ(bp::parse_scan_done_event(older).result, std::nullopt);
+  auto unknown = nonrigid;
+  unknown.header["kind"] = "rigid";
+  EXPECT_THROW(bp::parse_scan_done_event(unknown), bp::ProtocolError);
 }
 
 TEST(Events, ParsersRefuseWrongTypeBadFractionAndBadStageLine) {

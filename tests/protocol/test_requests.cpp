@@ -244,8 +244,10 @@ TEST(ScanResult, ReplyRoundTripWithEveryKindOfFrame) {
                std::string("\x89PNG\r\n\x1a\n....", 12)}};
   r.unavailable = {{"warped_image", "no intraop image was pushed"}, {"model.tumor", "no tumor label"},
                    {"report", "being rendered", true}};
+  r.result = bp::ResultKindInfo{bp::ResultKind::affine_only_fallback, "surface match diverged"};
   const auto back = bp::parse_scan_result_reply(wire_trip(bp::make_scan_result_reply("r", r)));
   EXPECT_EQ(back.scan_id, r.scan_id);
+  EXPECT_EQ(back.result, r.result);
   ASSERT_EQ(back.frames.size(), r.frames.size());
   for (std::size_t i = 0; i < r.frames.size(); ++i) {
     EXPECT_EQ(back.frames[i].name, r.frames[i].name);
@@ -298,7 +300,13 @@ TEST(ScanList, RoundTrip) {
   r.scans.push_back({"s-1", std::nullopt, bp::ScanState::kFailed, "2024-05-01T09:00:00.000Z",
                      "2024-05-01T09:00:05.250Z", std::nullopt,
                      bp::ErrorInfo{ErrorCode::kInvalidRequest, "labels have no brain voxels"}});
+  r.scans.push_back({"s-0", std::nullopt, bp::ScanState::kDone, "2024-05-01T08:00:00.000Z",
+                     "2024-05-01T08:00:02.000Z", std::nullopt, std::nullopt,
+                     bp::ResultKindInfo{bp::ResultKind::affine_only_fallback, "field folds"}});
   EXPECT_EQ(bp::parse_scan_list_reply(wire_trip(bp::make_scan_list_reply("l", r))), r);
+  auto unknown_kind = bp::make_scan_list_reply("l", r);
+  unknown_kind.header["scans"][2]["kind"] = "elastic";
+  EXPECT_EQ(error_of([&] { bp::parse_scan_list_reply(unknown_kind); }), ErrorCode::kInvalidRequest);
 }
 
 TEST(Shutdown, RoundTrip) {

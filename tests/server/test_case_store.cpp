@@ -83,7 +83,7 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
     id1 = store.add_scan(a, std::string("client-1"), content_digest(a), "preop-a").scan_id;
     id2 = store.add_scan(sample_input('b', false), std::nullopt, "d2", "preop-a").scan_id;
     EXPECT_NE(id1, id2);
-    store.save_result(id1, files, "nonrigid", "");
+    store.save_result(id1, files, {});
     store.save_failure(id2, "scan_failed", "solver diverged", "solve");
     EXPECT_EQ(*store.read_result_file(id1, "field.nii.gz"), files.at("field.nii.gz"));
   }
@@ -93,7 +93,7 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
   EXPECT_EQ(r1->state, StoredScanState::done);
   EXPECT_EQ(r1->client_scan_id.value(), "client-1");
   EXPECT_TRUE(r1->has_image);
-  EXPECT_EQ(r1->result_kind, "nonrigid");
+  EXPECT_EQ(r1->result.kind, protocol::ResultKind::nonrigid);
   EXPECT_TRUE(r1->finished_at.has_value());
   EXPECT_EQ(store.find_by_client_id("client-1")->scan_id, id1);
   for (const auto& [name, bytes] : files) EXPECT_EQ(store.read_result_file(id1, name).value(), bytes) << name;
@@ -168,7 +168,7 @@ TEST(CaseStore, UnusableDirectoryIsReported) {
 TEST(CaseStore, UnknownScanResultIsRefused) {
   TempDir dir;
   CaseStore store(dir.path());
-  EXPECT_THROW(store.save_result("scan-404", {}, "nonrigid", ""), std::invalid_argument);
+  EXPECT_THROW(store.save_result("scan-404", {}, {}), std::invalid_argument);
   EXPECT_FALSE(store.read_result_file("scan-404", "field.nii.gz"));
 }
 
@@ -182,7 +182,7 @@ TEST(CaseStore, FileAddedAfterTheResultIsServedAndSurvivesReopen) {
     queued_id = store.add_scan(sample_input('b', true), std::nullopt, "d2", "p").scan_id;
     // Only a done scan takes extra files, and only plain names of its own.
     EXPECT_THROW(store.add_result_file(queued_id, "report.png", png), std::invalid_argument);
-    store.save_result(id, {{"metrics.json", "{}"}}, "nonrigid", "");
+    store.save_result(id, {{"metrics.json", "{}"}}, {});
     EXPECT_THROW(store.add_result_file(id, "result.h5", png), std::invalid_argument);
     EXPECT_THROW(store.add_result_file(id, "../escape.png", png), std::invalid_argument);
     EXPECT_THROW(store.add_result_file(id, "x.tmp", png), std::invalid_argument);

@@ -5,7 +5,9 @@
 // by tests/e2e/test_e2e_daemon.cpp and test_e2e_security.cpp.)
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <fstream>
+#include <thread>
 
 #include "client/exit_codes.h"
 #include "image/nifti_io.h"
@@ -71,11 +73,22 @@ TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
   r = d.client({"push", "--labels", labels_file.string(), "--id", "scan-ok", "--wait", "--wait-timeout", "30"});
   EXPECT_EQ(r.code, cli::kExitOk) << r.err;
 
-  // 4: the affine-only fallback, as register says it.
+  // 4: the affine-only fallback, as register says it, known at scan.done:
+  // the deferred metrics.json is held back until the command has exited.
   d.engine.fallback_next_scan = true;
+  std::atomic<bool> client_exited{false}, metrics_held{false};
+  d.engine.while_rendering_deferred = [&] {
+    metrics_held = true;
+    for (int i = 0; i < 800 && !client_exited; ++i) std::this_thread::sleep_for(50ms);
+  };
   r = d.client({"push", "--labels", labels_file.string(), "--id", "scan-fallback", "--wait", "--wait-timeout", "30"});
+  client_exited = true;
   EXPECT_EQ(r.code, cli::kExitFallback) << r.err;
   EXPECT_NE(r.err.find("AFFINE-ONLY"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("fake: surface match diverged"), std::string::npos) << r.err;
+  // Had the command waited for metrics.json, it would have timed out (3).
+  for (int i = 0; i < 200 && !metrics_held; ++i) std::this_thread::sleep_for(50ms);
+  EXPECT_TRUE(metrics_held.load()) << "the fallback's metrics.json was not deferred";
 
   // 5: the daemon's registration failed; pulling that scan says the same.
   d.engine.fail_next_scan = true;

@@ -154,8 +154,7 @@ TEST(IgtlEncoder, StatusNamesScanKindAndReason) {
   sigtl::ResultContent r;
   r.scan_id = "s-000042";
   r.client_scan_id = "or1-case7-scan3";
-  r.kind = "affine_only_fallback";
-  r.fallback_reason = "mean surface residual 3.4 mm > 3 mm";
+  r.result = {protocol::ResultKind::affine_only_fallback, "mean surface residual 3.4 mm > 3 mm"};
   r.finished_at = "2026-12-01T17:30:00.500Z";
   const auto messages = sigtl::encode_result(r);
   ASSERT_EQ(messages.size(), 1u);  // nothing but the status without parts
@@ -167,14 +166,13 @@ TEST(IgtlEncoder, StatusNamesScanKindAndReason) {
   EXPECT_EQ(text.at("scan_id"), "s-000042");
   EXPECT_EQ(text.at("client_scan_id"), "or1-case7-scan3");
   EXPECT_EQ(text.at("kind"), "affine_only_fallback");
-  EXPECT_EQ(text.at("reason"), r.fallback_reason);
+  EXPECT_EQ(text.at("reason"), r.result.fallback_reason);
   unsigned sec = 0, frac = 0;
   m->GetTimeStamp(&sec, &frac);
   EXPECT_EQ(sec, kT.seconds);
   EXPECT_EQ(frac, kT.fraction);
 
-  r.kind = "nonrigid";
-  r.fallback_reason.clear();
+  r.result = {protocol::ResultKind::nonrigid, ""};
   auto ok = unpack<::igtl::StatusMessage>(sigtl::encode_result(r).back());
   EXPECT_EQ(ok->GetSubCode(), sigtl::kNonrigidSubcode);
   EXPECT_EQ(std::string(ok->GetErrorName()), "nonrigid");
@@ -183,7 +181,6 @@ TEST(IgtlEncoder, StatusNamesScanKindAndReason) {
 TEST(IgtlEncoder, ResultOrderEndsWithStatusAndNamesPartsThatCannotBeSent) {
   sigtl::ResultContent r;
   r.scan_id = "s-1";
-  r.kind = "nonrigid";
   r.finished_at = "2026-12-01T17:30:00.000Z";
   r.field = VectorImage3(oblique_las_grid());
   Grid3 too_long;  // 70000 voxels along i: more than an IMAGE can say

@@ -36,7 +36,7 @@ TriSurface triangle_fan(double z) {
 
 // Stores a done scan whose field is `value` everywhere, on an n^3 oblique grid.
 std::string store_result(CaseStore& store, float value, int n = 12,
-                         const std::string& kind = "nonrigid", const std::string& reason = "") {
+                         protocol::ResultKindInfo result = {}) {
   const LabelImage labels = test::ball_labels(n);
   const ScanInput input{label_image_to_bytes(labels, true), std::nullopt};
   const ScanRecord rec = store.add_scan(input, std::nullopt, content_digest(input), "preop-1");
@@ -49,7 +49,7 @@ std::string store_result(CaseStore& store, float value, int n = 12,
   files["models/brain.vtp"] = vtp_bytes(triangle_fan(value));
   files["models/tumor.vtp"] = vtp_bytes(triangle_fan(-value));
   files["timings.json"] = "{}";
-  store.save_result(rec.scan_id, files, kind, reason);
+  store.save_result(rec.scan_id, files, result);
   return rec.scan_id;
 }
 
@@ -94,7 +94,7 @@ TEST(IgtlGateway, LatestResultOnConnectThenEveryNewResultToEveryClient) {
   EXPECT_EQ(v[1], -1.5f);
   EXPECT_EQ(v[2], 3.0f);
 
-  const std::string second = store_result(store, 2.5f, 12, "affine_only_fallback", "Jacobian folded");
+  const std::string second = store_result(store, 2.5f, 12, {protocol::ResultKind::affine_only_fallback, "Jacobian folded"});
   gateway.publish(second);
   const auto pushed = a.next_result();
   EXPECT_EQ(status_scan(pushed), second);

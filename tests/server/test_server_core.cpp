@@ -2,6 +2,7 @@
 // checked for its type or its typed error, and the server keeps serving.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <mutex>
 
 #include "image/nifti_io.h"
@@ -239,7 +240,7 @@ TEST(ServerCore, PushRunPullReturnsExactlyTheEngineOutput) {
   const Message result = h.call(make_scan_result_request("r1", req));
   ASSERT_EQ(result.type(), MessageType::kScanResultReply) << result.header.dump();
   const ScanResultReply r = parse_scan_result_reply(result);
-  const auto expected = test::FakeEngine::files_for(labels, true);
+  const auto expected = test::FakeEngine::files_for(labels);
   EXPECT_EQ(r.find("displacement")->bytes, expected.at("field.nii"));
   EXPECT_EQ(r.find("displacement")->media_type, media::kNifti);  // stored plain, sent as such
   EXPECT_EQ(r.find("warped_image")->bytes, expected.at("warped_image.nii.gz"));
@@ -274,6 +275,8 @@ TEST(ServerCore, ReportIsRenderedAfterScanDoneAndServedAsAPart) {
   h.engine.while_rendering_report = [&] {
     done_events_during = h.count_events(MessageType::kEventScanDone);
     during = parse_scan_result_reply(h.call(make_scan_result_request("r-during", want_report)));
+  };
+  h.engine.while_rendering_deferred = [&] {  // before field.h5 and metrics.json
     itk_during = parse_scan_result_reply(h.call(make_scan_result_request("i-during", want_itk)));
   };
   ASSERT_TRUE(h.core->step(10ms));
@@ -284,12 +287,12 @@ TEST(ServerCore, ReportIsRenderedAfterScanDoneAndServedAsAPart) {
   ASSERT_EQ(during->unavailable.size(), 1u);
   EXPECT_EQ(during->unavailable[0].part, "report");
   EXPECT_TRUE(during->unavailable[0].pending);
-  // field.h5 is deferred the same way (this fake never makes one).
+  // field.h5 is deferred the same way.
   ASSERT_EQ(itk_during->unavailable.size(), 1u);
   EXPECT_TRUE(itk_during->unavailable[0].pending);
   const ScanResultReply itk_after = parse_scan_result_reply(h.call(make_scan_result_request("i-after", want_itk)));
-  ASSERT_EQ(itk_after.unavailable.size(), 1u);
-  EXPECT_FALSE(itk_after.unavailable[0].pending);
+  EXPECT_TRUE(itk_after.unavailable.empty());
+  EXPECT_NE(itk_after.find("displacement_itk"), nullptr);
 
   const ScanResultReply after = parse_scan_result_reply(h.call(make_scan_result_request("r-after", want_report)));
   ASSERT_NE(after.find("report"), nullptr);
@@ -389,6 +392,43 @@ TEST(ServerCore, OversizedFrameIsRefused) {
   expect_error(h.call(make_scan_push_request("big", r)), ErrorCode::kTooLarge);
 }
 
+TEST(ServerCore, ResultKindTravelsWithScanDoneTheResultAndTheListBeforeTheMetrics) {
+  Harness h;
+  h.load_preop();
+  h.engine.fallback_next_scan = true;
+  const auto id = parse_scan_push_reply(h.push(intraop_labels(), std::string("fb"))).scan_id;
+  std::optional<ScanResultReply> during;
+  std::optional<ScanListReply> listed;
+  h.engine.while_rendering_deferred = [&] {  // metrics.json not made yet
+    during = parse_scan_result_reply(h.call(make_scan_result_request("r", {id, {ResultPart::kMetrics}, {}})));
+    listed = parse_scan_list_reply(h.call(make_scan_list_request("l")));
+  };
+  ASSERT_TRUE(h.core->step(10ms));
+  const ResultKindInfo fallback{ResultKind::affine_only_fallback, "fake: surface match diverged"};
+  {
+    std::lock_guard lock(h.events_mutex);
+    const auto done = std::find_if(h.events.begin(), h.events.end(),
+                                   [](const Message& e) { return e.type() == MessageType::kEventScanDone; });
+    ASSERT_NE(done, h.events.end());
+    EXPECT_EQ(parse_scan_done_event(*done).result, fallback);
+  }
+  ASSERT_TRUE(during.has_value());
+  EXPECT_EQ(during->result, fallback);
+  ASSERT_EQ(during->unavailable.size(), 1u);
+  EXPECT_TRUE(during->unavailable[0].pending);
+  EXPECT_EQ(listed->scans.at(0).result, fallback);
+  // Stored with the result: the same after the metrics, from the store.
+  EXPECT_EQ(h.store->find(id)->result, fallback);
+  const auto after = parse_scan_result_reply(h.call(make_scan_result_request("r", {id, {ResultPart::kMetrics}, {}})));
+  EXPECT_EQ(after.result, fallback);
+  EXPECT_NE(after.find("metrics"), nullptr);
+  // A non-rigid result says so too.
+  const auto id2 = parse_scan_push_reply(h.push(intraop_labels())).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  const auto second = parse_scan_result_reply(h.call(make_scan_result_request("r", {id2, {ResultPart::kTimings}, {}})));
+  EXPECT_EQ(second.result, ResultKindInfo{});
+}
+
 TEST(ServerCore, EngineFailureIsStoredReportedAndServedAsScanFailed) {
   Harness h;
   h.load_preop();
@@ -445,3 +485,105 @@ TEST(ServerCore, ShutdownRequestStopsTheEngineLoop) {
   EXPECT_TRUE(h.core->shutdown_requested());
   EXPECT_FALSE(h.core->step(10ms));
 }
+
+// ---- One test per row of the outputs table (protocol/result_outputs.h) -----
+// The daemon serves, lists as pending, names as absent and repairs each part
+// as its row says: whether it is deferred, which scans have it, what it is
+// made again from after a crash.
+
+namespace {
+
+bool has_part(const ScanResultReply& r, ResultPart part) {
+  if (part != ResultPart::kModels) return r.find(frame_name(part)) != nullptr;
+  return std::any_of(r.frames.begin(), r.frames.end(),
+                     [](const Frame& f) { return structure_of_model_frame(f.name).has_value(); });
+}
+
+const UnavailablePart* unavailable_part(const ScanResultReply& r, ResultPart part) {
+  for (const auto& u : r.unavailable)
+    if (part == ResultPart::kModels ? structure_of_model_frame(u.part).has_value() : u.part == frame_name(part))
+      return &u;
+  return nullptr;
+}
+
+std::vector<ResultOutput> rows(bool deferred_only) {
+  std::vector<ResultOutput> out;
+  for (const auto& row : kResultOutputs)
+    if (row.deferred || !deferred_only) out.push_back(row);
+  return out;
+}
+
+std::string row_name(const ::testing::TestParamInfo<ResultOutput>& info) { return std::string(info.param.wire); }
+
+ScanResultReply pull(Harness& h, const std::string& scan_id, ResultPart part) {
+  return parse_scan_result_reply(h.call(make_scan_result_request("row", {scan_id, {part}, {}})));
+}
+
+}  // namespace
+
+class ResultRow : public ::testing::TestWithParam<ResultOutput> {};
+class DeferredRow : public ::testing::TestWithParam<ResultOutput> {};
+
+TEST_P(ResultRow, IsServedPendingOrAbsentAsItsRowSays) {
+  const ResultOutput& row = GetParam();
+  Harness h;
+  h.load_preop();
+  for (const bool image : {false, true}) {
+    SCOPED_TRACE(image ? "with an intraop image" : "labels only");
+    const std::string id = parse_scan_push_reply(h.push(intraop_labels(), std::nullopt, image)).scan_id;
+    std::optional<ScanResultReply> during;  // after scan.done, before the deferred parts
+    h.engine.while_rendering_deferred = [&] { during = pull(h, id, row.part); };
+    ASSERT_TRUE(h.core->step(10ms));
+    ASSERT_TRUE(during.has_value());
+    const ScanResultReply after = pull(h, id, row.part);
+    const std::string_view absent = why_not_expected(row.part, ScanFacts{image});
+    if (!absent.empty()) {  // this scan never has it
+      for (const ScanResultReply* r : {static_cast<const ScanResultReply*>(&*during), &after}) {
+        EXPECT_FALSE(has_part(*r, row.part));
+        const UnavailablePart* u = unavailable_part(*r, row.part);
+        ASSERT_NE(u, nullptr);
+        EXPECT_FALSE(u->pending);
+        EXPECT_EQ(u->reason, absent);
+      }
+      continue;
+    }
+    if (row.deferred) {
+      const UnavailablePart* u = unavailable_part(*during, row.part);
+      ASSERT_NE(u, nullptr) << "a deferred part was there before the deferred outputs ran";
+      EXPECT_TRUE(u->pending);
+    } else {
+      EXPECT_TRUE(has_part(*during, row.part)) << "a part of the answer was not served at scan.done";
+    }
+    EXPECT_TRUE(has_part(after, row.part));
+  }
+}
+
+TEST_P(DeferredRow, LostToACrashIsMadeAgainAtTheNextStart) {
+  const ResultOutput& row = GetParam();
+  Harness h;
+  h.load_preop();
+  const std::string id = parse_scan_push_reply(h.push(intraop_labels(), std::nullopt, true)).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  ASSERT_TRUE(has_part(pull(h, id, row.part), row.part));
+  // Stopped before the part was stored: its file is not in the store.
+  for (const auto& name : stored_file_names(row.part)) fs::remove(h.settings.store / "scans" / id / name);
+  h.engine = test::FakeEngine{};
+  h.open();
+  const ScanResultReply before_repair = pull(h, id, row.part);
+  for (int i = 0; i < 10 && h.core->step(10ms); ++i) {
+  }
+  EXPECT_TRUE(has_part(pull(h, id, row.part), row.part));
+  if (row.remade_from) {
+    // Re-encoded from the stored part at start-up, without registering again.
+    EXPECT_TRUE(has_part(before_repair, row.part));
+    EXPECT_EQ(h.engine.scans_run, 0);
+  } else {
+    const UnavailablePart* u = unavailable_part(before_repair, row.part);
+    ASSERT_NE(u, nullptr);
+    EXPECT_TRUE(u->pending) << "pulls answer pending until the repair has made it";
+    EXPECT_EQ(h.engine.scans_run, 1) << "made again by registering the stored scan again";
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(EveryRow, ResultRow, ::testing::ValuesIn(rows(false)), row_name);
+INSTANTIATE_TEST_SUITE_P(EveryDeferredRow, DeferredRow, ::testing::ValuesIn(rows(true)), row_name);

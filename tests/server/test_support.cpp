@@ -3,11 +3,13 @@
 
 #include <chrono>
 #include <fstream>
+#include <utility>
 
 #include <nlohmann/json.hpp>
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
+#include "protocol/result_outputs.h"
 
 namespace brainshift::test {
 namespace fs = std::filesystem;
@@ -64,7 +66,7 @@ void FakeEngine::load_preop(const server::PreopImages& preop, std::optional<TetM
   ready_ = true;
 }
 
-std::map<std::string, std::string> FakeEngine::files_for(const LabelImage& labels, bool with_image) {
+std::map<std::string, std::string> FakeEngine::files_for(const LabelImage& labels) {
   VectorImage3 field(labels.grid);
   for (std::size_t i = 0; i < field.vectors.size(); ++i) field.vectors[i] = Eigen::Vector3f(labels.voxels[i], 0.5f, -1.f);
   std::map<std::string, std::string> files;
@@ -72,7 +74,9 @@ std::map<std::string, std::string> FakeEngine::files_for(const LabelImage& label
   // store written before the daemon stored plain NIfTI holds them.
   files["field.nii"] = displacement_field_to_bytes(field, false);
   files["warped_labels.nii.gz"] = label_image_to_bytes(labels, true);
-  if (with_image) files["warped_image.nii.gz"] = scalar_image_to_bytes(ramp_image(labels.grid), VoxelType::float32, false);
+  // The preop T1 warped onto the intraop grid: there is one with or without
+  // an intraop image, as with the real engine.
+  files["warped_image.nii.gz"] = scalar_image_to_bytes(ramp_image(labels.grid), VoxelType::float32, false);
   files["models/brain.vtp"] =
       "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\"><PolyData><Piece NumberOfPoints=\"0\" "
       "NumberOfPolys=\"0\"></Piece></PolyData></VTKFile>\n";
@@ -94,15 +98,31 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
   }
   progress("solve", 1.0, 0.003);
   server::EngineScanOutput out;
-  out.files = files_for(labels, image.has_value());
+  out.files = files_for(labels);
   if (fallback_next_scan) {
     fallback_next_scan = false;
-    out.kind = "affine_only_fallback";
-    out.fallback_reason = "fake: surface match diverged";
+    out.result = {protocol::ResultKind::affine_only_fallback, "fake: surface match diverged"};
     out.files["metrics.json"] = R"({"result": "affine_only_fallback", "fallback_reason": "fake: surface match diverged"})";
+  }
+  out.files["field.h5"] = *itk_field_from_nifti(out.files.at("field.nii"));
+  // The deferred rows (result_outputs.h) follow in render_deferred, as the
+  // real adapter makes them: the kind travels with scan.done.
+  deferred_files_.clear();
+  for (auto it = out.files.begin(); it != out.files.end();) {
+    const auto part = protocol::part_of_file(it->first);
+    if (part && protocol::result_output(*part).deferred) {
+      deferred_files_.insert(*it);
+      it = out.files.erase(it);
+    } else {
+      ++it;
+    }
   }
   report_due_ = image.has_value();
   return out;
+}
+
+std::optional<std::string> FakeEngine::itk_field_from_nifti(const std::string& field_nii) {
+  return std::string("\x89HDF\r\n\x1a\n", 8) + "fake ITK field of " + std::to_string(field_nii.size()) + " bytes";
 }
 
 const std::string FakeEngine::kReportPng(
@@ -111,6 +131,8 @@ const std::string FakeEngine::kReportPng(
     69);
 
 void FakeEngine::render_deferred(const std::string& /*scan_id*/, const DeferredOutputFn& add) {
+  if (!deferred_files_.empty() && while_rendering_deferred) while_rendering_deferred();
+  for (const auto& [name, bytes] : std::exchange(deferred_files_, {})) add(name, bytes);
   if (!report_due_) return;
   report_due_ = false;
   if (while_rendering_report) while_rendering_report();

@@ -30,7 +30,8 @@ TetMesh two_tet_mesh();
 
 // The engine double: load_preop records what it got; register_scan returns
 // real NIfTI/VTP/JSON bytes derived from the input so tests can check that
-// what comes back over the protocol is exactly what was stored.
+// what comes back over the protocol is exactly what was stored; the files of
+// deferred rows (result_outputs.h) follow in render_deferred.
 class FakeEngine : public server::EnginePort {
  public:
   server::PreopImages load_default_atlas(const std::filesystem::path&) override;
@@ -48,17 +49,22 @@ class FakeEngine : public server::EnginePort {
   // report.png = kReportPng when the last scan had an intraop image (once), as
   // the real adapter draws report.png only over an intraop image.
   void render_deferred(const std::string& scan_id, const DeferredOutputFn& add) override;
+  // An HDF5 signature and the field's size: the crash recovery's re-encoding.
+  std::optional<std::string> itk_field_from_nifti(const std::string& field_nii) override;
 
   // Expected output files for these inputs (what register_scan returns).
-  static std::map<std::string, std::string> files_for(const LabelImage& labels, bool with_image);
+  static std::map<std::string, std::string> files_for(const LabelImage& labels);
 
   // A valid 1x1 RGB PNG standing in for report.png.
   static const std::string kReportPng;
   std::function<void()> while_rendering_report;  // called inside render_deferred
+  // Called inside render_deferred before the deferred files (metrics.json).
+  std::function<void()> while_rendering_deferred;
 
   LabelTable table = config::default_label_table();  // the shipped labels.toml unless a test sets another
   bool fail_next_scan = false;   // ComputeError from the next register_scan
-  // The next scan's result is the affine-only fallback (metrics.json says so).
+  // The next scan's result is the affine-only fallback (its kind says so, and
+  // its metrics.json).
   bool fallback_next_scan = false;
   bool fail_preop = false;       // InputError from load_preop
   std::optional<TetMesh> last_stored_mesh;
@@ -69,6 +75,7 @@ class FakeEngine : public server::EnginePort {
  private:
   bool ready_ = false;
   bool report_due_ = false;
+  std::map<std::string, std::string> deferred_files_;  // of the last scan, for render_deferred
   TetMesh mesh_;
 };
 
