@@ -23,22 +23,61 @@ LabelImage as_labels(const Mask& m) {
   return out;
 }
 
+// The preop head as far as the intraop image can see it through a placement
+// (intraop_from_preop): the part of the preop head mapped inside the intraop
+// grid, and its outline points there. An intraop field of view cuts the head
+// (the neck, the vertex); matched against the whole preop head, the moments
+// and the outline would pull the placement toward shrinking it.
+// Without a placement (nullptr) all of it.
+PreopBoundarySamples visible_head(const Mask& head, const Grid3& intraop, const Eigen::Matrix4d* intraop_from_preop) {
+  const Eigen::Matrix4d voxel_from_preop =
+      intraop.voxel_from_world() * (intraop_from_preop ? *intraop_from_preop : Eigen::Matrix4d::Identity());
+  auto visible = [&](const Eigen::Vector3d& p) {
+    if (!intraop_from_preop) return true;
+    const Eigen::Vector3d v = (voxel_from_preop * p.homogeneous()).head<3>();
+    for (int a = 0; a < 3; ++a)
+      if (v[a] < -0.5 || v[a] > intraop.dims[a] - 0.5) return false;
+    return true;
+  };
+  Mask seen(head.grid, 0);
+  for (int k = 0; k < head.grid.dims[2]; ++k)
+    for (int j = 0; j < head.grid.dims[1]; ++j)
+      for (int i = 0; i < head.grid.dims[0]; ++i)
+        seen.at(i, j, k) = head.at(i, j, k) && visible(head.grid.world_mm(i, j, k));
+  PreopBoundarySamples samples;
+  samples.outer_moments = mask_moments(seen);
+  for (const auto& p : mask_boundary_points_mm(head))
+    if (visible(p)) samples.outer_mm.push_back(p);
+  return samples;
+}
+
+// Two passes: the preop head seen through the identity (scanners place a
+// patient's head within centimetres of the same RAS position) or, when that
+// sees too little of it, the whole head; then seen through the first result.
 Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const AffineRegistrationParameters& affine,
                                     nlohmann::json& metrics) {
-  if (!warm.head_samples) {
-    const Mask head = segmentation::head_mask(warm.preop.t1);
-    if (count_nonzero(head) == 0) throw ComputeError("the preop image shows no head (flat image)");
-    warm.head_samples = prepare_preop_samples(as_labels(head), 1, 2);
+  if (!warm.preop_head) {
+    warm.preop_head = segmentation::head_mask(warm.preop.t1);
+    if (count_nonzero(*warm.preop_head) == 0) throw ComputeError("the preop image shows no head (flat image)");
   }
   const Mask head = segmentation::head_mask(image);
   if (count_nonzero(head) == 0) throw InputError("intraop image: no head found (the image is flat)");
   const IntraopDistanceMaps maps = prepare_intraop_maps(as_labels(head), 1, 2);
   AffineRegistrationParameters p = affine;
   p.ventricle_weight = 0;
-  const AffineRegistrationResult r = register_affine(*warm.head_samples, maps, p);
+  Eigen::Matrix4d placement = Eigen::Matrix4d::Identity();
+  AffineRegistrationResult r;
+  for (int pass = 0; pass < 2; ++pass) {
+    PreopBoundarySamples samples = visible_head(*warm.preop_head, image.grid, &placement);
+    if (pass == 0 && samples.outer_moments.volume_ml < 0.5 * volume_ml(head))
+      samples = visible_head(*warm.preop_head, image.grid, nullptr);
+    if (samples.outer_mm.size() < 100) break;
+    r = register_affine(samples, maps, p);
+    placement = r.intraop_from_preop;
+  }
   metrics = {{"converged", r.converged}, {"rms_surface_distance_mm", r.rms_surface_distance_mm},
              {"inlier_fraction", r.inlier_fraction}, {"message", r.message}};
-  return r.intraop_from_preop;
+  return placement;
 }
 
 std::vector<std::uint16_t> ventricle_labels(const LabelTable& table) { return table.cavity_labels(); }

@@ -52,9 +52,9 @@ struct WarmState {
   std::map<std::string, PreopModel> models;
   double brain_volume_ml = 0;
   nlohmann::json timings;                  // preop stage seconds
-  // The preop head's outline points, for placing the preop on a scan given
+  // The preop head (coarse grid), for placing the preop on a scan given
   // without labels (prepare_stage.h); made on the first such scan.
-  std::optional<PreopBoundarySamples> head_samples;
+  std::optional<Mask> preop_head;
 };
 
 // The preop phase on rank 0 (drives the workers through fem).
