@@ -89,6 +89,10 @@ int run_register_rank0(const RegisterOptions& o) {
   // Decoding the files is part of what the surgeon waits for.
   result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;
   result.timings["intraop"]["total"] = result.timings["intraop"]["total"].get<double>() + read_seconds;
+  // After the answer, as the daemon does: not part of "total".
+  // The prepared input: the labels given, or those the engine derived.
+  const IntraopInput prepared{scan.labels ? *scan.labels : *result.intraop_labels, scan.image};
+  session.add_uncertainty(prepared, result, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   DeferredOutputOptions outputs;
   outputs.label_table = &session.parameters().label_table;
   // register has no scan id: the output folder names the report.

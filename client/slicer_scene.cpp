@@ -164,6 +164,10 @@ void write_slicer_scene(const fs::path& dir, const SceneContents& c) {
     scene.volume(intraop_labels, "intraop labels (automatic segmentation)", true, "", labels);
   if (fs::is_regular_file(dir / confidence))
     scene.volume(confidence, "segmentation confidence (posterior)", false, "", grey);
+  // Made after the answer: listed when it is there.
+  const std::string uncertainty(protocol::result_output(ResultPart::kUncertainty).file);
+  if (fs::is_regular_file(dir / uncertainty))
+    scene.volume(uncertainty, "uncertainty (95 % band, mm)", false, "", "vtkMRMLColorTableNodeRainbow");
   for (const auto& l : c.labels)
     if (fs::is_regular_file(dir / protocol::model_file_name(l.name))) scene.model(l);
   write_text(dir / kSceneColourTable, colour_table_text(c.labels));

@@ -26,6 +26,7 @@ enum class ResultPart {
   kMetrics,          // JSON
   kTimings,          // JSON, see timing_log.h ScanTimings
   kReport,           // report.png (image/png), rendered after the scan is done
+  kUncertainty,      // float32 NIfTI, intraop grid: 95 % band radius (mm) of the answer; after the scan is done
   // Present only when the engine derived them (a scan pushed as an image
   // without labels): the segmentation the registration used, in the label
   // table's values, and the posterior of each voxel's chosen tissue.
@@ -89,6 +90,8 @@ inline constexpr ResultOutput kResultOutputs[] = {
      PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true, "report",
      PartPresence::kWithIntraopImage, std::nullopt},
+    {ResultPart::kUncertainty, "uncertainty", "uncertainty", "uncertainty.nii.gz", "uncertainty.nii",
+     MediaKind::kNifti, true, "uncertainty", PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kIntraopLabels, "intraop_labels", "intraop_labels", "intraop_labels.nii.gz", "intraop_labels.nii",
      MediaKind::kNifti, false, "", PartPresence::kWithoutIntraopLabels, std::nullopt},
     {ResultPart::kSegmentationConfidence, "segmentation_confidence", "segmentation_confidence",

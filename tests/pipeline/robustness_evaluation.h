@@ -42,8 +42,10 @@ struct RobustnessRun {
 };
 
 // session must hold anatomy.preop. Every registration uses the same case.
+// with_uncertainty: each result also gets its uncertainty map (after the
+// timed stages), sampled at the landmarks (CaseResult::predicted_band_mm).
 RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& anatomy, const RobustnessSpec& spec,
-                                  bool image_only = false);
+                                  bool with_uncertainty = false, bool image_only = false);
 
 // Dice of a segmentation in the table's values (1 brain, 2 ventricles)
 // against the truth carried onto the intraop grid by the true field.
