@@ -93,10 +93,15 @@ int run_register_rank0(const RegisterOptions& o) {
   // The intraop files are read first: a broken scan is refused in a moment
   // instead of after minutes of meshing the preop.
   Stopwatch read_clock;
-  IntraopInput intraop{read_label_input(o.intraop_labels, params.label_table, params.max_image_bytes), std::nullopt};
-  if (!o.intraop_image.empty() || !o.intraop_dicom.empty())
-    intraop.t1 = read_scalar_input(o.intraop_image, o.intraop_dicom, o.intraop_series, "intraop", params.max_image_bytes);
-  if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid))
+  const bool has_image = !o.intraop_image.empty() || !o.intraop_dicom.empty();
+  if (o.intraop_labels.empty() && !has_image)
+    throw InputError("give --intraop-image (or --intraop-dicom), --intraop-labels, or both");
+  ScanInput scan;
+  if (!o.intraop_labels.empty())
+    scan.labels = read_label_input(o.intraop_labels, params.label_table, params.max_image_bytes);
+  if (has_image)
+    scan.image = read_scalar_input(o.intraop_image, o.intraop_dicom, o.intraop_series, "intraop", params.max_image_bytes);
+  if (scan.labels && scan.image && !scan.image->grid.same_geometry(scan.labels->grid))
     throw InputError((o.intraop_image.empty() ? o.intraop_dicom : o.intraop_image) +
                      ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
   const double read_seconds = read_clock.seconds();
@@ -109,18 +114,20 @@ int run_register_rank0(const RegisterOptions& o) {
   session.load_preop(std::move(preop), [](const std::string& s, double f, double t) { print_progress("preop", s, f, t); });
   std::fprintf(stderr, "[preop] mesh: %zu nodes, %zu tets\n", session.mesh().node_count(), session.mesh().tet_count());
 
-  ScanResult result = session.register_scan(intraop, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
+  ScanResult result = session.register_scan(scan, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   // Decoding the files is part of what the surgeon waits for.
   result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;
   result.timings["intraop"]["total"] = result.timings["intraop"]["total"].get<double>() + read_seconds;
   // After the answer, as the daemon does: not part of "total".
-  session.add_uncertainty(intraop, result, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
+  // The prepared input: the labels given, or those the engine derived.
+  const IntraopInput prepared{scan.labels ? *scan.labels : *result.intraop_labels, scan.image};
+  session.add_uncertainty(prepared, result, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   DeferredOutputOptions outputs;
   outputs.label_table = &session.parameters().label_table;
   // register has no scan id: the output folder names the report.
   const fs::path out_dir = fs::path(o.out).filename().empty() ? fs::path(o.out).parent_path() : fs::path(o.out);
   outputs.scan_id = out_dir.filename().string();
-  write_scan_outputs(result, intraop.t1 ? &*intraop.t1 : nullptr, o.out, outputs);
+  write_scan_outputs(result, scan.image ? &*scan.image : nullptr, o.out, outputs);
   std::fprintf(stderr, "[intraop] total      %8.3f s\n", result.timings["intraop"]["total"].get<double>());
   std::cout << "wrote " << o.out << '\n';
   if (result.kind == ResultKind::affine_only_fallback) {
@@ -224,9 +231,10 @@ void add_offline_commands(CLI::App& app, int* exit_code) {
   CLI::App* r = app.add_subcommand("register", "one-shot registration in this process (no daemon)");
   add_preop_options(r, reg->preop);
   r->add_option("--intraop-labels", reg->intraop_labels,
-                "intraop label map (1 brain, 2 lateral ventricles): NIfTI, NRRD or Slicer .seg.nrrd")->required();
-  r->add_option("--intraop-image", reg->intraop_image, "intraop T1 on the labels' grid (optional)");
-  r->add_option("--intraop-dicom", reg->intraop_dicom, "intraop T1 as a DICOM series folder, instead of --intraop-image");
+                "intraop label map (1 brain, 2 lateral ventricles): NIfTI, NRRD or Slicer .seg.nrrd; without it "
+                "the image is segmented (intraop_labels.nii.gz and segmentation_confidence.nii.gz are written)");
+  r->add_option("--intraop-image", reg->intraop_image, "intraop MR image (on the labels' grid when both are given)");
+  r->add_option("--intraop-dicom", reg->intraop_dicom, "intraop image as a DICOM series folder, instead of --intraop-image");
   r->add_option("--intraop-series", reg->intraop_series, "SeriesInstanceUID in --intraop-dicom when it holds several");
   r->add_option("--out", reg->out, "output folder (written atomically)")->required();
   r->add_option("--config", reg->config, "configuration TOML (default: the built-in config/brainshiftd.toml)");

@@ -27,6 +27,11 @@ enum class ResultPart {
   kTimings,          // JSON, see timing_log.h ScanTimings
   kReport,           // report.png (image/png), rendered after the scan is done
   kUncertainty,      // float32 NIfTI, intraop grid: 95 % band radius (mm) of the answer; after the scan is done
+  // Present only when the engine derived them (a scan pushed as an image
+  // without labels): the segmentation the registration used, in the label
+  // table's values, and the posterior of each voxel's chosen tissue.
+  kIntraopLabels,
+  kSegmentationConfidence,
 };
 
 enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
@@ -37,11 +42,13 @@ enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
 enum class PartPresence {
   kEveryScan,
   kWithIntraopImage,  // only when scan.push carried an "image"
+  kWithoutIntraopLabels,  // only when the scan came without "labels" (the engine segmented the image)
 };
 
 // What the daemon knows of a scan that decides which parts it has.
 struct ScanFacts {
   bool has_image = false;  // scan.push carried an intraop image
+  bool has_labels = true;  // scan.push carried intraop labels
 };
 
 struct ResultOutput {
@@ -85,6 +92,11 @@ inline constexpr ResultOutput kResultOutputs[] = {
      PartPresence::kWithIntraopImage, std::nullopt},
     {ResultPart::kUncertainty, "uncertainty", "uncertainty", "uncertainty.nii.gz", "uncertainty.nii",
      MediaKind::kNifti, true, "uncertainty", PartPresence::kEveryScan, std::nullopt},
+    {ResultPart::kIntraopLabels, "intraop_labels", "intraop_labels", "intraop_labels.nii.gz", "intraop_labels.nii",
+     MediaKind::kNifti, false, "", PartPresence::kWithoutIntraopLabels, std::nullopt},
+    {ResultPart::kSegmentationConfidence, "segmentation_confidence", "segmentation_confidence",
+     "segmentation_confidence.nii.gz", "segmentation_confidence.nii", MediaKind::kNifti, false, "",
+     PartPresence::kWithoutIntraopLabels, std::nullopt},
 };
 
 const ResultOutput& result_output(ResultPart part);

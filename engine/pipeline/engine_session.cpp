@@ -5,6 +5,7 @@
 #include "core/errors.h"
 #include "core/fault_injection.h"
 #include "pipeline/mpi_commands.h"
+#include "pipeline/prepare_stage.h"
 #include "pipeline/uncertainty_stage.h"
 #include "pipeline/warm_state.h"
 
@@ -79,6 +80,20 @@ ScanResult EngineSession::register_scan(const IntraopInput& input, const Progres
                                         bool defer_quality_metrics) {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
   ScanResult result = run_intraop(*warm_, input, params_, progress, !defer_quality_metrics);
+  result.timings["preop"] = preop_timings();
+  return result;
+}
+
+ScanResult EngineSession::register_scan(const ScanInput& scan, const ProgressFn& progress,
+                                        bool defer_quality_metrics) {
+  if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
+  if (!scan.labels && !scan.image) throw InputError("a scan needs an intraop image, labels, or both");
+  if (scan.labels && (!scan.image || !params_.auto_segmentation.check_given_labels))
+    return register_scan(IntraopInput{*scan.labels, scan.image}, progress, defer_quality_metrics);
+  ScanResult result =
+      scan.labels ? register_labels_with_image(*warm_, IntraopInput{*scan.labels, scan.image}, params_, progress,
+                                               !defer_quality_metrics)
+                  : register_image_only(*warm_, *scan.image, params_, progress, !defer_quality_metrics);
   result.timings["preop"] = preop_timings();
   return result;
 }

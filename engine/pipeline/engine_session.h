@@ -34,9 +34,18 @@ struct PreopInput {
   LabelImage labels;  // same grid as t1
 };
 
+// What the stages work on: the intraop labels always present (given, or
+// derived by the prepare step from the image).
 struct IntraopInput {
   LabelImage labels;          // 1 brain, 2 lateral ventricles (table values)
   std::optional<ImageF> t1;   // same grid as labels when given
+};
+
+// A scan as it arrives: an image, labels, or both (at least one). Without
+// labels the engine segments the image first (pipeline/prepare_stage.h).
+struct ScanInput {
+  std::optional<LabelImage> labels;
+  std::optional<ImageF> image;  // same grid as labels when both are given
 };
 
 // nonrigid, or affine_only_fallback when a non-rigid stage failed a quality
@@ -57,6 +66,10 @@ struct ScanResult {
   ImageF uncertainty_mm;
   nlohmann::json metrics;
   nlohmann::json timings;  // {"preop": {...}, "intraop": {...}, "mesh": {...}}
+  // Set when the engine derived the intraop labels from the image (no labels
+  // given): the segmentation the stages used and the posterior of its choice.
+  std::optional<LabelImage> intraop_labels;
+  std::optional<ImageF> segmentation_confidence;
 };
 
 struct WarmState;  // mesh, surfaces, bindings, FEM model: see engine_session.cpp
@@ -87,6 +100,12 @@ class EngineSession {
   // figures ("labels", "labels_affine_only") and warped_t1_affine_only is
   // empty until add_quality_metrics(): the daemon announces the field first.
   ScanResult register_scan(const IntraopInput& input, const ProgressFn& progress,
+                           bool defer_quality_metrics = false);
+  // The same for a scan that may lack labels: the prepare step segments the
+  // image (a "segment" stage in the timings) and iterates the segmentation
+  // with the registration; result.intraop_labels holds what was used, and
+  // add_quality_metrics() takes prepared_input(result).
+  ScanResult register_scan(const ScanInput& scan, const ProgressFn& progress,
                            bool defer_quality_metrics = false);
   void add_quality_metrics(const IntraopInput& input, ScanResult& result, const ProgressFn& progress) const;
   // The uncertainty map (quality/uncertainty_map.h) of a result of this

@@ -123,7 +123,7 @@ void solve_with_resection(WarmState& warm, const IntraopInput& input, const Mask
 }  // namespace
 
 ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                       const ProgressFn& progress, bool with_quality_metrics) {
+                       const ProgressFn& progress, bool with_quality_metrics, const std::string& forced_fallback) {
   const LabelTable& table = params.label_table;
   Stopwatch total;
   ScanResult result;
@@ -157,8 +157,8 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
                        {"message", affine.message}};
   clock.done("affine");
 
-  std::string failure;
-  if (!affine.converged) failure = "affine registration did not converge: " + affine.message;
+  std::string failure = forced_fallback;
+  if (failure.empty() && !affine.converged) failure = "affine registration did not converge: " + affine.message;
   // Is the input possible for this patient, and the affine a head moving?
   // Checked (and reported) even when the affine already failed: the report
   // then says what else is wrong with the input.

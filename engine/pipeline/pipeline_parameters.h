@@ -16,6 +16,8 @@
 #include "registration/affine_registration.h"
 #include "registration/intensity_refinement.h"
 #include "registration/surface_repair.h"
+#include "segmentation/intraop_segmentation.h"
+#include "segmentation/label_image_check.h"
 
 namespace brainshift {
 
@@ -40,6 +42,43 @@ struct QualityGates {
   double min_intraop_brain_fraction = 0.5;
 };
 
+// The automatic path: a scan given as an image alone (pipeline/prepare_stage.h;
+// docs/DESIGN.md "Automatic intraop segmentation" says why each value).
+struct AutoSegmentationParameters {
+  segmentation::SegmentationParameters classifier;
+  // Prior width (mm) after the head's alignment alone: the rigid positioning
+  // is known to a voxel or two, the brain's own shift is not (5-25 mm at the
+  // cortex, 1-3 mm deep); the image overrules the prior where tissue has moved
+  // (prior_floor), the width only has to cover the deep shift and the head
+  // alignment's error.
+  double prior_width_affine_mm = 3.0;
+  // After a non-rigid estimate carries the labels: its error (about 1 mm at
+  // the landmarks) plus a voxel of partial volume.
+  double prior_width_nonrigid_mm = 1.5;
+  // Segment -> register rounds after the first (bounded; 0 = one pass).
+  int rematch_rounds = 1;
+  // Gates. Brain volume (the outline, after the affine's volume change is
+  // divided out) against the preop's: brain shift changes it by a few per
+  // cent (fluid drained, oedema), a resection by the resectable structures'
+  // volume; a leak into fluid or dura, or a lost lobe, by tens of per cent.
+  double max_brain_volume_change = 0.10;
+  // Ventricles found, as a fraction of the preop ventricles: compression by
+  // mass effect or drainage shrinks them, but below this their wall would be
+  // matched to noise.
+  double min_ventricle_fraction = 0.2;
+  // The outer surface is trusted where the posterior of the chosen tissue one
+  // voxel inside it is at least this (a coin toss between tissues is 0.5);
+  // below it over more than max_uncertain_surface_fraction of the surface,
+  // the match would follow guesses (about the area of a large craniotomy).
+  double min_surface_confidence = 0.6;
+  double max_uncertain_surface_fraction = 0.2;
+  // A scan given with labels and an image: the labels checked against the
+  // image (segmentation/label_image_check.h); gross disagreement gives the
+  // marked affine-only result.
+  bool check_given_labels = true;
+  segmentation::LabelImageCheckParameters label_image_check;
+};
+
 struct PipelineParameters {
   LabelTable label_table;  // from config/labels.toml (config::default_label_table()) or the user's
   MeshingParameters meshing;
@@ -58,6 +97,7 @@ struct PipelineParameters {
   UnfoldParameters unfold;  // local repair tried before the fold gate refuses a field
   ModelParameters models;
   QualityGates gates;
+  AutoSegmentationParameters auto_segmentation;  // scans given as an image alone
   // Is the input and the answer physically possible (DESIGN.md, "Plausibility gates").
   PlausibilityLimits plausibility;
   // The map computed after the answer is served (DESIGN.md, "Uncertainty map").

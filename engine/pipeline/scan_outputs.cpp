@@ -50,6 +50,11 @@ EncodedOutputs encode_scan_outputs(const ScanResult& r, ImageEncoding images) {
   files[name_of(ResultPart::kWarpedLabels, images)] = label_image_to_bytes(r.warped_labels, gzip);
   for (const auto& [name, surface] : r.models) files[protocol::model_file_name(name)] = vtp_bytes(surface);
   files[name_of(ResultPart::kTimings, images)] = json_text(r.timings);
+  if (r.intraop_labels)
+    files[name_of(ResultPart::kIntraopLabels, images)] = label_image_to_bytes(*r.intraop_labels, gzip);
+  if (r.segmentation_confidence)
+    files[name_of(ResultPart::kSegmentationConfidence, images)] =
+        scalar_image_to_bytes(*r.segmentation_confidence, VoxelType::float32, gzip);
   files[name_of(ResultPart::kDisplacement, images)] = field.get();
   return files;
 }

@@ -52,6 +52,9 @@ struct WarmState {
   std::map<std::string, PreopModel> models;
   double brain_volume_ml = 0;
   nlohmann::json timings;                  // preop stage seconds
+  // The preop head (coarse grid), for placing the preop on a scan given
+  // without labels (prepare_stage.h); made on the first such scan.
+  std::optional<Mask> preop_head;
 };
 
 // The preop phase on rank 0 (drives the workers through fem).
@@ -63,8 +66,11 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
 // The intraop stages on rank 0. Without quality metrics, result.metrics holds
 // only what the registration itself reports (affine, surfaces, solve,
 // Jacobian, result kind); add_quality_metrics() completes it later.
+// forced_fallback: a reason found before the stages (a gate of the automatic
+// segmentation) to return the affine-only result; empty for the normal path.
 ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                       const ProgressFn& progress, bool with_quality_metrics = true);
+                       const ProgressFn& progress, bool with_quality_metrics = true,
+                       const std::string& forced_fallback = "");
 void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                          ScanResult& result, const ProgressFn& progress);
 

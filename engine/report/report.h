@@ -74,6 +74,11 @@ struct ReportInputs {
   std::vector<ReportLegendEntry> legend;
   std::uint16_t outer_label = 1;
   ReportSummary summary;
+  // Optional: the intraop segmentation the engine derived from the image (a
+  // scan given without labels), its brain outline and ventricles drawn in
+  // row 1 as a dotted white contour over the preop's, so the surgeon sees
+  // what the registration was matched to.
+  const LabelImage* segmentation = nullptr;
 };
 
 struct ReportOptions {

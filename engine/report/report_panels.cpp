@@ -143,7 +143,24 @@ class PanelPainter {
     present.erase(std::unique(present.begin(), present.end()), present.end());
     for (std::uint16_t l : present)
       if (l != 0 && l != in_.outer_label) draw([l](std::uint16_t q) { return q == l; }, colour_of(l));
+    if (in_.segmentation) draw_segmentation(r, v);
     return r;
+  }
+
+  // Every other pixel of each edge of the segmentation (outline and each
+  // inner label), in white: dotted, so it reads apart from the preop contours.
+  void draw_segmentation(Raster& r, int v) const {
+    const int n = r.size;
+    std::vector<std::uint16_t> seg(static_cast<std::size_t>(n) * n);
+    for (int y = 0; y < n; ++y)
+      for (int x = 0; x < n; ++x) seg[static_cast<std::size_t>(y) * n + x] = sample_nearest(*in_.segmentation, world(v, x, y), 0);
+    auto at = [&](int x, int y) { return seg[static_cast<std::size_t>(y) * n + x]; };
+    for (int y = 1; y < n - 1; ++y)
+      for (int x = 1; x < n - 1; ++x) {
+        const std::uint16_t l = at(x, y);
+        const bool edge = (l != 0) && (at(x - 1, y) != l || at(x + 1, y) != l || at(x, y - 1) != l || at(x, y + 1) != l);
+        if (edge && (x + y) % 3 != 0) set(r, x, y, {255, 255, 255});
+      }
   }
 
   Raster difference(int v, const ImageF& warped, double scale) const {

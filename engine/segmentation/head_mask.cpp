@@ -55,7 +55,14 @@ Grid3 coarse_grid(const Grid3& grid, double spacing_mm) {
 Mask head_mask(const ImageF& image, double coarse_mm, double closing_mm) {
   const Grid3 g = coarse_grid(image.grid, coarse_mm);
   const ImageF coarse = resample_linear(image, g);
-  const float t = otsu_threshold(coarse.voxels);
+  // Exact zeros are padding (outside a resampled or masked acquisition), not
+  // air's noise: left out, they would make the threshold split padding from
+  // everything else.
+  std::vector<float> signal;
+  signal.reserve(coarse.voxels.size());
+  for (float v : coarse.voxels)
+    if (v > 0) signal.push_back(v);
+  const float t = otsu_threshold(signal);
   Mask head = threshold(coarse, t, std::numeric_limits<float>::max());
   head = largest_component(head, 6);
   head = fill_holes(close(head, closing_mm));

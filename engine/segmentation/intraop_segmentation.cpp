@@ -133,7 +133,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     result.refusal = "the image does not separate ventricular fluid from brain tissue (" +
                      std::to_string(contrast) + " sd apart, at least " +
                      std::to_string(params.min_fluid_contrast_sd) + " needed): not an MR contrast the "
-                     "automatic segmentation can use";
+                     "automatic segmentation can use; fitted classes " + result.report["classes"].dump();
   else if (count_nonzero(brain) == 0)
     result.refusal = "no brain tissue was found in the image";
   return result;

@@ -38,6 +38,9 @@ LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage
                                            const LabelImageCheckParameters& params) {
   SegmentationParameters sp = params.classifier;
   sp.prior_width_mm = params.prior_width_mm;
+  // Only the outline is compared: how well the image shows the ventricles
+  // does not matter here.
+  sp.min_fluid_contrast_sd = 0;
   const IntraopSegmentation seg = segment_intraop(image, labels, brain_label, ventricle_labels, sp);
   const Mask given = outline_mask(labels);
   const Mask seen = outline_mask(seg.labels);

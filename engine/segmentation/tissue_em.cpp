@@ -73,7 +73,11 @@ std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<d
   std::vector<GaussianClass> classes;
   for (int t = 0; t < kTissues; ++t) {
     std::vector<std::pair<double, double>> vw;  // intensity, prior weight
-    for (double sure : {0.9, 0.5, 0.0}) {
+    // "Sure" relative to the most the prior says of this tissue anywhere: a
+    // small structure (ventricles a few widths across) never reaches 0.9.
+    double top = 0;
+    for (const auto& lp : s.log_prior) top = std::max(top, std::exp(lp[t]));
+    for (double sure : {0.9 * top, 0.5 * top, 0.0}) {
       vw.clear();
       for (std::size_t n = 0; n < s.intensity.size(); ++n) {
         const double w = std::exp(s.log_prior[n][t]);
@@ -162,8 +166,11 @@ void maximise(const Samples& s, const std::vector<std::vector<double>>& gamma, c
 // intensities would otherwise be read as a darkening of the periphery.
 constexpr double kBiasCoreInside = 0.99;
 
-void fit_bias(const Samples& s, const std::vector<std::vector<double>>& gamma, const std::vector<GaussianClass>& classes,
-              LogBiasField& bias) {
+constexpr double kBiasInlierSd = 2.5;
+const double kMaxLogBias = std::log(4.0);
+
+void fit_bias(const Samples& s, const std::vector<std::vector<double>>& gamma, const std::vector<double>& corrected,
+              const std::vector<GaussianClass>& classes, LogBiasField& bias) {
   std::vector<double> ratio(s.intensity.size(), 0), weight(s.intensity.size(), 0);
   for (std::size_t n = 0; n < s.intensity.size(); ++n) {
     const auto best = static_cast<std::size_t>(
@@ -173,10 +180,21 @@ void fit_bias(const Samples& s, const std::vector<std::vector<double>>& gamma, c
     if (inside < kBiasCoreInside || gamma[n][best] < 0.9 || g.tissue == Tissue::outside || s.intensity[n] <= 0 ||
         g.mean <= 0)
       continue;
+    // A tissue no class describes (a tumour, blood) is not a bias.
+    if (std::abs(corrected[n] - g.mean) > kBiasInlierSd * g.sd) continue;
     ratio[n] = std::log(s.intensity[n] / g.mean);
     weight[n] = g.mean * g.mean / (g.sd * g.sd);
   }
-  bias.fit(s.voxel, ratio, weight);
+  // Enough samples to determine the polynomial many times over, and a
+  // field within what coils do (a few-fold across a head even with surface
+  // coils); otherwise the previous field stands.
+  const auto used = static_cast<std::size_t>(std::count_if(weight.begin(), weight.end(), [](double w) { return w > 0; }));
+  if (used < 20 * bias.terms()) return;
+  LogBiasField next = bias;
+  if (!next.fit(s.voxel, ratio, weight)) return;
+  for (std::size_t n = 0; n < s.intensity.size(); ++n)
+    if (weight[n] > 0 && std::abs(next.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2])) > kMaxLogBias) return;
+  bias = next;
 }
 
 }  // namespace
@@ -208,6 +226,11 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     const int budget = phase == 0 ? std::min(params.max_iterations, 10) : params.max_iterations;
     std::vector<std::vector<double>> gamma(N, std::vector<double>(classes.size(), 0));
     double previous = -std::numeric_limits<double>::infinity();
+    // The bias step fits on the samples whose class is clear, so it need not
+    // raise the likelihood as an EM step does: a step that lowers it is
+    // undone and the bias kept as it was from then on.
+    LogBiasField before_bias = bias;
+    bool bias_moved = false, bias_frozen = params.bias_degree == 0;
     for (int it = 0; it < budget; ++it) {
       double ll = 0;
       for (std::size_t n = 0; n < N; ++n) {
@@ -216,13 +239,23 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
       }
       ll /= static_cast<double>(N);
       out.iterations += 1;
+      if (bias_moved && ll < previous) {
+        bias = before_bias;
+        bias_frozen = true;
+        bias_moved = false;
+        for (std::size_t n = 0; n < N; ++n) log_b[n] = bias.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
+        continue;
+      }
       out.mean_log_likelihood = ll;
       out.converged = std::abs(ll - previous) < params.tolerance;
       if (out.converged) break;
       previous = ll;
       maximise(s, gamma, corrected, classes);
-      if (params.bias_degree > 0) {
-        fit_bias(s, gamma, classes, bias);
+      bias_moved = false;
+      if (!bias_frozen) {
+        before_bias = bias;
+        fit_bias(s, gamma, corrected, classes, bias);
+        bias_moved = true;
         for (std::size_t n = 0; n < N; ++n) log_b[n] = bias.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
       }
     }

@@ -26,6 +26,11 @@ float inside_probability(float signed_distance_mm, double width_mm) {
   return static_cast<float>(1.0 / (1.0 + std::exp(signed_distance_mm / width_mm)));
 }
 
+// The ventricles' prior falls off over half the width: they are a few widths
+// across, surrounded by a far larger tissue, and a single fluid class whose
+// prior reaches well into white matter is pulled onto it.
+constexpr double kVentricleWidthFraction = 0.5;
+
 }  // namespace
 
 TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double floor) {
@@ -45,7 +50,7 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double wid
   const float keep = static_cast<float>(1.0 - 2 * floor), f = static_cast<float>(floor);
   for (std::size_t v = 0; v < n; ++v) {
     const float in = inside_probability(d_outline.voxels[v], width_mm);
-    const float vent = inside_probability(d_ventricle.voxels[v], width_mm);
+    const float vent = inside_probability(d_ventricle.voxels[v], kVentricleWidthFraction * width_mm);
     prior.p[0][v] = f + keep * in * (1 - vent);
     prior.p[1][v] = keep * in * vent;
     prior.p[2][v] = f + keep * (1 - in);

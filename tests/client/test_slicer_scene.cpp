@@ -193,6 +193,23 @@ TEST_F(SlicerScene, WithoutLocalImagesOnlyThePulledOutputs) {
   EXPECT_EQ(scene.tagged("GridTransform").size(), 1u);
 }
 
+TEST_F(SlicerScene, AnAutomaticSegmentationIsListedWithTheLabelTable) {
+  touch(dir / "intraop_labels.nii.gz");
+  touch(dir / "segmentation_confidence.nii.gz");
+  write_slicer_scene(dir, contents);
+  const Scene scene = parse(dir / kSceneFile);
+  std::map<std::string, const Node*> label_maps;
+  for (const Node* v : scene.tagged("LabelMapVolume")) label_maps[scene.by_id(v->ref("storage"))->at("fileName")] = v;
+  ASSERT_EQ(label_maps.size(), 2u);
+  const Node* seg = label_maps.at("intraop_labels.nii.gz");
+  EXPECT_EQ(scene.by_id(seg->ref("display"))->at("colorNodeID"),
+            scene.by_id(label_maps.at("warped_labels.nii.gz")->ref("display"))->at("colorNodeID"));
+  bool confidence = false;
+  for (const Node* v : scene.tagged("Volume"))
+    confidence |= scene.by_id(v->ref("storage"))->at("fileName") == "segmentation_confidence.nii.gz";
+  EXPECT_TRUE(confidence);
+}
+
 TEST_F(SlicerScene, MissingFilesAreNamed) {
   fs::remove(dir / "field.h5");
   try {

@@ -1,7 +1,9 @@
 #include "robustness_evaluation.h"
 
 #include "atlas/default_atlas.h"
+#include "core/errors.h"
 #include "core/label_colour.h"
+#include "field/warp.h"
 #include "phantom/independent_labels.h"
 #include "phantom/tumor_implant.h"
 
@@ -36,7 +38,7 @@ CaseAnatomy case_anatomy(const RobustnessInputs& in, const RobustnessSpec& spec)
 }
 
 RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& anatomy, const RobustnessSpec& spec,
-                                  bool with_uncertainty) {
+                                  bool with_uncertainty, bool image_only) {
   PhantomSpec phantom = spec.phantom;
   phantom.preop_tumor.reset();  // already in anatomy.preop and the truth
   RobustnessSpec s = spec;
@@ -50,7 +52,41 @@ RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& ana
   };
   run.with_image = registered({c.intraop_labels, c.intraop_t1});
   run.labels_only = registered({c.intraop_labels, std::nullopt});
+  if (image_only) {
+    ScanInput scan;
+    scan.image = c.intraop_t1;
+    try {
+      const ScanResult r = session.register_scan(scan, nullptr);
+      run.image_only = evaluate_result(spec.phantom.name, c, r);
+      run.segmentation = segmentation_dice(*r.intraop_labels, anatomy.truth_labels, c.true_pullback_mm,
+                                           spec.phantom.resection.enabled, spec.phantom.resection.tumor_label);
+      run.segmentation["metrics"] = r.metrics["segmentation"];
+    } catch (const InputError& e) {
+      run.segmentation = {{"refused", e.what()}};
+    }
+  }
   return run;
+}
+
+nlohmann::json segmentation_dice(const LabelImage& segmentation, const LabelImage& truth_preop,
+                                 const VectorImage3& true_pullback_mm, bool resected_tumor, std::uint16_t tumor_label) {
+  const LabelImage truth = warp_labels_nearest(truth_preop, true_pullback_mm);
+  std::size_t both_b = 0, seg_b = 0, tru_b = 0, both_v = 0, seg_v = 0, tru_v = 0;
+  for (std::size_t v = 0; v < truth.voxels.size(); ++v) {
+    const std::uint16_t t = truth.voxels[v], s = segmentation.voxels[v];
+    const bool tb = t != 0 && !(resected_tumor && t == tumor_label), sb = s != 0;
+    const bool tv = t == atlas_labels::ventricles, sv = s == atlas_labels::ventricles;
+    both_b += tb && sb;
+    seg_b += sb;
+    tru_b += tb;
+    both_v += tv && sv;
+    seg_v += sv;
+    tru_v += tv;
+  }
+  const auto dice = [](std::size_t both, std::size_t a, std::size_t b) {
+    return a + b ? 2.0 * static_cast<double>(both) / static_cast<double>(a + b) : 1.0;
+  };
+  return {{"brain_dice", dice(both_b, seg_b, tru_b)}, {"ventricles_dice", dice(both_v, seg_v, tru_v)}};
 }
 
 }  // namespace brainshift::evaluation

@@ -3,6 +3,7 @@
 // which preop map a case registers against, the truth its intraop
 // segmentation comes from, and one case registered with and without its
 // intraop T1. Shared by the CI subset (test_robustness.cpp) and the benchmark.
+#include <optional>
 #include <string>
 
 #include "phantom/robustness_case.h"
@@ -33,12 +34,22 @@ CaseAnatomy case_anatomy(const RobustnessInputs& in, const RobustnessSpec& spec)
 
 struct RobustnessRun {
   CaseResult with_image, labels_only;
+  // With image_only: the same case registered from its intraop image alone,
+  // and the engine's segmentation against the truth carried by the true field
+  // ({"brain_dice", "ventricles_dice"}; brain = the outline).
+  std::optional<CaseResult> image_only;
+  nlohmann::json segmentation;
 };
 
-// session must hold anatomy.preop. Both registrations use the same case.
+// session must hold anatomy.preop. Every registration uses the same case.
 // with_uncertainty: each result also gets its uncertainty map (after the
 // timed stages), sampled at the landmarks (CaseResult::predicted_band_mm).
 RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& anatomy, const RobustnessSpec& spec,
-                                  bool with_uncertainty = false);
+                                  bool with_uncertainty = false, bool image_only = false);
+
+// Dice of a segmentation in the table's values (1 brain, 2 ventricles)
+// against the truth carried onto the intraop grid by the true field.
+nlohmann::json segmentation_dice(const LabelImage& segmentation, const LabelImage& truth_preop,
+                                 const VectorImage3& true_pullback_mm, bool resected_tumor, std::uint16_t tumor_label);
 
 }  // namespace brainshift::evaluation

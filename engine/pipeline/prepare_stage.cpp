@@ -1,0 +1,252 @@
+#include "pipeline/prepare_stage.h"
+
+#include <cmath>
+#include <future>
+
+#include "core/errors.h"
+#include "core/timer.h"
+#include "field/warp.h"
+#include "image/image_stats.h"
+#include "image/resample.h"
+#include "registration/affine_registration.h"
+#include "segmentation/head_mask.h"
+#include "segmentation/label_image_check.h"
+
+namespace brainshift {
+namespace {
+
+// Head outlines as label maps (1 = head) for the label affine; no ventricle
+// term (value 2 is absent).
+LabelImage as_labels(const Mask& m) {
+  LabelImage out(m.grid, 0);
+  for (std::size_t v = 0; v < m.voxels.size(); ++v) out.voxels[v] = m.voxels[v] ? 1 : 0;
+  return out;
+}
+
+// The preop head as far as the intraop image can see it through a placement
+// (intraop_from_preop): the part of the preop head mapped inside the intraop
+// grid, and its outline points there. An intraop field of view cuts the head
+// (the neck, the vertex); matched against the whole preop head, the moments
+// and the outline would pull the placement toward shrinking it.
+// Without a placement (nullptr) all of it.
+PreopBoundarySamples visible_head(const Mask& head, const Grid3& intraop, const Eigen::Matrix4d* intraop_from_preop) {
+  const Eigen::Matrix4d voxel_from_preop =
+      intraop.voxel_from_world() * (intraop_from_preop ? *intraop_from_preop : Eigen::Matrix4d::Identity());
+  auto visible = [&](const Eigen::Vector3d& p) {
+    if (!intraop_from_preop) return true;
+    const Eigen::Vector3d v = (voxel_from_preop * p.homogeneous()).head<3>();
+    for (int a = 0; a < 3; ++a)
+      if (v[a] < -0.5 || v[a] > intraop.dims[a] - 0.5) return false;
+    return true;
+  };
+  Mask seen(head.grid, 0);
+  for (int k = 0; k < head.grid.dims[2]; ++k)
+    for (int j = 0; j < head.grid.dims[1]; ++j)
+      for (int i = 0; i < head.grid.dims[0]; ++i)
+        seen.at(i, j, k) = head.at(i, j, k) && visible(head.grid.world_mm(i, j, k));
+  PreopBoundarySamples samples;
+  samples.outer_moments = mask_moments(seen);
+  for (const auto& p : mask_boundary_points_mm(head))
+    if (visible(p)) samples.outer_mm.push_back(p);
+  return samples;
+}
+
+// Two passes: the preop head seen through the identity (scanners place a
+// patient's head within centimetres of the same RAS position) or, when that
+// sees too little of it, the whole head; then seen through the first result.
+Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const AffineRegistrationParameters& affine,
+                                    nlohmann::json& metrics) {
+  if (!warm.preop_head) {
+    warm.preop_head = segmentation::head_mask(warm.preop.t1);
+    if (count_nonzero(*warm.preop_head) == 0) throw ComputeError("the preop image shows no head (flat image)");
+  }
+  const Mask head = segmentation::head_mask(image);
+  if (count_nonzero(head) == 0) throw InputError("intraop image: no head found (the image is flat)");
+  const IntraopDistanceMaps maps = prepare_intraop_maps(as_labels(head), 1, 2);
+  AffineRegistrationParameters p = affine;
+  p.ventricle_weight = 0;
+  Eigen::Matrix4d placement = Eigen::Matrix4d::Identity();
+  AffineRegistrationResult r;
+  for (int pass = 0; pass < 2; ++pass) {
+    PreopBoundarySamples samples = visible_head(*warm.preop_head, image.grid, &placement);
+    if (pass == 0 && samples.outer_moments.volume_ml < 0.5 * volume_ml(head))
+      samples = visible_head(*warm.preop_head, image.grid, nullptr);
+    if (samples.outer_mm.size() < 100) break;
+    r = register_affine(samples, maps, p);
+    placement = r.intraop_from_preop;
+  }
+  metrics = {{"converged", r.converged}, {"rms_surface_distance_mm", r.rms_surface_distance_mm},
+             {"inlier_fraction", r.inlier_fraction}, {"message", r.message}};
+  return placement;
+}
+
+std::vector<std::uint16_t> ventricle_labels(const LabelTable& table) { return table.cavity_labels(); }
+
+// The inner band one voxel inside the outline's surface.
+Mask inner_surface_band(const Mask& outline) {
+  const double h = outline.grid.spacing_mm().minCoeff();
+  const Mask inner = erode(outline, 1.01 * h);
+  Mask band(outline.grid, 0);
+  const auto& n = outline.grid.dims;
+  for (int k = 0; k < n[2]; ++k)
+    for (int j = 0; j < n[1]; ++j)
+      for (int i = 0; i < n[0]; ++i) {
+        if (!inner.at(i, j, k)) continue;
+        const int p[3] = {i, j, k};
+        bool edge = false;
+        for (int a = 0; a < 3 && !edge; ++a)
+          for (int s = -1; s <= 1 && !edge; s += 2) {
+            int q[3] = {p[0], p[1], p[2]};
+            q[a] += s;
+            edge = outline.grid.contains(q[0], q[1], q[2]) && !inner.at(q[0], q[1], q[2]);
+          }
+        band.at(i, j, k) = edge;
+      }
+  return band;
+}
+
+}  // namespace
+
+SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
+                                     const LabelImage& carried_preop, const LabelTable& table,
+                                     const AutoSegmentationParameters& params) {
+  SegmentationGates g;
+  const Mask outline = outline_mask(segmentation);
+  const Mask preop_outline = outline_mask(carried_preop);
+  // The carried preop is already on the intraop grid through the placement,
+  // so its volume there includes the affine's scale and the field of view.
+  double resectable_ml = 0;
+  for (auto v : table.resectable_labels()) resectable_ml += volume_ml(mask_of_labels(carried_preop, {v}));
+  const double seg_ml = volume_ml(outline), preop_ml = volume_ml(preop_outline);
+  const double change = preop_ml > 0 ? seg_ml / preop_ml - 1 : -1;
+  const double lowest = -params.max_brain_volume_change - (preop_ml > 0 ? resectable_ml / preop_ml : 0);
+  g.metrics["brain_volume"] = {{"segmented_ml", seg_ml}, {"preop_ml", preop_ml}, {"change", change},
+                               {"allowed", {lowest, params.max_brain_volume_change}}};
+  if (change < lowest || change > params.max_brain_volume_change)
+    g.failure = "automatic segmentation: the brain's volume differs from the preop's by " +
+                std::to_string(100 * change) + " % (allowed " + std::to_string(100 * lowest) + " to +" +
+                std::to_string(100 * params.max_brain_volume_change) + " %)";
+
+  const auto vent = ventricle_labels(table);
+  const double seg_vent = volume_ml(mask_of_labels(segmentation, vent));
+  const double preop_vent = volume_ml(mask_of_labels(carried_preop, vent));
+  const double fraction = preop_vent > 0 ? seg_vent / preop_vent : 1.0;
+  g.metrics["ventricles"] = {{"segmented_ml", seg_vent}, {"preop_ml", preop_vent}, {"fraction", fraction},
+                             {"min_fraction", params.min_ventricle_fraction}};
+  if (g.failure.empty() && preop_vent > 0 && fraction < params.min_ventricle_fraction)
+    g.failure = "automatic segmentation: no ventricles found (" + std::to_string(seg_vent) + " ml against " +
+                std::to_string(preop_vent) + " ml preop)";
+
+  const VoxelBox box = grow_box(bounding_box_voxels(outline), outline.grid, 3.0);
+  std::size_t band_voxels = 0, uncertain = 0;
+  if (!box.empty) {
+    const Mask band = inner_surface_band(crop_to_box(outline, box));
+    for (int k = 0; k < band.grid.dims[2]; ++k)
+      for (int j = 0; j < band.grid.dims[1]; ++j)
+        for (int i = 0; i < band.grid.dims[0]; ++i) {
+          if (!band.at(i, j, k)) continue;
+          ++band_voxels;
+          uncertain += confidence.at(i + box.lo[0], j + box.lo[1], k + box.lo[2]) < params.min_surface_confidence;
+        }
+  }
+  const double uncertain_fraction = band_voxels ? static_cast<double>(uncertain) / static_cast<double>(band_voxels) : 1.0;
+  g.metrics["outer_surface"] = {{"uncertain_fraction", uncertain_fraction},
+                                {"min_confidence", params.min_surface_confidence},
+                                {"max_uncertain_fraction", params.max_uncertain_surface_fraction}};
+  if (g.failure.empty() && uncertain_fraction > params.max_uncertain_surface_fraction)
+    g.failure = "automatic segmentation: the outer brain surface is uncertain over " +
+                std::to_string(100 * uncertain_fraction) + " % of its area (limit " +
+                std::to_string(100 * params.max_uncertain_surface_fraction) + " %)";
+  g.metrics["passed"] = g.failure.empty();
+  return g;
+}
+
+ScanResult register_image_only(WarmState& warm, const ImageF& image, const PipelineParameters& params,
+                               const ProgressFn& progress, bool with_quality_metrics) {
+  const LabelTable& table = params.label_table;
+  const AutoSegmentationParameters& ap = params.auto_segmentation;
+  if (image.grid.voxel_count() == 0) throw InputError("intraop image: the image has no voxels");
+  for (float v : image.voxels)
+    if (!std::isfinite(v)) throw InputError("intraop image: contains non-finite values");
+
+  Stopwatch watch;
+  double segment_seconds = 0, earlier_passes_seconds = 0;
+  nlohmann::json seg_metrics;
+  if (progress) progress("segment", 0.0, 0.0);
+  const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
+  auto segment = [&](const LabelImage& carried, double width_mm) {
+    segmentation::SegmentationParameters sp = ap.classifier;
+    sp.prior_width_mm = width_mm;
+    sp.max_filled_hole_ml = params.min_resection_cavity_ml;
+    auto seg = segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
+    if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
+    return seg;
+  };
+  LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
+  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm);
+  SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap);
+  segment_seconds += watch.lap();
+  if (progress) progress("segment", 1.0, segment_seconds);
+
+  ScanResult result;
+  nlohmann::json rounds = nlohmann::json::array();
+  for (int round = 0;; ++round) {
+    rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
+    watch.lap();
+    result = run_intraop(warm, IntraopInput{seg.labels, image}, params, progress, false, gates.failure);
+    if (round >= ap.rematch_rounds || result.kind != ResultKind::nonrigid) break;
+    earlier_passes_seconds += watch.lap();
+    // Re-match: the preop carried by the non-rigid estimate, a narrower prior.
+    LabelImage rematched = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
+    auto next = segment(rematched, ap.prior_width_nonrigid_mm);
+    SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
+    segment_seconds += watch.lap();
+    if (!next_gates.failure.empty()) {  // the first pass stands
+      rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
+                        {"kept", false}});
+      break;
+    }
+    seg = std::move(next);
+    gates = std::move(next_gates);
+  }
+  seg_metrics["classifier"] = seg.report;
+  seg_metrics["gates"] = gates.metrics;
+  seg_metrics["rounds"] = rounds;
+  result.metrics["segmentation"] = seg_metrics;
+  auto& t = result.timings["intraop"];
+  t["segment"] = segment_seconds;
+  t["earlier_passes"] = earlier_passes_seconds;
+  t["total"] = t.value("total", 0.0) + segment_seconds + earlier_passes_seconds;
+  result.intraop_labels = std::move(seg.labels);
+  result.segmentation_confidence = std::move(seg.confidence);
+  if (with_quality_metrics)
+    add_quality_metrics(warm, IntraopInput{*result.intraop_labels, image}, params, result, progress);
+  return result;
+}
+
+ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                      const ProgressFn& progress, bool with_quality_metrics) {
+  const LabelTable& table = params.label_table;
+  validate_intraop_input(input, table);
+  Stopwatch watch;
+  auto check = std::async(std::launch::async, [&] {
+    segmentation::LabelImageCheckParameters p = params.auto_segmentation.label_image_check;
+    p.classifier.max_filled_hole_ml = params.min_resection_cavity_ml;
+    return segmentation::check_labels_against_image(*input.t1, input.labels, table.brain_label(),
+                                                    ventricle_labels(table), p);
+  });
+  ScanResult result = run_intraop(warm, input, params, progress, false);
+  const segmentation::LabelImageCheck c = check.get();
+  if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
+    const nlohmann::json first_timings = result.timings["intraop"];
+    result = run_intraop(warm, input, params, progress, false,
+                         "the intraop labels disagree with the intraop image: " + c.failure);
+    result.timings["intraop"]["total"] = watch.seconds();
+    result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
+  }
+  result.metrics["label_image_check"] = c.metrics;
+  if (with_quality_metrics) add_quality_metrics(warm, input, params, result, progress);
+  return result;
+}
+
+}  // namespace brainshift

@@ -1,0 +1,43 @@
+#pragma once
+// The prepare step of a scan: what the stages need that the scan lacks.
+// A scan given as an image alone is segmented here, guided by the preop:
+//   1. the preop placed on the image without labels: the head's outline in
+//      both images (segmentation/head_mask.h; the skull does not deform) and
+//      the label affine (registration/affine_registration.h) between them;
+//   2. the preop labels carried through that placement become the prior of
+//      the EM classification (segmentation/intraop_segmentation.h);
+//   3. the stages run on the segmentation; their non-rigid field carries the
+//      preop labels again, with a narrower prior, the image is classified
+//      again and re-matched (rematch_rounds times).
+// Gates (docs/DESIGN.md "Automatic intraop segmentation"): an image whose
+// contrast cannot show the ventricles is refused (InputError); a segmentation
+// whose brain volume is far from the preop's, that finds no ventricles, or
+// whose outer surface is uncertain over a large area gives the marked
+// affine-only result with the reason.
+#include <nlohmann/json.hpp>
+
+#include "pipeline/warm_state.h"
+
+namespace brainshift {
+
+ScanResult register_image_only(WarmState& warm, const ImageF& image, const PipelineParameters& params,
+                               const ProgressFn& progress, bool with_quality_metrics);
+
+// A scan given with both labels and an image: the stages run while the labels
+// are checked against the image on the other core; a gross disagreement
+// (metrics "label_image_check": where and how much) turns the result into
+// the marked affine-only one.
+ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                      const ProgressFn& progress, bool with_quality_metrics);
+
+// The gates of the automatic path on one segmentation: metrics (values and
+// limits) and the first reason not to trust it ("" when none).
+struct SegmentationGates {
+  nlohmann::json metrics;
+  std::string failure;
+};
+SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
+                                     const LabelImage& carried_preop, const LabelTable& table,
+                                     const AutoSegmentationParameters& params);
+
+}  // namespace brainshift
