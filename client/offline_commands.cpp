@@ -72,7 +72,7 @@ int run_register_rank0(const RegisterOptions& o) {
   if (!o.intraop_image.empty()) intraop.t1 = read_scalar_image(o.intraop_image, params.max_image_bytes);
   if (intraop.t1 && !intraop.t1->grid.same_geometry(intraop.labels.grid))
     throw InputError(o.intraop_image + ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
-  const double read_seconds = read_clock.seconds();
+  intraop.read_seconds = read_clock.seconds();
 
   EngineSession session(MPI_COMM_WORLD, params);
   Stopwatch atlas_clock;
@@ -83,9 +83,6 @@ int run_register_rank0(const RegisterOptions& o) {
   std::fprintf(stderr, "[preop] mesh: %zu nodes, %zu tets\n", session.mesh().node_count(), session.mesh().tet_count());
 
   ScanResult result = session.register_scan(intraop, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
-  // Decoding the files is part of what the surgeon waits for.
-  result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;
-  result.timings["intraop"]["total"] = result.timings["intraop"]["total"].get<double>() + read_seconds;
   DeferredOutputOptions outputs;
   outputs.label_table = &session.parameters().label_table;
   // register has no scan id: the output folder names the report.

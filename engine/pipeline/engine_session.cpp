@@ -6,6 +6,7 @@
 #include "core/fault_injection.h"
 #include "pipeline/mpi_commands.h"
 #include "pipeline/warm_state.h"
+#include "protocol/stage_names.h"
 
 namespace brainshift {
 
@@ -22,6 +23,14 @@ void keep_scan_buffers_on_the_heap() {
     return true;
   }();
   (void)done;
+}
+
+// The preop timings count the atlas (reading or building the preop images)
+// in their total; set again, the old figure is taken out first.
+void with_atlas_seconds(nlohmann::json& timings, double seconds) {
+  const std::string atlas(protocol::stages::kAtlas), total(protocol::stages::kTotal);
+  timings[total] = timings.value(total, 0.0) - timings.value(atlas, 0.0) + seconds;
+  timings[atlas] = seconds;
 }
 
 }  // namespace
@@ -45,7 +54,7 @@ void EngineSession::load_preop(PreopInput input, const ProgressFn& progress,
                                std::optional<TetMesh> stored_mesh) {
   // Built aside and swapped in: a failed load keeps the previous warm state.
   auto next = build_warm_state(comm_, std::move(input), params_, progress, std::move(stored_mesh));
-  if (warm_ && warm_->timings.contains("atlas")) next->timings["atlas"] = warm_->timings["atlas"];
+  with_atlas_seconds(next->timings, atlas_seconds_);
   warm_ = std::move(next);
 }
 
@@ -62,24 +71,18 @@ const PreopInput& EngineSession::preop() const {
 }
 
 nlohmann::json EngineSession::preop_timings() const {
-  if (!warm_) return nlohmann::json::object();
-  nlohmann::json t = warm_->timings;
-  if (!t.contains("atlas")) t["atlas"] = atlas_seconds_;
-  t["total"] = t.value("total", 0.0) + t["atlas"].get<double>();
-  return t;
+  return warm_ ? warm_->timings : nlohmann::json::object();
 }
 
 void EngineSession::set_atlas_seconds(double seconds) {
   atlas_seconds_ = seconds;
-  if (warm_) warm_->timings["atlas"] = seconds;
+  if (warm_) with_atlas_seconds(warm_->timings, seconds);
 }
 
 ScanResult EngineSession::register_scan(const IntraopInput& input, const ProgressFn& progress,
                                         bool defer_quality_metrics) {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
-  ScanResult result = run_intraop(*warm_, input, params_, progress, !defer_quality_metrics);
-  result.timings["preop"] = preop_timings();
-  return result;
+  return run_intraop(*warm_, input, params_, progress, !defer_quality_metrics);
 }
 
 void EngineSession::add_quality_metrics(const IntraopInput& input, ScanResult& result,

@@ -37,6 +37,9 @@ struct PreopInput {
 struct IntraopInput {
   LabelImage labels;          // 1 brain, 2 lateral ventricles (table values)
   std::optional<ImageF> t1;   // same grid as labels when given
+  // The caller's reading or decoding of these images: counted in the
+  // scan's "read" and "total" timings (run_intraop writes them all).
+  double read_seconds = 0.0;
 };
 
 // nonrigid, or affine_only_fallback when a non-rigid stage failed a quality
