@@ -58,6 +58,9 @@ void read_affine(TomlSection& root, AffineRegistrationParameters& p) {
   s.read("tolerance_mm", p.tolerance_mm);
   s.read("coarse_tolerance_mm", p.coarse_tolerance_mm);
   s.read("min_inlier_fraction", p.min_inlier_fraction);
+  s.read("data_scale_factor", p.data_scale_factor);
+  s.read("min_robust_scale_mm", p.min_robust_scale_mm);
+  s.read("max_affine_sigma_ratio", p.max_affine_sigma_ratio, Interval::closed(0, 1));
   s.reject_unknown_keys();
 }
 
@@ -76,6 +79,12 @@ void read_surface(TomlSection& surface, const char* which, ActiveSurfaceParamete
   s.read("edge_search_mm", p.edge_search_mm);
   s.read("contact_fraction", p.contact_fraction, Interval::open(0, 1));
   s.read("capture_range_mm", p.capture_range_mm, Interval::at_least(0));  // 0: unlimited
+  s.read("stiffness_levels", p.stiffness_levels, 1, 8);
+  s.read("normal_search_mm", p.normal_search_mm, Interval::closed(0, 50));
+  s.read("stiffness_ratio", p.stiffness_ratio, Interval::at_least(1));
+  s.read("fold_guard", p.fold_guard_enabled);
+  s.read("max_normal_turn_deg", p.fold_guard.max_normal_turn_deg, Interval::open(0, 90));
+  s.read("min_area_ratio", p.fold_guard.min_area_ratio, Interval::open(0, 1));
   s.reject_unknown_keys();
 }
 
@@ -87,7 +96,6 @@ void read_surface_repair(TomlSection& surface, SurfaceRepairParameters& p) {
   s.read("min_component_area_mm2", p.min_component_area_mm2, Interval::at_least(0));
   s.read("smoothing_mm", p.smoothing_mm, Interval::above(0));
   s.read("max_search_mm", p.max_search_mm);
-  s.read("max_defect_area_fraction", p.max_defect_area_fraction, Interval::open(0, 1));
   s.reject_unknown_keys();
   if (!(p.max_search_mm >= 3 * p.smoothing_mm)) s.fail("max_search_mm", "must be >= 3 x smoothing_mm");
 }
@@ -141,6 +149,7 @@ void read_rest(TomlSection& root, PipelineParameters& p) {
   gates.read("min_jacobian_determinant", p.gates.min_jacobian_determinant);
   gates.read("max_mean_surface_residual_mm", p.gates.max_mean_surface_residual_mm);
   gates.read("min_intraop_brain_fraction", p.gates.min_intraop_brain_fraction);
+  gates.read("max_unsupported_displacement_mm", p.gates.max_unsupported_displacement_mm, Interval::above(0));
   gates.reject_unknown_keys();
   TomlSection limits = root.table("limits");
   limits.read("max_image_bytes", p.max_image_bytes);

@@ -7,9 +7,12 @@
 #include <CGAL/Labeled_mesh_domain_3.h>
 #include <CGAL/Mesh_complex_3_in_triangulation_3.h>
 #include <CGAL/Mesh_criteria_3.h>
+#include <CGAL/Mesh_3/Slivers_exuder.h>
+#include <CGAL/Mesh_3/min_dihedral_angle.h>
+#include <CGAL/Mesh_3/sliver_criteria.h>
+#include <CGAL/Mesh_error_code.h>
 #include <CGAL/Mesh_triangulation_3.h>
 #include <CGAL/Random.h>
-#include <CGAL/exude_mesh_3.h>
 #include <CGAL/perturb_mesh_3.h>
 #include <CGAL/refine_mesh_3.h>
 
@@ -53,6 +56,8 @@ void validate(const LabelImage& labels, const MeshingParameters& p) {
   positive(p.facet_distance_mm, "facet_distance_mm");
   positive(p.cell_size_mm, "cell_size_mm");
   positive(p.cell_radius_edge_ratio, "cell_radius_edge_ratio");
+  if (!(p.exude_steps_per_vertex >= 0) || !std::isfinite(p.exude_steps_per_vertex))
+    throw InputError("mesh_label_image: parameter exude_steps_per_vertex must be >= 0 and finite");
   if (p.facet_angle_deg > 30)
     throw InputError("mesh_label_image: facet_angle_deg > 30 may not terminate (CGAL bound)");
   if (p.cavity_labels.size() + p.interface_labels.size() > 250)
@@ -201,6 +206,89 @@ std::size_t seed_every_component(C3t3& c3t3, const Domain& domain, const CGAL::I
   return components.size();
 }
 
+// The most vertices the criteria can justify: a mesh as fine everywhere as the
+// finest size any criterion asks for (facet size, cell size or facet
+// distance: a facet narrower than the distance tolerance cannot deviate from
+// the surface by more than it), one vertex per s^3 of labelled volume and per
+// s^2 of labelled surface (the voxel staircase, which overestimates the true
+// area), plus the seed points. Refinement that reaches it is chasing detail
+// finer than every requested size (noise, specks, a staircase of thick
+// slices); it is stopped there rather than left to grow without bound.
+std::size_t refinement_vertex_cap(const CGAL::Image_3& image, const MeshingParameters& p,
+                                  std::size_t seed_points) {
+  const std::size_t nx = image.xdim(), ny = image.ydim(), nz = image.zdim();
+  const auto* data = static_cast<const unsigned char*>(image.data());
+  const double vx = image.vx(), vy = image.vy(), vz = image.vz();
+  std::size_t labelled = 0, faces_x = 0, faces_y = 0, faces_z = 0;
+  for (std::size_t k = 0; k < nz; ++k)
+    for (std::size_t j = 0; j < ny; ++j)
+      for (std::size_t i = 0; i < nx; ++i) {
+        const std::size_t n = i + nx * (j + ny * k);
+        labelled += data[n] != 0;
+        if (i + 1 < nx) faces_x += data[n] != data[n + 1];
+        if (j + 1 < ny) faces_y += data[n] != data[n + nx];
+        if (k + 1 < nz) faces_z += data[n] != data[n + nx * ny];
+      }
+  const double volume_mm3 = labelled * vx * vy * vz;
+  const double area_mm2 = faces_x * vy * vz + faces_y * vx * vz + faces_z * vx * vy;
+  const double s = std::min({p.facet_size_mm, p.cell_size_mm, p.facet_distance_mm});
+  return seed_points + static_cast<std::size_t>(std::ceil(volume_mm3 / (s * s * s) + area_mm2 / (s * s)));
+}
+
+using SliverCriterion = CGAL::Mesh_3::Min_dihedral_angle_criterion<Tr>;
+
+// Smallest dihedral angle of the meshed cells and how many are below bound_deg.
+std::pair<double, std::size_t> dihedral_summary(const C3t3& c3t3, double bound_deg) {
+  double min_deg = 180;
+  std::size_t below = 0;
+  const Tr& tr = c3t3.triangulation();
+  for (auto c = c3t3.cells_in_complex_begin(); c != c3t3.cells_in_complex_end(); ++c) {
+    const double a = CGAL::to_double(CGAL::Mesh_3::minimum_dihedral_angle(tr.tetrahedron(c), tr.geom_traits()));
+    min_deg = std::min(min_deg, a);
+    below += a < bound_deg;
+  }
+  return {min_deg, below};
+}
+
+// Thrown by the visitor to leave CGAL's exudation loop when the budget is
+// spent. The visitor runs at the end of a loop step, when the triangulation
+// is consistent: the same state CGAL's own time limit stops in.
+struct ExudeBudgetSpent {};
+
+class ExudeBudget {
+ public:
+  ExudeBudget(std::size_t budget, std::size_t* steps) : budget_(budget), steps_(steps) {}
+  void after_cell_pumped(std::size_t cells_left) const {
+    if (++*steps_ >= budget_ && cells_left > 0) throw ExudeBudgetSpent{};
+  }
+
+ private:
+  std::size_t budget_;
+  std::size_t* steps_;
+};
+
+// CGAL's sliver exudation (what exude_mesh_3 runs) with a budget of queue
+// steps instead of a time limit: bounded, and the result depends only on the
+// input. Fills the exudation fields of stats.
+void exude_with_budget(C3t3& c3t3, const MeshingParameters& p, MeshingStats& stats) {
+  const double bound = p.exude_sliver_bound_deg > 0 ? p.exude_sliver_bound_deg : 90.0;
+  std::tie(stats.min_dihedral_before_deg, stats.slivers_before) = dihedral_summary(c3t3, bound);
+  stats.exude_budget = static_cast<std::size_t>(
+      std::ceil(p.exude_steps_per_vertex * static_cast<double>(c3t3.triangulation().number_of_vertices())));
+  stats.exude_steps = 0;
+  stats.exude_budget_hit = false;
+  if (stats.exude_budget > 0) {
+    SliverCriterion criterion(p.exude_sliver_bound_deg, c3t3.triangulation());
+    CGAL::Mesh_3::Slivers_exuder<C3t3, SliverCriterion, ExudeBudget> exuder(c3t3, criterion);
+    try {
+      exuder(ExudeBudget(stats.exude_budget, &stats.exude_steps));
+    } catch (const ExudeBudgetSpent&) {
+      stats.exude_budget_hit = true;
+    }
+  }
+  std::tie(stats.min_dihedral_after_deg, stats.slivers_after) = dihedral_summary(c3t3, bound);
+}
+
 RawTetMesh extract_tissue(const C3t3& c3t3, const LabelImage& labels, const Eigen::Vector3d& spacing,
                           const MeshingParameters& p) {
   const auto& cavities = p.cavity_labels;
@@ -240,7 +328,8 @@ RawTetMesh extract_tissue(const C3t3& c3t3, const LabelImage& labels, const Eige
 
 }  // namespace
 
-TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& params, MeshingStats* stats) {
+TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& params, MeshingStats* stats_out,
+                         const MeshingProgressFn& progress) {
   validate(labels, params);
   Stopwatch total, stage;
   const Eigen::Vector3d spacing = labels.grid.spacing_mm();
@@ -255,16 +344,31 @@ TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& para
                           P::facet_distance = params.facet_distance_mm,
                           P::cell_radius_edge_ratio = params.cell_radius_edge_ratio,
                           P::cell_size = params.cell_size_mm);
+  MeshingStats stats;
   C3t3 c3t3;
-  const std::size_t components = seed_every_component(c3t3, domain, image);
-  CGAL::refine_mesh_3(c3t3, domain, criteria, P::no_perturb(), P::no_exude());
-  const double t_refine = stage.lap();
+  stats.seed_components = seed_every_component(c3t3, domain, image);
+  stats.vertex_cap = params.max_vertices > 0
+                         ? params.max_vertices
+                         : refinement_vertex_cap(image, params, c3t3.triangulation().number_of_vertices());
+  CGAL::Mesh_error_code refine_error = CGAL::CGAL_MESH_3_NO_ERROR;
+  CGAL::refine_mesh_3(c3t3, domain, criteria, P::no_perturb(), P::no_exude(),
+                      P::mesh_3_options(P::maximal_number_of_vertices = stats.vertex_cap,
+                                        P::pointer_to_error_code = &refine_error));
+  stats.refined_vertices = c3t3.triangulation().number_of_vertices();
+  if (refine_error == CGAL::CGAL_MESH_3_MAXIMAL_NUMBER_OF_VERTICES_REACHED)
+    throw ComputeError("mesh_label_image: refinement stopped at its cap of " + std::to_string(stats.vertex_cap) +
+                       " vertices (a mesh as fine everywhere as the finest requested size): the label map has "
+                       "detail finer than the mesh sizes (specks, noise, a staircase of thick slices); smooth or "
+                       "clean the labels, or mesh with larger sizes");
+  stats.seconds_refine = stage.lap();
+  if (progress) progress("refine", stats);
   if (params.optimise) {
     if (params.perturb)
       CGAL::perturb_mesh_3(c3t3, domain, P::time_limit = 0, P::sliver_bound = params.perturb_sliver_bound_deg);
-    CGAL::exude_mesh_3(c3t3, P::time_limit = 0, P::sliver_bound = params.exude_sliver_bound_deg);
+    exude_with_budget(c3t3, params, stats);
   }
-  const double t_optimise = stage.lap();
+  stats.seconds_optimise = stage.lap();
+  if (progress) progress("exude", stats);
 
   RawTetMesh raw = extract_tissue(c3t3, labels, spacing, params);
   if (raw.tets.empty()) throw ComputeError("mesh_label_image: CGAL produced no tissue tetrahedra");
@@ -275,7 +379,10 @@ TetMesh mesh_label_image(const LabelImage& labels, const MeshingParameters& para
   options.keep_largest_component = params.keep_largest_component;
   AssemblyReport report;
   TetMesh mesh = assemble_tet_mesh(std::move(raw), labels, options, &report);
-  if (stats) *stats = {t_refine, t_optimise, total.seconds(), components, report.dropped_degenerate, report.dropped_island_tets};
+  stats.dropped_degenerate = report.dropped_degenerate;
+  stats.dropped_island_tets = report.dropped_island_tets;
+  stats.seconds_total = total.seconds();
+  if (stats_out) *stats_out = stats;
   return mesh;
 }
 

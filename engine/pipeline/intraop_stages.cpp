@@ -156,7 +156,9 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   result.intraop_from_preop = A;
   metrics["affine"] = {{"converged", affine.converged}, {"iterations", affine.iterations},
                        {"rms_surface_distance_mm", affine.rms_surface_distance_mm},
-                       {"inlier_fraction", affine.inlier_fraction}, {"message", affine.message}};
+                       {"inlier_fraction", affine.inlier_fraction}, {"tolerance_met", affine.tolerance_met}, {"affine_kept", affine.affine_kept},
+                       {"residual_sigma_mm", affine.residual_sigma_mm}, {"robust_scale_mm", affine.robust_scale_mm},
+                       {"message", affine.message}};
   clock.done(stages::kAffine);
 
   std::string failure;
@@ -176,7 +178,9 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
       const SolveReport solve = warm.fem.drive_solve(fixed_values, deformation.nonrigid_mm);
       metrics["solve"] = {{"iterations", solve.iterations}, {"relative_residual", solve.relative_residual},
                           {"solver", solve.solver_description}};
-      solve_with_resection(warm, input, brain_region, A, fixed_values, params, deformation, metrics);
+      failure = field_beyond_data(deformation.nonrigid_mm, fixed_values, params.gates, metrics["solve"]);
+      if (failure.empty()) solve_with_resection(warm, input, brain_region, A, fixed_values, params, deformation, metrics);
+      else deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
     } catch (const ComputeError& e) {
       failure = e.what();
       deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());

@@ -26,6 +26,13 @@ struct QualityGates {
   // Surface-match residual (mm, mean over vertices) above which the match is
   // declared diverged.
   double max_mean_surface_residual_mm = 3.0;
+  // A matched surface (and the field's largest displacement) may exceed the
+  // farthest the data ask a vertex to travel (|signed distance| at the start
+  // positions) by at most this (mm): normal-only forces move a vertex along
+  // its normal to the target, the membrane adds tangential relaxation (<= 2 mm
+  // measured at the flanks of a dent) and the T1 refinement up to its 3 mm
+  // cap. Anything beyond was not asked for by the data (docs/DESIGN.md).
+  double max_unsupported_displacement_mm = 5.0;
   // Intraop brain volume below this fraction of the preop brain volume means the
   // field of view misses most of the brain.
   double min_intraop_brain_fraction = 0.5;

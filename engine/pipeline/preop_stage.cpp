@@ -117,6 +117,22 @@ std::vector<StructureDefinition> structures_for(const LabelTable& table) {
   return out;
 }
 
+// How much work the bounded meshing did (engine/mesh/README.md): reported
+// next to the preop timings so a mesh that hit a budget is visible.
+nlohmann::json meshing_report(const MeshingStats& s) {
+  return {{"refine_seconds", s.seconds_refine},
+          {"optimise_seconds", s.seconds_optimise},
+          {"refined_vertices", s.refined_vertices},
+          {"vertex_cap", s.vertex_cap},
+          {"exude_steps", s.exude_steps},
+          {"exude_budget", s.exude_budget},
+          {"exude_budget_hit", s.exude_budget_hit},
+          {"slivers_before", s.slivers_before},
+          {"slivers_after", s.slivers_after},
+          {"min_dihedral_before_deg", s.min_dihedral_before_deg},
+          {"min_dihedral_after_deg", s.min_dihedral_after_deg}};
+}
+
 }  // namespace
 
 std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
@@ -135,7 +151,15 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   meshing.default_tissue_label = table.brain_label();
   const std::map<std::uint16_t, double> resectable = present_resectables(input.labels, table);
   for (const auto& [l, ml] : resectable) meshing.interface_labels.push_back(l);
-  TetMesh mesh = stored_mesh ? std::move(*stored_mesh) : mesh_label_image(input.labels, meshing);
+  // Progress inside meshing: refinement takes most of it (README.md of
+  // engine/mesh), exudation is bounded, assembly is short.
+  MeshingStats mesh_stats;
+  const MeshingProgressFn mesh_progress = [&](const std::string& step, const MeshingStats&) {
+    report(progress, stages::kMesh, step == "refine" ? 0.7 : 0.9, stage.seconds());
+  };
+  const bool meshed = !stored_mesh;
+  TetMesh mesh = stored_mesh ? std::move(*stored_mesh)
+                             : mesh_label_image(input.labels, meshing, &mesh_stats, mesh_progress);
   const double mesh_seconds = stage.lap();
   report(progress, stages::kMesh, 1.0, mesh_seconds);
 
@@ -214,6 +238,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
                    {"surfaces_and_models", models_seconds},
                    {"surfaces_and_models_work", models.seconds},
                    {std::string(stages::kTotal), total.seconds()}};
+  if (meshed) warm->timings["meshing"] = meshing_report(mesh_stats);
   warm->preop = std::move(input);
   return warm;
 }

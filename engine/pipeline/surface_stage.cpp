@@ -7,6 +7,7 @@
 #include "core/errors.h"
 #include "mesh/surface_self_intersection.h"
 #include "registration/active_surface.h"
+#include "registration/linear_sampler.h"
 #include "registration/surface_repair.h"
 
 namespace brainshift {
@@ -129,10 +130,23 @@ double marked_area_fraction(const std::vector<char>& marked, const std::vector<d
   return all > 0 ? bad / all : 0.0;
 }
 
+// The farthest any vertex must travel to reach the target, by the data: the
+// largest |signed distance| at the start positions (vertices with data).
+double largest_data_distance_mm(const TriSurface& start, const ImageF& target) {
+  const LinearSampler sampler(target);
+  double m = 0;
+  for (const auto& x : start.vertices_mm) {
+    double d;
+    if (sampler.sample(x, &d, nullptr)) m = std::max(m, std::abs(d));
+  }
+  return m;
+}
+
 }  // namespace
 
 RepairedMatch match_and_repair(const TriSurface& start, const ContactPairs& contacts, const ImageF& target,
-                               const ActiveSurfaceParameters& p, const SurfaceRepairParameters& rp, const ImageF* image) {
+                               const ActiveSurfaceParameters& p, const SurfaceRepairParameters& rp, const ImageF* image,
+                               double max_unsupported_mm) {
   RepairedMatch out{match_surface(start, target, p, image, &contacts), {}, ""};
   std::vector<Eigen::Vector3d>& u = out.match.displacement_mm;
   if (!std::all_of(u.begin(), u.end(), [](const Eigen::Vector3d& x) { return x.allFinite(); })) {
@@ -165,6 +179,7 @@ RepairedMatch match_and_repair(const TriSurface& start, const ContactPairs& cont
   int rounds = 0;
   std::size_t unreached = 0;
   double max_change_mm = 0;
+  std::size_t rescued = 0;
   if (rp.enabled && count_marked() > 0) {
     const std::vector<Eigen::Vector3d> matched = u;
     for (rounds = 1; rounds <= rp.rounds; ++rounds) {
@@ -180,17 +195,27 @@ RepairedMatch match_and_repair(const TriSurface& start, const ContactPairs& cont
       for (std::size_t v = 0; v < u.size(); ++v) unreliable[v] |= d.vertices[v];
     }
     rounds = std::min(rounds, rp.rounds);
+    // Folds the fill made (a filled patch beside a steep, matched one): the
+    // fold guard takes those vertices back toward the match, which the guard
+    // kept unfolded, only as far as needed. Folding is solved, not refused.
+    if (d.flipped > 0 && p.fold_guard_enabled) {
+      rescued = limit_folding(start, matched, u, p.fold_guard);
+      d = geometric_defects(start, u, in_small);
+    }
     for (std::size_t v = 0; v < u.size(); ++v) max_change_mm = std::max(max_change_mm, (u[v] - matched[v]).norm());
   }
   const double fraction = marked_area_fraction(unreliable, area);
   report["repaired_vertices"] = rp.enabled ? count_marked() : 0;
   report["repaired_area_fraction"] = rp.enabled ? fraction : 0.0;
   report["rounds"] = rounds;
+  report["fold_guard_vertices"] = rescued;
   report["vertices_left_affine"] = unreached;
   report["max_change_mm"] = max_change_mm;
   double max_u = 0;
   for (const auto& x : u) max_u = std::max(max_u, x.norm());
+  const double data_mm = largest_data_distance_mm(start, target);
   report["max_displacement_mm"] = max_u;
+  report["max_data_distance_mm"] = data_mm;
   report["flipped_triangles_after"] = d.flipped;
   report["crossing_pairs_after"] = d.crossing_pairs;
   report["small_component_crossings_after"] = d.small_component_crossings;
@@ -200,10 +225,25 @@ RepairedMatch match_and_repair(const TriSurface& start, const ContactPairs& cont
   else if (d.crossing_pairs > 0)
     out.unsafe = "self-intersects (" + std::to_string(d.crossing_pairs) + " pairs of crossing triangles" +
                  (rp.enabled ? " after repair)" : ")");
-  else if (rp.enabled && fraction > rp.max_defect_area_fraction)
-    out.unsafe = "needed repair over " + std::to_string(fraction * 100) + " % of its area (limit " +
-                 std::to_string(rp.max_defect_area_fraction * 100) + " %)";
+  else if (max_u > data_mm + max_unsupported_mm)
+    out.unsafe = "moves " + std::to_string(max_u) + " mm where the data show at most " + std::to_string(data_mm) +
+                 " mm (+ " + std::to_string(max_unsupported_mm) + " mm allowed)";
   return out;
+}
+
+std::string field_beyond_data(const std::vector<Eigen::Vector3d>& nodal, const std::vector<Eigen::Vector3d>& fixed,
+                              const QualityGates& gates, nlohmann::json& report) {
+  const auto largest = [](const std::vector<Eigen::Vector3d>& v) {
+    double m = 0;
+    for (const auto& x : v) m = std::max(m, x.norm());
+    return m;
+  };
+  const double field = largest(nodal), data = largest(fixed);
+  report["max_displacement_mm"] = field;
+  report["max_prescribed_mm"] = data;
+  if (field <= data + gates.max_unsupported_displacement_mm) return "";
+  return "the elastic field moves " + std::to_string(field) + " mm where the matched surfaces move at most " +
+         std::to_string(data) + " mm";
 }
 
 std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const IntraopDistanceMaps& maps,
@@ -229,7 +269,7 @@ std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const Intraop
     const auto& p = outer ? params.outer_surface : params.ventricle_surface;
     matches[i] = std::async(std::launch::async, [&s, &target, &p, &A, &params, image] {
       return match_and_repair(mapped_by_affine(s.surface, A), mapped_by_affine(s.contacts, A), target, p,
-                              params.surface_repair, image);
+                              params.surface_repair, image, params.gates.max_unsupported_displacement_mm);
     });
   }
   for (std::size_t i = 0; i < warm.surfaces.size(); ++i) {

@@ -10,10 +10,14 @@
 //   - repair: those vertices, grown by one ring per round, take their
 //     displacement from their reliable neighbours (registration/surface_repair.h);
 //     the repaired surface is checked again, up to `rounds` times.
-// The scan falls back to affine-only (failure set) only when the result would
-// be unsafe: the match diverged (mean residual over the gate), defects cover
-// more than max_defect_area_fraction of the surface, or the surface still
-// folds or crosses itself after the last round.
+// Folds the fill makes are taken back by the fold guard (surface_repair.h)
+// toward the match, which the guard kept unfolded. How much was repaired is
+// reported, not judged: a large repaired area on a good match is a noisy
+// segmentation, not an unsafe field. The scan falls back to affine-only
+// (failure set) only when the result would be unsafe: the match diverged
+// (mean residual over the gate), the surface still folds or crosses itself,
+// or it moves farther than the data can justify (the largest distance of a
+// start vertex from its target, plus max_unsupported_mm).
 #include <string>
 #include <vector>
 
@@ -38,7 +42,14 @@ struct RepairedMatch {
 // contacts kept apart, then repaired as described above.
 RepairedMatch match_and_repair(const TriSurface& start, const ContactPairs& contacts, const ImageF& target_sdf_mm,
                                const ActiveSurfaceParameters& params, const SurfaceRepairParameters& repair,
-                               const ImageF* intraop_image);
+                               const ImageF* intraop_image, double max_unsupported_mm);
+
+// The elastic field's largest nodal displacement against the largest
+// prescribed one (the matched surfaces): an interior that moves farther than
+// its boundary by more than gates.max_unsupported_displacement_mm was not
+// asked for by the data. Adds both to `report`; returns the reason or "".
+std::string field_beyond_data(const std::vector<Eigen::Vector3d>& nodal_mm, const std::vector<Eigen::Vector3d>& fixed_mm,
+                              const QualityGates& gates, nlohmann::json& report);
 
 std::vector<Eigen::Vector3d> match_surfaces(const WarmState& warm, const IntraopDistanceMaps& maps,
                                             const Eigen::Matrix4d& intraop_from_preop, const IntraopInput& input,

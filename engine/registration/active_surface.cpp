@@ -37,9 +37,14 @@ void validate(const TriSurface& s, const ImageF& target, const ActiveSurfacePara
   if (!(p.step > 0 && p.step <= 1) || !(p.membrane_stiffness >= 0) || p.max_iterations < 1 ||
       !(p.convergence_tolerance_mm > 0) || p.convergence_iterations < 1 || !(p.max_step_mm > 0) ||
       !(p.force_smoothing_mm >= 0) || !(p.edge_weight >= 0) || !(p.edge_search_mm > 0) ||
-      !(p.contact_fraction > 0 && p.contact_fraction < 1) || !(p.capture_range_mm >= 0)) {
+      !(p.contact_fraction > 0 && p.contact_fraction < 1) || !(p.capture_range_mm >= 0) ||
+      p.stiffness_levels < 1 || p.stiffness_levels > 8 || !(p.stiffness_ratio >= 1) ||
+      !(p.fold_guard.max_normal_turn_deg > 0 && p.fold_guard.max_normal_turn_deg < 90) ||
+      !(p.fold_guard.min_area_ratio >= 0 && p.fold_guard.min_area_ratio < 1)) {
     throw InputError("active surface: invalid parameters (need 0 < step <= 1, stiffness >= 0, "
-                     "positive tolerances, iterations and step clip, 0 < contact_fraction < 1, capture_range_mm >= 0)");
+                     "positive tolerances, iterations and step clip, 0 < contact_fraction < 1, capture_range_mm >= 0, "
+                     "1 <= stiffness_levels <= 8, stiffness_ratio >= 1, 0 < max_normal_turn_deg < 90, "
+                     "0 <= min_area_ratio < 1)");
   }
 }
 
@@ -117,6 +122,26 @@ double edge_offset_mm(const LinearSampler& image, const Eigen::Vector3d& x, cons
   return best_offset;
 }
 
+// Signed offset along n (mm) of the target's zero level: the first sign
+// change of the distance map on the ray from x toward the surface (inward
+// along -n when x is outside, d > 0), by 1 mm steps up to search_mm and linear
+// interpolation; NaN when none is found. The distance map alone cannot pull a
+// vertex into a narrow pit (a retractor's dent): over the pit's mouth the
+// nearest surface is its wall, a few mm sideways, and the gradient points
+// across the pit; along the normal the pit's floor is found.
+double normal_crossing_mm(const LinearSampler& target, const Eigen::Vector3d& x, const Eigen::Vector3d& n, double d,
+                          double search_mm) {
+  const double sign = d > 0 ? -1.0 : 1.0;
+  double prev = d;
+  for (double s = 1.0; s <= search_mm + 1e-9; s += 1.0) {
+    double cur;
+    if (!target.sample(x + (sign * s) * n, &cur, nullptr)) break;
+    if ((cur > 0) != (prev > 0)) return sign * (s - 1.0 + prev / (prev - cur));
+    prev = cur;
+  }
+  return std::numeric_limits<double>::quiet_NaN();
+}
+
 struct ForceField {
   Points force;
   std::vector<char> has_data;
@@ -142,6 +167,10 @@ ForceField compute_force(const TriSurface& s, const Points& x, const LinearSampl
     // and chatter without changing the matched shape.
     const double alignment = std::max(0.0, normals[v].dot(g / len));
     f.force[v] = -d * alignment * normals[v];
+    if (p.normal_search_mm > 0 && std::abs(d) > 0.5) {
+      const double t = normal_crossing_mm(target, x[v], normals[v], d, p.normal_search_mm);
+      if (std::isfinite(t) && std::abs(t) <= 3.0 * std::abs(d) + 1.0) f.force[v] = t * normals[v];
+    }
     if (image && p.edge_weight > 0) {
       f.force[v] += p.edge_weight * edge_offset_mm(*image, x[v], normals[v], p.edge_search_mm) * normals[v];
     }
@@ -202,15 +231,7 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
   Eigen::VectorXd mass;
   SpMat stiffness;
   assemble_membrane(surface, &mass, &stiffness);
-  SpMat system = p.step * p.membrane_stiffness * stiffness;
-  system.diagonal() += mass;
-  Eigen::SimplicialLDLT<SpMat> solver(system);
   SurfaceMatchResult r;
-  if (solver.info() != Eigen::Success) {
-    r.displacement_mm.assign(n, Eigen::Vector3d::Zero());
-    r.message = "failed: membrane matrix factorisation failed (degenerate surface?)";
-    return r;
-  }
   const auto neighbours = surface_vertex_neighbours(surface);
   const double h = mean_edge_length(surface);
   const int smoothing_passes = std::min(
@@ -222,36 +243,67 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
 
   Eigen::MatrixXd u = Eigen::MatrixXd::Zero(n, 3);
   Points x = surface.vertices_mm;
-  int quiet = 0;
-  for (r.iterations = 0; r.iterations < p.max_iterations;) {
-    ForceField f = compute_force(surface, x, target, image, p);
-    smooth_along_surface(&f.force, neighbours, smoothing_passes);
-    Eigen::MatrixXd rhs = u;
-    for (std::size_t v = 0; v < n; ++v) {
-      Eigen::Vector3d step = p.step * f.force[v];
-      const double len = step.norm();
-      if (len > p.max_step_mm) step *= p.max_step_mm / len;
-      rhs.row(v) += step.transpose();
+  Points from(n), to(n);
+  const FoldLimiter limiter(surface, p.fold_guard);
+  for (int level = 0; level < p.stiffness_levels; ++level) {
+    const double alpha = p.membrane_stiffness * std::pow(p.stiffness_ratio, p.stiffness_levels - 1 - level);
+    SpMat system = p.step * alpha * stiffness;
+    system.diagonal() += mass;
+    Eigen::SimplicialLDLT<SpMat> solver(system);
+    if (solver.info() != Eigen::Success) {
+      r.displacement_mm.assign(n, Eigen::Vector3d::Zero());
+      r.message = "failed: membrane matrix factorisation failed (degenerate surface?)";
+      return r;
     }
-    rhs = mass.asDiagonal() * rhs;
-    Eigen::MatrixXd u_new = solver.solve(rhs);
-    if (contacts) keep_walls_apart(u_new, *contacts, p.contact_fraction);
-    ++r.iterations;
-    // Convergence looks at the update along the current vertex normals: that
-    // is the matched shape. Tangential motion keeps relaxing slowly afterwards
-    // (normal forces give the membrane no tangential pull, so smooth tangential
-    // modes decay only at the rate 1/(1 + alpha k^2)); it slides vertices along
-    // the surface without changing it.
-    const Points normals = area_weighted_normals(surface, x);
-    double update = 0;
-    for (std::size_t v = 0; v < n; ++v)
-      update = std::max(update, std::abs(normals[v].dot((u_new.row(v) - u.row(v)).transpose())));
-    u = u_new;
-    for (std::size_t v = 0; v < n; ++v) x[v] = surface.vertices_mm[v] + u.row(v).transpose();
-    quiet = update < p.convergence_tolerance_mm ? quiet + 1 : 0;
-    if (quiet >= p.convergence_iterations) {
-      r.converged = true;
-      break;
+    // Each level's membrane penalises only what it adds to the previous
+    // levels' result (iterated Tikhonov): the wide motion a stiff level found
+    // is not pulled back by the softer ones, so a 25 mm sink is not biased
+    // toward the start by the final stiffness, and each level smooths only
+    // the detail it adds.
+    const Eigen::MatrixXd base_term = (p.step * alpha) * (stiffness * u);
+    int quiet = 0;
+    r.converged = false;
+    for (int it = 0; it < p.max_iterations; ++it) {
+      ForceField f = compute_force(surface, x, target, image, p);
+      smooth_along_surface(&f.force, neighbours, smoothing_passes);
+      Eigen::MatrixXd rhs = u;
+      for (std::size_t v = 0; v < n; ++v) {
+        Eigen::Vector3d step = p.step * f.force[v];
+        const double len = step.norm();
+        if (len > p.max_step_mm) step *= p.max_step_mm / len;
+        rhs.row(v) += step.transpose();
+      }
+      rhs = mass.asDiagonal() * rhs;
+      if (level > 0) rhs += base_term;
+      Eigen::MatrixXd u_new = solver.solve(rhs);
+      if (contacts) keep_walls_apart(u_new, *contacts, p.contact_fraction);
+      if (!u_new.allFinite()) {
+        u = u_new;
+        break;
+      }
+      if (p.fold_guard_enabled) {
+        for (std::size_t v = 0; v < n; ++v) from[v] = u.row(v).transpose(), to[v] = u_new.row(v).transpose();
+        r.guarded_vertices_last = limiter.limit(from, to);
+        r.guarded_vertices_max = std::max(r.guarded_vertices_max, r.guarded_vertices_last);
+        for (std::size_t v = 0; v < n; ++v) u_new.row(v) = to[v].transpose();
+      }
+      ++r.iterations;
+      // Convergence looks at the update along the current vertex normals: that
+      // is the matched shape. Tangential motion keeps relaxing slowly afterwards
+      // (normal forces give the membrane no tangential pull, so smooth tangential
+      // modes decay only at the rate 1/(1 + alpha k^2)); it slides vertices along
+      // the surface without changing it.
+      const Points normals = area_weighted_normals(surface, x);
+      double update = 0;
+      for (std::size_t v = 0; v < n; ++v)
+        update = std::max(update, std::abs(normals[v].dot((u_new.row(v) - u.row(v)).transpose())));
+      u = u_new;
+      for (std::size_t v = 0; v < n; ++v) x[v] = surface.vertices_mm[v] + u.row(v).transpose();
+      quiet = update < p.convergence_tolerance_mm ? quiet + 1 : 0;
+      if (quiet >= p.convergence_iterations) {
+        r.converged = true;
+        break;
+      }
     }
     if (!u.allFinite()) break;
   }
@@ -282,6 +334,7 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
       << r.max_residual_mm << " mm";
   if (r.vertices_without_data) msg << "; " << r.vertices_without_data << " vertices outside the target image";
   if (r.flipped_triangles) msg << "; " << r.flipped_triangles << " flipped triangles (folded surface)";
+  if (r.guarded_vertices_last) msg << "; fold guard held " << r.guarded_vertices_last << " vertices";
   if (with_data == 0) msg << "; no vertex lies inside the target image";
   r.message = msg.str();
   return r;

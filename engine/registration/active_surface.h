@@ -38,9 +38,23 @@
 // Self-contact: after every step the approach of each facing-wall pair,
 // (u_a - u_b) . d, is cut back to contact_fraction x its gap, half from each
 // side (a few Gauss-Seidel sweeps, as a vertex can be in several pairs).
+// Large motion without folding (a 20-25 mm sink, a 7 mm retractor dent):
+//  - continuation over the stiffness: stiffness_levels membranes, the first
+//    stiffness_ratio^(levels-1) x alpha, each stiffness_ratio softer, the last
+//    alpha itself. A stiff membrane follows the wide motion (the sink) and
+//    cannot follow a narrow dent or noise, so it cannot fold; the softer ones
+//    then add the detail from a start that is already close. Each level's
+//    membrane acts on what it adds to the previous levels' displacement
+//    (iterated Tikhonov), so the final stiffness smooths the detail without
+//    pulling the wide motion back.
+//  - the fold guard in the flow (FoldGuard, surface_repair.h): after every
+//    step, the vertices of a triangle whose normal would turn past the bound
+//    from the input surface, or whose area would collapse, take a shorter
+//    step. The flow starts unfolded and each step keeps it so: where the
+//    normal force would crush triangles (the rim of a steep dent) the
+//    membrane is held, locally stiffer, instead of folding.
 // Folding check: a triangle whose normal turned by more than 90 degrees from
-// the input surface (or collapsed to zero area) is counted as flipped; the
-// pipeline refuses results with flipped triangles.
+// the input surface (or collapsed to zero area) is counted as flipped.
 #include <cstddef>
 #include <string>
 #include <vector>
@@ -50,6 +64,7 @@
 #include "core/image.h"
 #include "core/surface_contact.h"
 #include "core/tet_mesh.h"
+#include "registration/surface_repair.h"
 
 namespace brainshift {
 
@@ -79,6 +94,18 @@ struct ActiveSurfaceParameters {
   // nearest other wall. Only for surfaces whose motion beyond the affine is
   // small (the ventricles); the cortex under a craniotomy moves 20 mm.
   double capture_range_mm = 0.0;
+  // Normal search (mm; 0 = off): a vertex farther than 0.5 mm from the target
+  // is pulled to the first zero crossing of the distance map along its normal
+  // within this range, when that crossing is at most 3 |d| + 1 mm away (else
+  // the distance force above): it enters a narrow dent, whose floor the
+  // nearest-surface distance does not see.
+  double normal_search_mm = 0.0;
+  // Continuation over the membrane stiffness (see above); 1 = alpha only.
+  // Each level runs up to max_iterations.
+  int stiffness_levels = 1;
+  double stiffness_ratio = 4.0;
+  bool fold_guard_enabled = true;
+  FoldGuard fold_guard;
 };
 
 struct SurfaceMatchResult {
@@ -93,6 +120,9 @@ struct SurfaceMatchResult {
   int iterations = 0;
   bool converged = false;
   std::size_t flipped_triangles = 0;
+  // Vertices whose step the fold guard shortened in the last iteration, and
+  // the largest such count over the flow.
+  std::size_t guarded_vertices_last = 0, guarded_vertices_max = 0;
   double seconds = 0;
   std::string message;
 };

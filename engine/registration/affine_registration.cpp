@@ -129,24 +129,73 @@ struct LevelOutcome {
   AffineState state;
   Evaluation eval;
   int iterations = 0;
-  bool converged = false;
+  bool converged = false;  // the last proposed step was below the level's tolerance
 };
 
-// Levenberg-Marquardt on the IRLS normal equations; a step is kept only when
-// the robust cost decreases.
-LevelOutcome run_level(const std::vector<Term>& terms, AffineState state, double c,
+// Rigid motion plus isotropic scale: 7 parameters (rotation vector w, log
+// scale sigma, translation), applied as B <- e^sigma R(w) B, t <- t + dt. A
+// similarity cannot bend or shear, so a local sink (a part of the outline
+// 20-25 mm away from the rest) can shift it only by what moves the whole
+// outline: the sink's points then saturate the robust loss instead of
+// shearing the fit toward them.
+enum class Model { similarity, affine };
+
+// d(12 affine parameters) / d(w, sigma, dt): dB = (sigma I + [w]x) B.
+Eigen::Matrix<double, 12, 7> similarity_basis(const Eigen::Matrix3d& B) {
+  Eigen::Matrix<double, 12, 7> P = Eigen::Matrix<double, 12, 7>::Zero();
+  for (int g = 0; g < 4; ++g) {
+    Eigen::Matrix3d G = Eigen::Matrix3d::Zero();
+    if (g < 3) {
+      Eigen::Vector3d w = Eigen::Vector3d::Zero();
+      w[g] = 1;
+      G << 0, -w.z(), w.y(), w.z(), 0, -w.x(), -w.y(), w.x(), 0;
+    } else {
+      G = Eigen::Matrix3d::Identity();
+    }
+    const Eigen::Matrix3d dB = G * B;
+    for (int row = 0; row < 3; ++row) P.block<3, 1>(3 * row, g) = dB.row(row).transpose();
+  }
+  P.block<3, 3>(9, 4).setIdentity();
+  return P;
+}
+
+AffineState apply_similarity(const AffineState& s, const Eigen::Matrix<double, 7, 1>& d) {
+  AffineState n = s;
+  const Eigen::Vector3d w = d.head<3>();
+  const Eigen::Matrix3d R = w.norm() > 0 ? Eigen::AngleAxisd(w.norm(), w.normalized()).toRotationMatrix()
+                                         : Eigen::Matrix3d::Identity();
+  n.B = std::exp(d[3]) * R * s.B;
+  n.t += d.tail<3>();
+  return n;
+}
+
+// Levenberg-Marquardt on the IRLS normal equations of the model; a step is
+// kept only when the robust cost decreases. Bounded by max_iterations.
+LevelOutcome run_level(const std::vector<Term>& terms, AffineState state, double c, Model model,
                        int max_iterations, double tolerance_mm) {
   LevelOutcome out;
   Evaluation eval = evaluate(terms, state, c);
   double mu = 1e-3;
   for (int it = 0; it < max_iterations && eval.valid >= 12; ++it) {
     ++out.iterations;
-    Mat12 A = eval.H;
-    A.diagonal() += mu * eval.H.diagonal() + Vec12::Constant(1e-12 * eval.H.diagonal().maxCoeff());
-    const Vec12 delta = -A.ldlt().solve(eval.b);
+    Vec12 delta;
+    AffineState trial;
+    if (model == Model::affine) {
+      Mat12 A = eval.H;
+      A.diagonal() += mu * eval.H.diagonal() + Vec12::Constant(1e-12 * eval.H.diagonal().maxCoeff());
+      delta = -A.ldlt().solve(eval.b);
+      trial = apply_update(state, delta);
+    } else {
+      const Eigen::Matrix<double, 12, 7> P = similarity_basis(state.B);
+      const Eigen::Matrix<double, 7, 7> H = P.transpose() * eval.H * P;
+      Eigen::Matrix<double, 7, 7> A = H;
+      A.diagonal() += mu * H.diagonal() + Eigen::Matrix<double, 7, 1>::Constant(1e-12 * H.diagonal().maxCoeff());
+      const Eigen::Matrix<double, 7, 1> d = -A.ldlt().solve(P.transpose() * eval.b);
+      delta = P * d;
+      trial = apply_similarity(state, d);
+    }
     if (!delta.allFinite()) break;
     const double motion = max_motion_mm(terms, delta);
-    const AffineState trial = apply_update(state, delta);
     Evaluation trial_eval = evaluate(terms, trial, c);
     if (trial_eval.cost < eval.cost) {
       state = trial;
@@ -161,11 +210,30 @@ LevelOutcome run_level(const std::vector<Term>& terms, AffineState state, double
       out.converged = true;
       break;
     }
-    if (mu > 1e8) break;  // no descent direction left: stalled, not converged
+    if (mu > 1e8) break;  // no descent direction left: stalled at a minimum of this cost
   }
   out.state = state;
   out.eval = std::move(eval);
   return out;
+}
+
+// Robust spread of the signed distances at the state: 1.4826 x the median
+// absolute residual (the normal-consistent MAD about 0, the fit's target),
+// over the points inside the intraop grid. Up to half the outline may be
+// anything (a sink, a retractor, a missing lobe) without moving it.
+double mad_sigma_mm(const std::vector<Term>& terms, const AffineState& s) {
+  std::vector<double> r;
+  for (const Term& term : terms) {
+    const LinearSampler sampler(*term.sdf);
+    for (const auto& q : term.q) {
+      double d;
+      if (sampler.sample(s.B * q + s.t, &d, nullptr)) r.push_back(std::abs(d));
+    }
+  }
+  if (r.empty()) return 0;
+  auto mid = r.begin() + r.size() / 2;
+  std::nth_element(r.begin(), mid, r.end());
+  return 1.4826 * *mid;
 }
 
 // Subsample sizes: geometric from coarse to fine.
@@ -261,10 +329,11 @@ Eigen::Matrix4d to_matrix(const AffineState& s, const Eigen::Vector3d& centre, d
 AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
                                          const IntraopDistanceMaps& intraop,
                                          const AffineRegistrationParameters& p) {
-  if (p.levels < 1 || p.coarse_points < 12 || p.fine_points < 12 || p.robust_scale_mm <= 0 ||
-      p.iterations_per_level < 1) {
+  if (p.levels < 1 || p.coarse_points < 12 || p.fine_points < 12 || !(p.robust_scale_mm > 0) ||
+      p.iterations_per_level < 1 || !(p.min_robust_scale_mm > 0) || p.min_robust_scale_mm > p.robust_scale_mm ||
+      !(p.data_scale_factor > 0)) {
     throw InputError("affine registration: invalid parameters (levels, point counts, "
-                     "iterations must be positive; robust_scale_mm > 0)");
+                     "iterations must be positive; 0 < min_robust_scale_mm <= robust_scale_mm; data_scale_factor > 0)");
   }
   AffineRegistrationResult result;
   if (preop.outer_mm.size() < 12 || intraop.outer_sdf_mm.voxels.empty() ||
@@ -274,30 +343,53 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
   const Eigen::Vector3d centre = preop.outer_moments.centroid_mm;
   const double radius = std::sqrt(preop.outer_moments.covariance_mm2.trace());
 
-  // Coarse level from every candidate start; keep the lowest cost.
-  const double coarse_c = p.robust_scale_mm * std::pow(p.coarse_scale_factor, p.levels - 1);
+  // Similarity, coarse to fine: the coarse level from every candidate start
+  // (lowest cost wins), then more points and a tighter robust scale.
+  const auto level_c = [&](int level) {
+    return p.robust_scale_mm * std::pow(p.coarse_scale_factor, p.levels - 1 - level);
+  };
+  const auto level_tolerance = [&](int level) {
+    return level == p.levels - 1 ? p.tolerance_mm : p.coarse_tolerance_mm;
+  };
   const std::vector<Term> coarse_terms = make_terms(preop, intraop, p, 0, centre, radius);
   const auto candidates = initial_candidates(preop, intraop, p, radius);
   LevelOutcome best;
   double best_cost = std::numeric_limits<double>::infinity();
   for (const AffineState& start : candidates) {
-    LevelOutcome o = run_level(coarse_terms, start, coarse_c, p.iterations_per_level,
-                               p.levels == 1 ? p.tolerance_mm : p.coarse_tolerance_mm);
+    LevelOutcome o = run_level(coarse_terms, start, level_c(0), Model::similarity, p.iterations_per_level,
+                               level_tolerance(0));
     if (o.eval.cost < best_cost) best_cost = o.eval.cost, best = std::move(o);
   }
   int iterations = best.iterations;
-  bool converged = best.converged;
   for (int level = 1; level < p.levels; ++level) {
-    const double c = p.robust_scale_mm * std::pow(p.coarse_scale_factor, p.levels - 1 - level);
-    const bool finest = level == p.levels - 1;
-    const auto terms = make_terms(preop, intraop, p, level, centre, radius);
-    best = run_level(terms, best.state, c, p.iterations_per_level,
-                     finest ? p.tolerance_mm : p.coarse_tolerance_mm);
+    best = run_level(make_terms(preop, intraop, p, level, centre, radius), best.state, level_c(level),
+                     Model::similarity, p.iterations_per_level, level_tolerance(level));
     iterations += best.iterations;
-    converged = best.converged;
   }
-
+  // Then the full affine from the similarity, at the finest level, with the
+  // robust scale the data give: c = data_scale_factor x the MAD sigma of the
+  // residuals (segmentation noise), between min_robust_scale_mm and
+  // robust_scale_mm. Points beyond ~2c (the sunken or dented part) then
+  // weigh < 4 % and cannot shear the fit toward them.
   const auto fine_terms = make_terms(preop, intraop, p, p.levels - 1, centre, radius);
+  const double sigma_mm = mad_sigma_mm(fine_terms, best.state);
+  const double fit_c = std::clamp(p.data_scale_factor * sigma_mm, p.min_robust_scale_mm, p.robust_scale_mm);
+  // The affine's five extra parameters (anisotropic scale, shear) are kept
+  // only when they explain a misfit of the whole outline: then the median
+  // residual falls (a real 2 % anisotropy: MAD sigma 0.96 -> 0.42 mm). A
+  // local sink moves a minority of the points, which the median ignores; the
+  // affine can only bend toward its flanks (25 mm sink: 0.56 -> 0.51 mm) and
+  // that is not kept (docs/DESIGN.md, "Quality gates").
+  double affine_sigma_mm = sigma_mm;
+  if (p.affine_stage) {
+    LevelOutcome affine = run_level(fine_terms, best.state, fit_c, Model::affine, p.iterations_per_level, p.tolerance_mm);
+    iterations += affine.iterations;
+    affine_sigma_mm = mad_sigma_mm(fine_terms, affine.state);
+    result.affine_kept = affine_sigma_mm <= p.max_affine_sigma_ratio * sigma_mm;
+    if (result.affine_kept) best = std::move(affine);
+  }
+  const bool tolerance_met = best.converged;
+
   const Evaluation initial = evaluate(fine_terms, candidates.front(), p.robust_scale_mm);
   const Evaluation final_eval = evaluate(fine_terms, best.state, p.robust_scale_mm);
   result.intraop_from_preop = to_matrix(best.state, centre, radius);
@@ -305,6 +397,9 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
   result.initial_cost = initial.cost;
   result.final_cost = final_eval.cost;
   result.points_used = final_eval.valid;
+  result.robust_scale_mm = fit_c;
+  result.residual_sigma_mm = sigma_mm;
+  result.tolerance_met = tolerance_met;
   if (final_eval.valid > 0) {
     result.rms_surface_distance_mm = std::sqrt(final_eval.sum_squares / double(final_eval.valid));
     result.inlier_fraction = double(final_eval.inliers) / double(final_eval.valid);
@@ -312,23 +407,27 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
   const double det = result.intraop_from_preop.topLeftCorner<3, 3>().determinant();
   const double in_view = double(final_eval.valid) / std::max<std::size_t>(final_eval.total, 1);
 
+  // Converged means a result one may use: a plausible matrix that fits the
+  // data. Whether the last LM step was still above tolerance_mm when the
+  // iteration cap or a stall stopped it does not matter at a good fit (the
+  // cost is flat there); it is reported, not refused.
   std::ostringstream msg;
   msg.precision(3);
   const bool plausible = det > 0.5 && det < 2.0 && result.intraop_from_preop.allFinite();
   const bool good_fit = result.inlier_fraction >= p.min_inlier_fraction && in_view >= 0.3;
-  result.converged = converged && plausible && good_fit;
+  result.converged = plausible && good_fit;
   if (result.converged) {
-    msg << "converged";
+    msg << (tolerance_met ? "converged" : "converged (good fit; last step above tolerance)");
   } else if (!plausible) {
     msg << "failed: implausible affine (determinant " << det << ")";
-  } else if (!good_fit) {
+  } else {
     msg << "poor fit: " << 100 * result.inlier_fraction << "% of surface points within "
         << 2 * p.robust_scale_mm << " mm, " << 100 * in_view << "% inside the intraop image";
-  } else {
-    msg << "not converged: iteration limit or stalled at the finest level";
   }
   msg << " after " << iterations << " iterations; rms surface distance "
-      << result.rms_surface_distance_mm << " mm over " << result.points_used << " points";
+      << result.rms_surface_distance_mm << " mm over " << result.points_used << " points; residual sigma "
+      << sigma_mm << " mm (" << affine_sigma_mm << " with the full affine, "
+      << (result.affine_kept ? "kept" : "not kept: the similarity is the result") << "), robust scale " << fit_c << " mm";
   result.message = msg.str();
   return result;
 }

@@ -13,9 +13,13 @@
 //
 // Minimiser: Levenberg-Marquardt on iteratively reweighted least squares, with
 // the analytic Jacobian (trilinear distance-map gradient times d x / d params).
-// Multi-resolution in the sense that matters for a distance-map cost: few points
-// and a wide robust scale first (large capture range), then more points and the
-// final scale c. Initialisation from moments (centroids; isotropic scale from
+// Schedule: a SIMILARITY (rotation, translation, isotropic scale: 7
+// parameters) coarse to fine, few points and a wide robust scale first (large
+// capture range), then more points and tighter scales; then the full affine
+// from it at the finest level, with the robust scale taken from the data (a
+// multiple of the MAD sigma of the residuals). A similarity cannot shear
+// toward a 25 mm local sink, and by the time the affine's extra freedom is
+// switched on the sunken points are far outside the robust scale. Initialisation from moments (centroids; isotropic scale from
 // the volume ratio), plus the principal-axes rotation as a second candidate
 // when both covariances have well separated eigenvalues; each candidate runs the
 // coarse level and the lowest cost wins.
@@ -47,19 +51,40 @@ struct AffineRegistrationParameters {
   // ill-defined and the candidate would be noise).
   double principal_axes_min_eigen_ratio = 1.1;
   // Fit quality below which the result is reported as not converged: fraction
-  // of finest-level points within 2c of the intraop surface.
+  // of finest-level points within 2 x robust_scale_mm of the intraop surface.
   double min_inlier_fraction = 0.5;
+  // The affine stage's robust scale: data_scale_factor x the MAD sigma of the
+  // finest-level residuals after the similarity, clamped to
+  // [min_robust_scale_mm, robust_scale_mm]. 2.5 sigma keeps ~99 % of Gaussian
+  // segmentation noise in the quadratic part of the loss; 0.5 mm is half the
+  // finest voxel a segmentation resolves (below it the distance map's own
+  // interpolation error dominates).
+  double data_scale_factor = 2.5;
+  double min_robust_scale_mm = 0.5;
+  bool affine_stage = true;  // false: the similarity is the result
+  // The full affine replaces the similarity only when its MAD sigma is at
+  // most this fraction of the similarity's: anisotropy and shear that are
+  // real shift every outline point and lower the median residual; the
+  // flanks of a local sink are a minority and barely move it.
+  double max_affine_sigma_ratio = 0.8;
 };
 
 struct AffineRegistrationResult {
   Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
   int iterations = 0;             // LM iterations over all levels (final candidate)
-  bool converged = false;         // finest level met tolerance_mm AND the fit is plausible
+  // A plausible matrix (determinant in (0.5, 2)) that fits the data
+  // (inlier_fraction >= min_inlier_fraction, 30 % of the points in view).
+  // An LM stopped by its iteration cap at such a fit is converged.
+  bool converged = false;
+  bool tolerance_met = false;     // the last LM step was below tolerance_mm (reported only)
   double initial_cost = 0;        // at the moment-based initialisation, finest-level cost
   double final_cost = 0;          // same cost at the result
   double rms_surface_distance_mm = 0;  // over finest-level points inside the intraop grid
   double inlier_fraction = 0;          // of those points, |distance| < 2c
   std::size_t points_used = 0;         // finest-level points inside the intraop grid
+  double residual_sigma_mm = 0;        // MAD sigma of the residuals after the similarity
+  double robust_scale_mm = 0;          // the affine stage's Geman-McClure c
+  bool affine_kept = false;            // the full affine replaced the similarity
   std::string message;                 // human-readable summary, says why when not converged
 };
 

@@ -115,6 +115,72 @@ std::vector<int> flipped_triangles(const TriSurface& start, const std::vector<Ei
   return out;
 }
 
+FoldLimiter::FoldLimiter(const TriSurface& start, const FoldGuard& guard)
+    : start_(start), guard_(guard), cos_max_(std::cos(guard.max_normal_turn_deg * M_PI / 180.0)),
+      n0_(start.triangles.size()), triangles_of_(start.vertices_mm.size()) {
+  const auto& p = start.vertices_mm;
+  for (std::size_t t = 0; t < n0_.size(); ++t) {
+    const auto& tri = start.triangles[t];
+    n0_[t] = (p[tri[1]] - p[tri[0]]).cross(p[tri[2]] - p[tri[0]]);
+    for (int v : tri) triangles_of_[v].push_back(static_cast<int>(t));
+  }
+}
+
+bool FoldLimiter::keeps_guard(int t, const std::vector<Eigen::Vector3d>& x) const {
+  const double a0 = n0_[t].norm();
+  if (!(a0 > 1e-12)) return true;
+  const auto& tri = start_.triangles[static_cast<std::size_t>(t)];
+  const Eigen::Vector3d n1 = (x[tri[1]] - x[tri[0]]).cross(x[tri[2]] - x[tri[0]]);
+  const double a1 = n1.norm();
+  return n0_[t].dot(n1) >= cos_max_ * a0 * a1 && a1 >= guard_.min_area_ratio * a0;
+}
+
+std::size_t FoldLimiter::limit(const std::vector<Eigen::Vector3d>& from, std::vector<Eigen::Vector3d>& to) const {
+  const auto& p = start_.vertices_mm;
+  const std::size_t n = p.size();
+  std::vector<double> lambda(n, 1.0);
+  std::vector<Eigen::Vector3d> x(n);
+  for (std::size_t v = 0; v < n; ++v) x[v] = p[v] + to[v];
+  std::vector<int> check(start_.triangles.size()), bad;
+  for (std::size_t t = 0; t < check.size(); ++t) check[t] = static_cast<int>(t);
+  std::vector<char> marked(n, 0), queued(start_.triangles.size(), 0);
+  std::vector<int> changed;
+  constexpr int kHalvings = 4;
+  // Each pass after the halvings zeroes the step of at least one more vertex
+  // (a triangle whose three vertices keep their `from` position keeps the
+  // guard), so the passes end on any surface; the cap only bounds the loop
+  // when `from` itself breaks the guard. Only the triangles around the
+  // vertices a pass changed are checked again.
+  for (int pass = 0; pass < 64 && !check.empty(); ++pass) {
+    changed.clear();
+    for (int t : check) {
+      if (keeps_guard(t, x)) continue;
+      for (int v : start_.triangles[static_cast<std::size_t>(t)])
+        if (!marked[v] && lambda[v] > 0) marked[v] = 1, changed.push_back(v);
+    }
+    check.clear();
+    for (int v : changed) {
+      marked[v] = 0;
+      lambda[v] = pass < kHalvings ? 0.5 * lambda[v] : 0.0;
+      x[v] = p[v] + from[v] + lambda[v] * (to[v] - from[v]);
+      for (int t : triangles_of_[v])
+        if (!queued[t]) queued[t] = 1, check.push_back(t);
+    }
+    for (int t : check) queued[t] = 0;
+  }
+  std::size_t held = 0;
+  for (std::size_t v = 0; v < n; ++v) {
+    if (lambda[v] < 1.0) ++held;
+    to[v] = from[v] + lambda[v] * (to[v] - from[v]);
+  }
+  return held;
+}
+
+std::size_t limit_folding(const TriSurface& start, const std::vector<Eigen::Vector3d>& from,
+                          std::vector<Eigen::Vector3d>& to, const FoldGuard& guard) {
+  return FoldLimiter(start, guard).limit(from, to);
+}
+
 std::vector<double> vertex_areas_mm2(const TriSurface& s) {
   std::vector<double> a(s.vertices_mm.size(), 0.0);
   for (const auto& t : s.triangles) {

@@ -42,9 +42,15 @@ struct SurfaceRepairParameters {
   // own variation (centimetres).
   double smoothing_mm = 2.5;
   double max_search_mm = 30.0;
-  // Defects over more than this fraction of a surface's area: the match as a
-  // whole is not trusted (the scan falls back to affine-only).
-  double max_defect_area_fraction = 0.15;
+};
+
+// A surface motion that keeps every triangle oriented: no triangle's normal
+// turns by more than max_normal_turn_deg from the start surface, and none
+// shrinks below min_area_ratio of its start area (docs/DESIGN.md, "Quality
+// gates": why 75 degrees and 0.1).
+struct FoldGuard {
+  double max_normal_turn_deg = 75.0;
+  double min_area_ratio = 0.1;
 };
 
 // Vertex neighbours through triangle edges (sorted, unique).
@@ -63,6 +69,31 @@ std::size_t fill_from_reliable_neighbours(const std::vector<Eigen::Vector3d>& po
 // Triangles whose normal turned by more than 90 degrees from the start
 // surface (or collapsed) when its vertices are at `positions_mm`: folds.
 std::vector<int> flipped_triangles(const TriSurface& start, const std::vector<Eigen::Vector3d>& positions_mm);
+
+// Moves the surface from start + from_mm toward start + to_mm only as far as
+// the guard allows, per vertex: the vertices of every triangle that would
+// break the guard take half their step, again, and after four halvings none
+// of it (a bounded number of passes). When start + from_mm keeps the guard,
+// so does the result: a step can be shortened, never make a fold. Returns
+// the number of vertices held back (to_mm is overwritten).
+std::size_t limit_folding(const TriSurface& start, const std::vector<Eigen::Vector3d>& from_mm,
+                          std::vector<Eigen::Vector3d>& to_mm, const FoldGuard& guard);
+
+// The same, with the start normals and vertex-triangle lists kept for many
+// steps on one surface (the active-surface flow). Keeps a reference to start.
+class FoldLimiter {
+ public:
+  FoldLimiter(const TriSurface& start, const FoldGuard& guard);
+  std::size_t limit(const std::vector<Eigen::Vector3d>& from_mm, std::vector<Eigen::Vector3d>& to_mm) const;
+
+ private:
+  bool keeps_guard(int triangle, const std::vector<Eigen::Vector3d>& positions_mm) const;
+  const TriSurface& start_;
+  FoldGuard guard_;
+  double cos_max_;
+  std::vector<Eigen::Vector3d> n0_;
+  std::vector<std::vector<int>> triangles_of_;
+};
 
 // Lumped vertex areas (a third of each incident triangle), for area fractions.
 std::vector<double> vertex_areas_mm2(const TriSurface& surface);

@@ -176,19 +176,26 @@ TEST(Config, SurfaceRepairAndSelfContactAreConfiguredWithTheEnginesDefaults) {
   EXPECT_DOUBLE_EQ(p.surface_repair.min_component_area_mm2, engine.min_component_area_mm2);
   EXPECT_DOUBLE_EQ(p.surface_repair.smoothing_mm, engine.smoothing_mm);
   EXPECT_DOUBLE_EQ(p.surface_repair.max_search_mm, engine.max_search_mm);
-  EXPECT_DOUBLE_EQ(p.surface_repair.max_defect_area_fraction, engine.max_defect_area_fraction);
+  EXPECT_EQ(p.outer_surface.stiffness_levels, 2);
+  EXPECT_DOUBLE_EQ(p.outer_surface.normal_search_mm, 12.0);
+  EXPECT_EQ(p.ventricle_surface.stiffness_levels, 2);
+  EXPECT_TRUE(p.outer_surface.fold_guard_enabled);
+  EXPECT_DOUBLE_EQ(p.outer_surface.fold_guard.max_normal_turn_deg, FoldGuard{}.max_normal_turn_deg);
+  EXPECT_DOUBLE_EQ(p.gates.max_unsupported_displacement_mm, QualityGates{}.max_unsupported_displacement_mm);
   EXPECT_DOUBLE_EQ(p.outer_surface.contact_fraction, 0.4);
   EXPECT_DOUBLE_EQ(p.ventricle_surface.contact_fraction, 0.4);
   EXPECT_DOUBLE_EQ(p.ventricle_surface.capture_range_mm, 6.0);
   EXPECT_DOUBLE_EQ(p.outer_surface.capture_range_mm, 0.0);
   const auto off = config::pipeline_parameters_from_text(
-      "[surface.repair]\nenabled = false\nmax_defect_area_fraction = 0.3\n[surface.ventricles]\ncontact_fraction = 0.2\n", "t");
+      "[surface.repair]\nenabled = false\n[surface.ventricles]\ncontact_fraction = 0.2\nmax_normal_turn_deg = 60.0\n", "t");
   EXPECT_FALSE(off.surface_repair.enabled);
-  EXPECT_DOUBLE_EQ(off.surface_repair.max_defect_area_fraction, 0.3);
+  EXPECT_DOUBLE_EQ(off.ventricle_surface.fold_guard.max_normal_turn_deg, 60.0);
   EXPECT_DOUBLE_EQ(off.ventricle_surface.contact_fraction, 0.2);
   EXPECT_NE(message_of("[surface.repair]\nrounds = 0\n").find("[surface.repair]"), std::string::npos);
-  EXPECT_NE(message_of("[surface.repair]\nmax_defect_area_fraction = 1.5\n").find("max_defect_area_fraction"),
+  // The repaired-area limit is gone (reported, not a gate): an old file saying it is told so.
+  EXPECT_NE(message_of("[surface.repair]\nmax_defect_area_fraction = 0.15\n").find("max_defect_area_fraction"),
             std::string::npos);
+  EXPECT_NE(message_of("[surface.outer]\nmax_normal_turn_deg = 90.0\n").find("max_normal_turn_deg"), std::string::npos);
   EXPECT_NE(message_of("[surface.repair]\nsmoothing_mm = 20.0\nmax_search_mm = 30.0\n").find("max_search_mm"),
             std::string::npos);
   EXPECT_NE(message_of("[surface.repair]\nringz = 2\n").find("ringz"), std::string::npos);

@@ -1,0 +1,61 @@
+#pragma once
+// Automatic segmentation of an intraop MR image guided by the patient's own
+// preop labels (tissue_em.h): the preop labels carried onto the intraop grid
+// become the prior, the image decides where tissue really is now.
+// Output in the label table's values: the parenchyma label for brain tissue
+// (everything inside the brain but the ventricles), the ventricle label for
+// the lateral ventricles, 0 outside the brain and in a resection cavity; and
+// per voxel the posterior of the tissue chosen (the confidence).
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "segmentation/tissue_em.h"
+
+namespace brainshift::segmentation {
+
+struct SegmentationParameters {
+  // Remaining misregistration of the carried labels (mm), the prior's width
+  // (tissue_prior.h). The caller sets it per round: wider after the affine
+  // alone, narrower once the non-rigid estimate carries the labels.
+  double prior_width_mm = 3.0;
+  // Every tissue keeps at least this prior probability anywhere: 1e-3 costs
+  // log(1e-3) = -6.9 nats, what an intensity about 3.7 class sd's closer to
+  // another tissue's mean outweighs, so the image overrules a prior that
+  // brain shift has made wrong (fluid where the preop had cortex).
+  double prior_floor = 1e-3;
+  // The classification runs in the carried outline's bounding box grown by
+  // this margin: wider than the largest brain shift measured at the cortex
+  // (about 25 mm, docs/DESIGN.md "Automatic intraop segmentation").
+  double margin_mm = 30;
+  EmParameters em;
+  // Enclosed holes of the segmented brain smaller than this (ml) are noise
+  // and filled; larger ones are kept as cavities (the pipeline passes its
+  // min_resection_cavity_ml, so what is filled here would be ignored there).
+  double max_filled_hole_ml = 0.1;
+  // The ventricular fluid class must stand this many pooled sd's from every
+  // parenchyma class, or the image cannot show the ventricles (a contrast
+  // with no fluid/tissue difference, or noise far beyond any scanner's).
+  double min_fluid_contrast_sd = 2.0;
+};
+
+struct IntraopSegmentation {
+  LabelImage labels;   // image grid, table values
+  ImageF confidence;   // posterior of the chosen tissue, [0, 1]
+  ImageF bias;         // multiplicative bias fitted (1 outside the classified box)
+  std::vector<GaussianClass> classes;
+  std::string refusal;  // why the image cannot be segmented; empty when it can
+  nlohmann::json report;  // classes, iterations, volumes, contrast
+};
+
+// carried_labels: the preop labels on the image's grid. brain_label is the
+// parenchyma value written; ventricle_labels the cavity values (the first is
+// written). InputError on mismatched grids or an empty carried brain.
+IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carried_labels,
+                                    std::uint16_t brain_label, const std::vector<std::uint16_t>& ventricle_labels,
+                                    const SegmentationParameters& params);
+
+}  // namespace brainshift::segmentation

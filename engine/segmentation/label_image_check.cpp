@@ -1,0 +1,78 @@
+#include "segmentation/label_image_check.h"
+
+#include <cmath>
+
+#include "image/distance_map.h"
+#include "image/image_stats.h"
+#include "registration/boundary_samples.h"
+
+namespace brainshift::segmentation {
+namespace {
+
+// Voxels of `a` not in `b` that the classification chose surely, farther than
+// band_mm from b's surface.
+Disagreement beyond_band(const Mask& a, const Mask& b, const ImageF& confidence, const ImageF& distance_from_b_mm,
+                         const LabelImageCheckParameters& params) {
+  Disagreement d;
+  Mask m(a.grid, 0);
+  for (std::size_t v = 0; v < a.voxels.size(); ++v)
+    m.voxels[v] = a.voxels[v] && !b.voxels[v] && confidence.voxels[v] >= params.min_posterior &&
+                  distance_from_b_mm.voxels[v] > params.band_mm;
+  d.volume_ml = volume_ml(m);
+  if (d.volume_ml <= 0) return d;
+  for (std::size_t v = 0; v < m.voxels.size(); ++v)
+    if (m.voxels[v]) d.max_depth_mm = std::max<double>(d.max_depth_mm, distance_from_b_mm.voxels[v]);
+  const Eigen::Vector3d c = centroid_mm(m);
+  d.centroid_mm = {c.x(), c.y(), c.z()};
+  return d;
+}
+
+nlohmann::json to_json(const Disagreement& d) {
+  return {{"volume_ml", d.volume_ml}, {"max_depth_mm", d.max_depth_mm}, {"centroid_mm", d.centroid_mm}};
+}
+
+}  // namespace
+
+LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage& labels, std::uint16_t brain_label,
+                                           const std::vector<std::uint16_t>& ventricle_labels,
+                                           const LabelImageCheckParameters& params) {
+  SegmentationParameters sp = params.classifier;
+  sp.prior_width_mm = params.prior_width_mm;
+  const IntraopSegmentation seg = segment_intraop(image, labels, brain_label, ventricle_labels, sp);
+  const Mask given = outline_mask(labels);
+  const Mask seen = outline_mask(seg.labels);
+  LabelImageCheck check;
+  check.brain_ml = volume_ml(given);
+  if (!seg.refusal.empty()) {  // the image cannot be classified: nothing to check against
+    check.metrics = {{"checked", false}, {"why", seg.refusal}};
+    return check;
+  }
+  // Distances from each outline's surface, measured outside it.
+  const ImageF outside_seen = distance_to_mask_mm(seen);
+  const ImageF outside_given = distance_to_mask_mm(given);
+  check.labels_not_image = beyond_band(given, seen, seg.confidence, outside_seen, params);
+  check.image_not_labels = beyond_band(seen, given, seg.confidence, outside_given, params);
+  const double limit_ml = params.max_disagreement_fraction * check.brain_ml;
+  auto describe = [&](const Disagreement& d, const char* what) {
+    return std::string(what) + ": " + std::to_string(d.volume_ml) + " ml beyond " + std::to_string(params.band_mm) +
+           " mm, up to " + std::to_string(d.max_depth_mm) + " mm deep, centred at (" +
+           std::to_string(d.centroid_mm[0]) + ", " + std::to_string(d.centroid_mm[1]) + ", " +
+           std::to_string(d.centroid_mm[2]) + ") mm RAS";
+  };
+  if (check.labels_not_image.volume_ml > limit_ml)
+    check.failure = describe(check.labels_not_image,
+                             "the intraop labels call brain what the image shows as fluid, dura or air");
+  else if (check.image_not_labels.volume_ml > limit_ml)
+    check.failure = describe(check.image_not_labels, "the image shows brain the intraop labels lack");
+  check.metrics = {{"checked", true},
+                   {"labels_not_image", to_json(check.labels_not_image)},
+                   {"image_not_labels", to_json(check.image_not_labels)},
+                   {"brain_ml", check.brain_ml},
+                   {"limit_ml", limit_ml},
+                   {"band_mm", params.band_mm},
+                   {"passed", check.failure.empty()}};
+  if (!check.failure.empty()) check.metrics["failure"] = check.failure;
+  return check;
+}
+
+}  // namespace brainshift::segmentation

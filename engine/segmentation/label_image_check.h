@@ -1,0 +1,59 @@
+#pragma once
+// Does a given intraop segmentation agree with its own image? The image is
+// classified with the segmentation itself as a wide prior (tissue_em.h): where
+// the image clearly shows fluid, dura or air, the classification says so
+// whatever the labels claim, and where it clearly shows brain outside them,
+// that too. Disagreement within a band of partial volume and ordinary
+// segmentation noise (band_mm) is expected; beyond it, a volume of it is a
+// leak into fluid or dura (labels say brain, the image does not), a missing
+// lobe (the image shows brain the labels lack), or labels that do not belong
+// to this image (mirrored, shifted, another patient's).
+#include <array>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "segmentation/intraop_segmentation.h"
+
+namespace brainshift::segmentation {
+
+struct LabelImageCheckParameters {
+  SegmentationParameters classifier;  // prior_width_mm set by the check
+  // Width of the prior around the given outline: wide enough that a
+  // several-mm leak is decided by the image, not by the labels.
+  double prior_width_mm = 4.0;
+  // Disagreement counts only where the image's choice is this sure and farther
+  // than band_mm from the image's own brain surface: partial volume (half a
+  // voxel), boundary noise of a careful segmentation (a voxel or two) and the
+  // slice thickness of intraop scans (up to 3 mm) stay inside 3 mm.
+  double min_posterior = 0.9;
+  double band_mm = 3.0;
+  // Gross: beyond the band, more than this fraction of the brain's volume
+  // (2 %, about 25 ml: a 45 mm block is 90 ml, a 4 mm leak over a third of
+  // the surface some 100 ml; physiological brain shift moves no tissue out of
+  // the image's brain).
+  double max_disagreement_fraction = 0.02;
+};
+
+struct Disagreement {
+  double volume_ml = 0;      // beyond the band
+  double max_depth_mm = 0;   // farthest from the image's brain surface
+  std::array<double, 3> centroid_mm{0, 0, 0};  // where (RAS)
+};
+
+struct LabelImageCheck {
+  Disagreement labels_not_image;  // labelled brain the image shows as fluid, dura, air (a leak)
+  Disagreement image_not_labels;  // brain in the image the labels lack (a missing lobe)
+  double brain_ml = 0;
+  std::string failure;  // why the labels cannot be trusted with this image; empty when they can
+  nlohmann::json metrics;
+};
+
+// labels in the table's values on the image's grid.
+LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage& labels, std::uint16_t brain_label,
+                                           const std::vector<std::uint16_t>& ventricle_labels,
+                                           const LabelImageCheckParameters& params);
+
+}  // namespace brainshift::segmentation

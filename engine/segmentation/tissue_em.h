@@ -1,0 +1,62 @@
+#pragma once
+// Atlas-prior EM classification of an MR image into three tissues: brain
+// parenchyma, ventricular fluid and everything outside the brain (fluid
+// under the craniotomy, skull, scalp, air), in the manner of Van Leemput et
+// al. (1999) and of the adaptive-template classification of Warfield et al.:
+//   - a spatially varying prior per voxel (tissue_prior.h) says where each
+//     tissue is expected; the image says what each looks like;
+//   - each tissue is a small mixture of Gaussians over the bias-corrected
+//     intensity (grey/white matter; the outside's fluid, bone and fat), fitted
+//     from the prior alone: nothing assumes a T1 ordering of the intensities,
+//     so a T2-like image (bright fluid) is fitted the same way;
+//   - a multiplicative bias, log-polynomial (bias_field.h), fitted between the
+//     EM steps on the residual log ratio image / expected intensity;
+//   - after the fit, a light Potts smoothing (mean field, 6-neighbourhood)
+//     on the tissue posteriors.
+// Parameters are fitted on a regular subsample of the voxels (a few tens of
+// thousands determine a dozen numbers to well below the noise), the posterior
+// is then computed on every voxel. Every loop is bounded.
+#include <array>
+#include <cstddef>
+#include <vector>
+
+#include "core/image.h"
+#include "segmentation/tissue_prior.h"
+
+namespace brainshift::segmentation {
+
+struct EmParameters {
+  // Gaussians per tissue: parenchyma (grey, white), ventricular fluid, and
+  // outside the brain (air, bone, fluid, fat/scalp).
+  std::array<int, kTissues> classes{2, 1, 4};
+  int bias_degree = 2;
+  int max_iterations = 30;
+  // Converged when the mean log-likelihood per sample changes by less than
+  // this between iterations (nats; far below what moves a class mean).
+  double tolerance = 1e-4;
+  std::size_t fit_samples = 60000;
+  double mrf_beta = 0.35;  // Potts coupling per face neighbour (0: no smoothing)
+  int mrf_sweeps = 3;
+};
+
+struct GaussianClass {
+  Tissue tissue = Tissue::parenchyma;
+  double mean = 0;    // bias-corrected intensity, in the image's units
+  double sd = 0;
+  double weight = 0;  // share within its tissue
+};
+
+struct EmResult {
+  std::vector<GaussianClass> classes;
+  std::array<std::vector<float>, kTissues> posterior;  // per voxel, after the smoothing; sum to 1
+  std::vector<float> bias;  // multiplicative, per voxel (mean log 1 over the brain)
+  int iterations = 0;
+  bool converged = false;
+  double mean_log_likelihood = 0;
+};
+
+// image and prior on the same grid. InputError when the prior has no brain or
+// the image is constant.
+EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const EmParameters& params);
+
+}  // namespace brainshift::segmentation

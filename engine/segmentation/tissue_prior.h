@@ -1,0 +1,34 @@
+#pragma once
+// Where each tissue is expected before the image is looked at: the patient's
+// own preop labels carried onto the intraop grid by the current estimate of
+// the registration, softened by how far that estimate can still be off.
+//   P(inside the brain) = s(-d_outline / w),  P(ventricle | inside) = s(-d_ventricle / w)
+// with s the logistic function, d the signed distance (mm) to the carried
+// outline and ventricles, and w the remaining misregistration (mm). A floor
+// keeps parenchyma and the outside possible everywhere, so that where brain
+// shift has moved tissue farther than the prior admits (fluid under the
+// craniotomy, a resection cavity), the image decides.
+#include <array>
+#include <vector>
+
+#include "core/image.h"
+#include "image/morphology.h"
+
+namespace brainshift::segmentation {
+
+enum class Tissue : int { parenchyma = 0, ventricle = 1, outside = 2 };
+inline constexpr int kTissues = 3;
+inline int index_of(Tissue t) { return static_cast<int>(t); }
+const char* name_of(Tissue t);
+
+struct TissuePrior {
+  Grid3 grid;
+  std::array<std::vector<float>, kTissues> p;  // per voxel, sum to 1
+};
+
+// outline: the brain with its ventricles (and anything inside), ventricles:
+// the lateral ventricles; both on the target grid. InputError when width_mm
+// <= 0, floor outside [0, 0.1], or the outline is empty.
+TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double floor);
+
+}  // namespace brainshift::segmentation
