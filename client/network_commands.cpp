@@ -324,7 +324,8 @@ struct PullArgs {
 // What scene.mrml shows that the daemon sends (the preop and intraop images
 // are the user's own files).
 constexpr ResultPart kScenePartsFromTheDaemon[] = {ResultPart::kDisplacementItk, ResultPart::kWarpedImage,
-                                                   ResultPart::kWarpedLabels, ResultPart::kModels};
+                                                   ResultPart::kWarpedLabels, ResultPart::kModels,
+                                                   ResultPart::kUncertainty};
 
 std::string cli_part_names() {
   std::string out;

@@ -83,6 +83,8 @@ int run_register_rank0(const RegisterOptions& o) {
   std::fprintf(stderr, "[preop] mesh: %zu nodes, %zu tets\n", session.mesh().node_count(), session.mesh().tet_count());
 
   ScanResult result = session.register_scan(intraop, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
+  // After the answer, as the daemon does: not part of "total".
+  session.add_uncertainty(intraop, result, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   DeferredOutputOptions outputs;
   outputs.label_table = &session.parameters().label_table;
   // register has no scan id: the output folder names the report.

@@ -157,6 +157,10 @@ void write_slicer_scene(const fs::path& dir, const SceneContents& c) {
   scene.volume(warped_image, "warped preop T1", false, "", grey);
   const std::string labels = scene.colour_table(kSceneColourTable);
   scene.volume(warped_labels, "warped preop labels", true, "", labels);
+  // Made after the answer: listed when it is there.
+  const std::string uncertainty(protocol::result_output(ResultPart::kUncertainty).file);
+  if (fs::is_regular_file(dir / uncertainty))
+    scene.volume(uncertainty, "uncertainty (95 % band, mm)", false, "", "vtkMRMLColorTableNodeRainbow");
   for (const auto& l : c.labels)
     if (fs::is_regular_file(dir / protocol::model_file_name(l.name))) scene.model(l);
   write_text(dir / kSceneColourTable, colour_table_text(c.labels));

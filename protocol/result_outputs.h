@@ -28,6 +28,7 @@ enum class ResultPart {
   kMetrics,          // JSON
   kTimings,          // JSON, see timing_log.h ScanTimings
   kReport,           // report.png (image/png), rendered after the scan is done
+  kUncertainty,      // float32 NIfTI, intraop grid: 95 % band radius (mm) of the answer; after the scan is done
 };
 
 enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
@@ -84,6 +85,8 @@ inline constexpr ResultOutput kResultOutputs[] = {
      PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true, stages::kReport,
      PartPresence::kWithIntraopImage, std::nullopt},
+    {ResultPart::kUncertainty, "uncertainty", "uncertainty", "uncertainty.nii.gz", "uncertainty.nii",
+     MediaKind::kNifti, true, stages::kUncertainty, PartPresence::kEveryScan, std::nullopt},
 };
 
 const ResultOutput& result_output(ResultPart part);

@@ -32,6 +32,7 @@ inline constexpr std::string_view kOutputs = "outputs";      // encoding the res
 inline constexpr std::string_view kStore = "store";          // the durable write, after event.scan.done
 inline constexpr std::string_view kItkField = "itk_field";   // deferred field.h5
 inline constexpr std::string_view kReport = "report";        // deferred report.png
+inline constexpr std::string_view kUncertainty = "uncertainty";  // deferred uncertainty.nii
 // ---- both scopes ----
 inline constexpr std::string_view kTotal = "total";
 
@@ -42,6 +43,6 @@ inline constexpr std::array kIntraopTimings{kRead, kAffine, kSurface, kSolve, kF
 inline constexpr std::array kPreopStages{kAtlas, kMesh, kAssemble, kFactorise, kPreopModels, kTotal};
 inline constexpr std::array kIntraopStages{kDecode, kRead,   kAffine,         kSurface, kSolve,    kField,  kRefine,
                                            kWarp,   kModels, kQualityMetrics, kOutputs, kStore,    kItkField,
-                                           kReport, kTotal};
+                                           kReport, kUncertainty, kTotal};
 
 }  // namespace brainshift::protocol::stages

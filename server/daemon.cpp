@@ -177,6 +177,7 @@ int run_daemon(const DaemonOptions& options, EnginePort& engine, const std::atom
       // The gateway reads results from the store: it is told once one is
       // there, which is just after event.scan.done (served from memory first).
       core.set_result_stored_hook([gateway](const std::string& scan_id) { gateway->publish(scan_id); });
+      core.set_deferred_stored_hook([gateway](const std::string& scan_id) { gateway->publish_deferred(scan_id); });
     }
     std::atomic<bool> sockets_running{true};
     std::thread socket_thread(socket_loop, std::ref(router), std::ref(pub), std::ref(core), std::ref(outbox),

@@ -64,6 +64,7 @@ void EngineAdapter::render_deferred(const std::string& scan_id, const DeferredOu
   const std::unique_ptr<Deferred> d = std::move(deferred_);
   ScanResult& r = d->result;
   session_.add_quality_metrics(d->input, r, nullptr);
+  session_.add_uncertainty(d->input, r, nullptr);
   DeferredOutputOptions options;
   options.itk_single_precision = true;  // as field.nii holds it
   options.label_table = &session_.parameters().label_table;

@@ -29,6 +29,9 @@ inline constexpr std::size_t kMaxDeviceName = 19;
 inline constexpr const char* kFieldDevice = "bs.field";
 inline constexpr const char* kWarpedImageDevice = "bs.warped_image";
 inline constexpr const char* kWarpedLabelsDevice = "bs.warped_labels";
+// The uncertainty map (float32 mm, 95 % band radius): made after the answer,
+// so it follows the result's STATUS as a message of its own.
+inline constexpr const char* kUncertaintyDevice = "bs.uncertainty";
 inline constexpr const char* kStatusDevice = "bs.status";
 // "bs.model.<short name>": the label table's short name (at most 11
 // characters, e.g. "cst" for corticospinal_tract) fits the 20 bytes.

@@ -155,6 +155,14 @@ void IgtlGateway::publish(const std::string& scan_id) {
   wake();
 }
 
+void IgtlGateway::publish_deferred(const std::string& scan_id) {
+  {
+    std::lock_guard lock(mutex_);
+    pending_deferred_.push_back(scan_id);
+  }
+  wake();
+}
+
 protocol::OpenIgtlinkInfo IgtlGateway::info() const {
   return {static_cast<std::uint64_t>(port_), connected_.load(), sent_.load(), dropped_.load()};
 }
@@ -176,11 +184,12 @@ void IgtlGateway::run() {
       std::this_thread::sleep_for(std::chrono::milliseconds(100));
       continue;
     }
-    std::vector<std::string> scans;
+    std::vector<std::string> scans, deferred;
     {
       std::lock_guard lock(mutex_);
       if (stop_) return;
       scans.swap(pending_);
+      deferred.swap(pending_deferred_);
     }
     if (fds[0].revents & POLLIN) {
       std::uint64_t count = 0;
@@ -202,6 +211,25 @@ void IgtlGateway::run() {
     connected_ = clients_.size();
     if (fds[1].revents & POLLIN) accept_clients();
     for (const auto& scan_id : scans) load_and_send(scan_id);
+    for (const auto& scan_id : deferred) send_deferred(scan_id);
+  }
+}
+
+void IgtlGateway::send_deferred(const std::string& scan_id) {
+  try {
+    const auto f = read_part(store_, scan_id, ResultPart::kUncertainty);
+    if (!f) return;  // not made (e.g. switched off): nothing to send
+    const auto record = store_.find(scan_id);
+    const std::string at = record && record->finished_at ? *record->finished_at : protocol::utc_now();
+    const ImageF map = scalar_image_from_bytes(f->second, f->first, kMaxResultImageBytes);
+    auto m = std::make_shared<const igtl::PackedMessage>(
+        igtl::pack_image(igtl::kUncertaintyDevice, map, igtl::time_stamp_from_iso(at)));
+    // A client connecting later gets it with the result it belongs to.
+    if (latest_scan_id_ == scan_id) latest_.push_back(m);
+    for (auto& c : clients_) enqueue(c, {m}, /*supersede=*/false);
+    spdlog::info("OpenIGTLink: scan {}: {} sent to {} client(s)", scan_id, igtl::kUncertaintyDevice, clients_.size());
+  } catch (const std::exception& e) {
+    spdlog::error("OpenIGTLink: scan {}: uncertainty map not sent: {}", scan_id, e.what());
   }
 }
 
@@ -224,6 +252,7 @@ void IgtlGateway::load_and_send(const std::string& scan_id) {
       messages.push_back(std::make_shared<const igtl::PackedMessage>(std::move(m)));
     }
     latest_ = messages;
+    latest_scan_id_ = scan_id;
     for (auto& c : clients_) enqueue(c, messages);
     spdlog::info("OpenIGTLink: scan {}: {} messages, {:.1f} MB (read {:.3f} s, packed {:.3f} s) to {} client(s)",
                  scan_id, messages.size(), bytes / 1e6, read_s, seconds_since(t1), clients_.size());
@@ -232,13 +261,13 @@ void IgtlGateway::load_and_send(const std::string& scan_id) {
   }
 }
 
-void IgtlGateway::enqueue(Client& c, const std::vector<Shared>& messages) {
+void IgtlGateway::enqueue(Client& c, const std::vector<Shared>& messages, bool supersede) {
   // A new result supersedes what a client has not begun to receive of older
   // ones: a stalled client then holds at most one old message and the
   // latest result, however many results go by (a whole-head field is
   // ~130 MB).
   const std::size_t keep = c.written > 0 ? 1 : 0;
-  if (c.queue.size() > keep) {
+  if (supersede && c.queue.size() > keep) {
     dropped_ += c.queue.size() - keep;
     c.queue.erase(c.queue.begin() + static_cast<std::ptrdiff_t>(keep), c.queue.end());
   }

@@ -54,6 +54,9 @@ class IgtlGateway {
   int port() const { return port_; }
   // Any thread, returns at once: queues that stored scan's result for every client.
   void publish(const std::string& scan_id);
+  // Any thread, returns at once: sends that scan's deferred image parts (the
+  // uncertainty map) once they are stored, after its result.
+  void publish_deferred(const std::string& scan_id);
   protocol::OpenIgtlinkInfo info() const;
 
  private:
@@ -67,7 +70,10 @@ class IgtlGateway {
 
   void run();
   void load_and_send(const std::string& scan_id);
-  void enqueue(Client& c, const std::vector<Shared>& messages);
+  void send_deferred(const std::string& scan_id);
+  // supersede: a new result, which drops what the client has not begun of older ones;
+  // false for a part that follows the result it belongs to.
+  void enqueue(Client& c, const std::vector<Shared>& messages, bool supersede = true);
   void accept_clients();
   bool write_some(Client& c);  // false: the client is gone
   bool drain_input(Client& c);  // false: the client is gone
@@ -83,11 +89,13 @@ class IgtlGateway {
 
   std::mutex mutex_;  // guards pending_ and stop_
   std::vector<std::string> pending_;
+  std::vector<std::string> pending_deferred_;
   bool stop_ = false;
 
   // The gateway thread's own state.
   std::vector<Client> clients_;
   std::vector<Shared> latest_;
+  std::string latest_scan_id_;
 
   std::atomic<std::uint64_t> connected_{0}, sent_{0}, dropped_{0};
   std::thread thread_;

@@ -161,8 +161,11 @@ void ServerCore::add_deferred_outputs(const std::string& scan_id, const std::str
   } catch (const std::exception& e) {
     spdlog::error("scan {}: deferred outputs incomplete: {}", scan_id, e.what());
   }
-  std::lock_guard lock(mutex_);
-  deferred_pending_.erase(scan_id);
+  {
+    std::lock_guard lock(mutex_);
+    deferred_pending_.erase(scan_id);
+  }
+  if (deferred_stored_) deferred_stored_(scan_id);
 }
 
 // The store's fsync of ~90 MB (0.1-0.3 s) is off the latency path: the

@@ -65,6 +65,11 @@ class ServerCore {
   void set_result_stored_hook(std::function<void(const std::string& scan_id)> hook) {
     result_stored_ = std::move(hook);
   }
+  // The same once a result's deferred parts (uncertainty.nii, report.png, ...)
+  // are stored.
+  void set_deferred_stored_hook(std::function<void(const std::string& scan_id)> hook) {
+    deferred_stored_ = std::move(hook);
+  }
   bool shutdown_requested() const { return shutdown_.load(); }
   const protocol::Limits& inbound_limits() const { return limits_; }
 
@@ -121,6 +126,7 @@ class ServerCore {
   EventSink events_;
   std::function<void(protocol::StatusReply&)> status_extension_;
   std::function<void(const std::string&)> result_stored_;
+  std::function<void(const std::string&)> deferred_stored_;
   std::map<std::string, std::string> versions_;
   protocol::Limits limits_;
   ScanQueue queue_;

@@ -5,6 +5,7 @@
 #include "core/errors.h"
 #include "core/fault_injection.h"
 #include "pipeline/mpi_commands.h"
+#include "pipeline/uncertainty_stage.h"
 #include "pipeline/warm_state.h"
 #include "protocol/stage_names.h"
 
@@ -89,6 +90,11 @@ void EngineSession::add_quality_metrics(const IntraopInput& input, ScanResult& r
                                         const ProgressFn& progress) const {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
   brainshift::add_quality_metrics(*warm_, input, params_, result, progress);
+}
+
+void EngineSession::add_uncertainty(const IntraopInput& input, ScanResult& result, const ProgressFn& progress) {
+  if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
+  brainshift::add_uncertainty(*warm_, input, params_, result, progress);
 }
 
 void EngineSession::stop_workers() {

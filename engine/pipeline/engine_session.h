@@ -55,6 +55,9 @@ struct ScanResult {
   ImageF warped_t1_affine_only;         // the same through the affine alone (for the report)
   LabelImage warped_labels;             // preop labels on the intraop grid
   std::map<std::string, TriSurface> models;  // preop structures, intraop frame
+  std::vector<Eigen::Vector3d> nonrigid_node_mm;  // per mesh node, beyond the affine (zero on fallback)
+  // 95 % band radius (mm) on the intraop grid; empty until add_uncertainty().
+  ImageF uncertainty_mm;
   nlohmann::json metrics;
   nlohmann::json timings;  // {"preop": {...}, "intraop": {...}, "mesh": {...}}
 };
@@ -89,6 +92,10 @@ class EngineSession {
   ScanResult register_scan(const IntraopInput& input, const ProgressFn& progress,
                            bool defer_quality_metrics = false);
   void add_quality_metrics(const IntraopInput& input, ScanResult& result, const ProgressFn& progress) const;
+  // The uncertainty map (quality/uncertainty_map.h) of a result of this
+  // session's warm state: Monte Carlo solves on the warm factorisation, so it
+  // is collective like register_scan; called after the answer is served.
+  void add_uncertainty(const IntraopInput& input, ScanResult& result, const ProgressFn& progress);
 
   // Tells the workers to leave run_worker_loop (also done by the destructor).
   void stop_workers();

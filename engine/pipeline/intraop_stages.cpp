@@ -14,6 +14,7 @@
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "image/resample.h"
+#include "pipeline/plausibility_stage.h"
 #include "pipeline/resection_stage.h"
 #include "pipeline/surface_stage.h"
 #include "pipeline/warm_state.h"
@@ -163,6 +164,12 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
 
   std::string failure;
   if (!affine.converged) failure = "affine registration did not converge: " + affine.message;
+  // Is the input possible for this patient, and the affine a head moving?
+  // Checked (and reported) even when the affine already failed: the report
+  // then says what else is wrong with the input.
+  PlausibilityReport plausibility;
+  const std::string implausible = check_input_plausibility(warm, input, brain_region, A, params, plausibility);
+  if (failure.empty()) failure = implausible;
 
   clock.start(stages::kSurface);
   std::vector<Eigen::Vector3d> fixed_values;
@@ -180,7 +187,8 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
                           {"solver", solve.solver_description}};
       failure = field_beyond_data(deformation.nonrigid_mm, fixed_values, params.gates, metrics["solve"]);
       if (failure.empty()) solve_with_resection(warm, input, brain_region, A, fixed_values, params, deformation, metrics);
-      else deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
+      if (failure.empty()) failure = check_field_plausibility(warm, deformation.nonrigid_mm, params, plausibility);
+      if (!failure.empty()) deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
     } catch (const ComputeError& e) {
       failure = e.what();
       deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
@@ -194,6 +202,14 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.nested(stages::kRefine, [&] {
     metrics["refine"] = refine_interior(result.pullback_field_mm, warm, input, maps, params, failure);
   });
+  if (failure.empty()) {
+    failure = check_image_plausibility(warm, input, brain_region, result.pullback_field_mm, A, params, plausibility);
+    if (!failure.empty()) {
+      deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
+      result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
+    }
+  }
+  metrics["plausibility"] = plausibility.to_json();
   JacobianStats jac = jacobian_stats(result.pullback_field_mm, &brain_region);
   if (failure.empty() && jac.min_det <= params.gates.min_jacobian_determinant) {
     // A few folded voxels (strongly compressed elements under a deep sinking)
@@ -224,6 +240,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   result.warped_labels = warped_labels.get();
   clock.done(stages::kWarp);
 
+  result.nonrigid_node_mm = deformation.nonrigid_mm;
   clock.start(stages::kModels);
   for (const auto& [name, model] : warm.models)
     result.models[name] = carry(model.surface, model.binding, deformation);

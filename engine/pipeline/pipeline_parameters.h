@@ -9,6 +9,8 @@
 #include "fem/elastic_model.h"
 #include "mesh/label_mesher.h"
 #include "models/surface_models.h"
+#include "quality/plausibility_gates.h"
+#include "quality/uncertainty_map.h"
 #include "core/label_table.h"
 #include "registration/active_surface.h"
 #include "registration/affine_registration.h"
@@ -56,6 +58,10 @@ struct PipelineParameters {
   UnfoldParameters unfold;  // local repair tried before the fold gate refuses a field
   ModelParameters models;
   QualityGates gates;
+  // Is the input and the answer physically possible (DESIGN.md, "Plausibility gates").
+  PlausibilityLimits plausibility;
+  // The map computed after the answer is served (DESIGN.md, "Uncertainty map").
+  UncertaintyParameters uncertainty;
   // Bounds on images received from outside (bytes after decompression).
   std::size_t max_image_bytes = std::size_t{512} << 20;
 };

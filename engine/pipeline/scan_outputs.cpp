@@ -57,6 +57,9 @@ EncodedOutputs encode_scan_outputs(const ScanResult& r, ImageEncoding images) {
 void encode_deferred_outputs(const ScanResult& r, const ImageF* intraop_t1, const DeferredOutputOptions& options,
                              const OutputFn& add) {
   add(std::string(protocol::result_output(ResultPart::kMetrics).file), json_text(r.metrics));
+  if (!r.uncertainty_mm.voxels.empty())
+    add(name_of(ResultPart::kUncertainty, options.images),
+        scalar_image_to_bytes(r.uncertainty_mm, VoxelType::float32, options.images == ImageEncoding::gzip));
   ItkTransformWriteOptions itk;
   itk.single_precision = options.itk_single_precision;
   {
@@ -79,7 +82,9 @@ void write_scan_outputs(const ScanResult& result, const ImageF* intraop_t1, cons
     if (out_dir.has_parent_path()) fs::create_directories(out_dir.parent_path());
     fs::create_directories(temp / "models");
     for (const auto& [name, bytes] : encode_scan_outputs(result, ImageEncoding::gzip)) write_file(temp / name, bytes);
-    encode_deferred_outputs(result, intraop_t1, options,
+    DeferredOutputOptions gzipped = options;
+    gzipped.images = ImageEncoding::gzip;
+    encode_deferred_outputs(result, intraop_t1, gzipped,
                             [&](const std::string& name, const std::string& bytes) { write_file(temp / name, bytes); });
     // A previous result in out_dir is replaced only once the new one is complete.
     if (fs::exists(out_dir)) fs::remove_all(out_dir);

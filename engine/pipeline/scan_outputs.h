@@ -35,10 +35,13 @@ struct DeferredOutputOptions {
   // Held while HDF5 encodes field.h5 when other threads use HDF5 too (the
   // library is not thread-safe in this build; the daemon's store is one).
   std::mutex* hdf5_mutex = nullptr;
+  // uncertainty.nii: plain for the daemon's store, gzipped by register.
+  ImageEncoding images = ImageEncoding::plain;
 };
 
 // The deferred parts (made off the latency path, in this order):
-// metrics.json, field.h5 and, with an intraop image, report.png. The report
+// metrics.json, uncertainty.nii (when the result has its map), field.h5 and,
+// with an intraop image, report.png. The report
 // needs the quality metrics already in result.metrics. Each is handed to add
 // as soon as it is ready.
 using OutputFn = std::function<void(const std::string& name, std::string bytes)>;

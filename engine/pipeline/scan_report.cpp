@@ -37,6 +37,10 @@ ReportSummary report_summary(const ScanResult& result, const std::string& scan_i
     }
   }
   s.min_jacobian = number_at(m, "jacobian", "min");
+  if (m.contains("uncertainty")) {
+    s.uncertainty_median_mm = number_at(m["uncertainty"], "band95_mm", "median");
+    s.uncertainty_p95_mm = number_at(m["uncertainty"], "band95_mm", "p95");
+  }
   if (m.contains("surfaces") && m["surfaces"].is_object())
     for (const auto& [name, surface] : m["surfaces"].items()) {
       const auto r = number_at(m["surfaces"], name.c_str(), "max_residual_mm");

@@ -266,6 +266,9 @@ class Page {
       rows.push_back({"Mean surface distance " + o.structure, number(o.mean_distance_affine_mm, "%.2f mm"),
                       number(o.mean_distance_mm, "%.2f mm")});
     rows.push_back({"Min Jacobian determinant", "", number(s.min_jacobian, "%.3f")});
+    if (s.uncertainty_median_mm)
+      rows.push_back({"Uncertainty, 95 % band", "", number(s.uncertainty_median_mm, "%.2f mm") + " median, " +
+                                                      number(s.uncertainty_p95_mm, "%.2f mm") + " p95"});
     rows.push_back({"Worst surface residual", "",
                     number(s.worst_residual_mm, "%.2f mm") +
                         (s.worst_residual_surface.empty() ? "" : " (" + s.worst_residual_surface + ")")});

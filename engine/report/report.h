@@ -56,6 +56,8 @@ struct ReportSummary {
   std::optional<double> min_jacobian;
   std::optional<double> worst_residual_mm;  // largest surface-match residual
   std::string worst_residual_surface;
+  // The uncertainty map (95 % band radius over the brain) when it was made.
+  std::optional<double> uncertainty_median_mm, uncertainty_p95_mm;
   // Replaces the result line when set (a picture of something other than a
   // registration, e.g. a phantom's ground truth).
   std::string result_text;

@@ -41,6 +41,7 @@ nlohmann::json summary(const std::vector<evaluation::CaseResult>& runs) {
           {"tre_mean_mm", mean / n},
           {"tre_pooled_p95_mm", pooled.empty() ? 0.0 : percentile(pooled, 95.0)},
           {"tre_worst_landmark_mm", worst},
+          {"uncertainty_calibration", evaluation::to_json(evaluation::calibrate(runs))},
           {"intraop_total_seconds", {{"p50", totals.empty() ? 0.0 : totals[totals.size() / 2]},
                                      {"max", totals.empty() ? 0.0 : totals.back()}}}};
 }
@@ -48,6 +49,8 @@ nlohmann::json summary(const std::vector<evaluation::CaseResult>& runs) {
 nlohmann::json brief(const evaluation::CaseResult& r) {
   nlohmann::json j = evaluation::to_json(r);
   j.erase("timings");
+  if (!r.predicted_band_mm.empty())
+    j["uncertainty_calibration"] = evaluation::to_json(evaluation::calibrate({r}));
   j["intraop_total_seconds"] = r.intraop_total_seconds;
   return j;
 }
@@ -88,13 +91,17 @@ int main(int argc, char** argv) {
       warm_key = anatomy.preop_key;
       preops[warm_key] = {{"nodes", session->mesh().node_count()}, {"seconds", session->preop_timings()}};
     }
-    const auto run = evaluation::run_robustness_case(*session, anatomy, spec);
+    const auto run = evaluation::run_robustness_case(*session, anatomy, spec, /*with_uncertainty=*/true);
     cases.push_back({{"case", spec.phantom.name}, {"preop", warm_key},
                      {"with_image", brief(run.with_image)}, {"labels_only", brief(run.labels_only)}});
-    std::fprintf(stderr, "%s [%s]: image %.2f / %.2f mm%s, labels %.2f / %.2f mm%s\n", spec.phantom.name.c_str(),
-                 warm_key.c_str(), run.with_image.nonrigid_mean_mm, run.with_image.nonrigid_p95_mm,
-                 run.with_image.fallback ? " FALLBACK" : "", run.labels_only.nonrigid_mean_mm,
-                 run.labels_only.nonrigid_p95_mm, run.labels_only.fallback ? " FALLBACK" : "");
+    const auto cal_i = evaluation::calibrate({run.with_image}), cal_l = evaluation::calibrate({run.labels_only});
+    std::fprintf(stderr,
+                 "%s [%s]: image %.2f / %.2f mm%s (band %.2f, cover %.2f, rho %.2f), labels %.2f / %.2f mm%s "
+                 "(band %.2f, cover %.2f, rho %.2f)\n",
+                 spec.phantom.name.c_str(), warm_key.c_str(), run.with_image.nonrigid_mean_mm,
+                 run.with_image.nonrigid_p95_mm, run.with_image.fallback ? " FALLBACK" : "", cal_i.mean_band_mm,
+                 cal_i.coverage, cal_i.spearman, run.labels_only.nonrigid_mean_mm, run.labels_only.nonrigid_p95_mm,
+                 run.labels_only.fallback ? " FALLBACK" : "", cal_l.mean_band_mm, cal_l.coverage, cal_l.spearman);
     with_image.push_back(run.with_image);
     labels_only.push_back(run.labels_only);
   }

@@ -1,9 +1,11 @@
 #include "phantom_evaluation.h"
 
 #include <algorithm>
+#include <cmath>
 
 #include "core/timer.h"
 #include "field/metrics.h"
+#include "image/resample.h"
 
 namespace brainshift::evaluation {
 namespace {
@@ -56,7 +58,13 @@ CaseResult evaluate_result(const std::string& name, const PhantomCase& c, const 
   out.max_true_displacement_mm = *std::max_element(e.uncorrected.begin(), e.uncorrected.end());
   out.intraop_total_seconds = r.timings["intraop"]["total"].get<double>();
   out.fallback = r.kind != ResultKind::nonrigid;
+  out.fallback_reason = r.fallback_reason;
   out.nonrigid_errors_mm = e.nonrigid;
+  if (!r.uncertainty_mm.voxels.empty()) {
+    const GridSampler map(r.uncertainty_mm.grid);
+    for (const auto& [x, p] : c.landmarks_intraop_preop_mm)
+      out.predicted_band_mm.push_back(map.linear(r.uncertainty_mm.voxels, x, 0.f));
+  }
   out.timings = r.timings;
   out.metrics = r.metrics;
   return out;
@@ -69,6 +77,7 @@ nlohmann::json to_json(const CaseResult& r) {
           {"tre_nonrigid_mm", {{"mean", r.nonrigid_mean_mm}, {"p95", r.nonrigid_p95_mm}, {"max", r.nonrigid_max_mm}}},
           {"max_landmark_displacement_mm", r.max_true_displacement_mm},
           {"fallback", r.fallback},
+          {"fallback_reason", r.fallback_reason},
           {"timings", r.timings},
           {"metrics", r.metrics}};
 }
@@ -93,6 +102,66 @@ Summary summarise(const std::vector<CaseResult>& cases) {
   if (!pooled.empty()) s.pooled_p95_mm = percentile(pooled, 95.0);
   s.removed_fraction = s.uncorrected_mean_mm > 0 ? 1.0 - s.mean_mm / s.uncorrected_mean_mm : 0.0;
   return s;
+}
+
+namespace {
+
+std::vector<double> ranks(const std::vector<double>& v) {
+  std::vector<std::size_t> order(v.size());
+  for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return v[a] < v[b]; });
+  std::vector<double> r(v.size());
+  for (std::size_t i = 0; i < order.size();) {
+    std::size_t j = i;
+    while (j + 1 < order.size() && v[order[j + 1]] == v[order[i]]) ++j;
+    for (std::size_t k = i; k <= j; ++k) r[order[k]] = 0.5 * static_cast<double>(i + j);
+    i = j + 1;
+  }
+  return r;
+}
+
+}  // namespace
+
+double spearman(const std::vector<double>& a, const std::vector<double>& b) {
+  const std::vector<double> ra = ranks(a), rb = ranks(b);
+  const double n = static_cast<double>(std::min(ra.size(), rb.size()));
+  if (n < 3) return 0;
+  double ma = 0, mb = 0;
+  for (std::size_t i = 0; i < n; ++i) ma += ra[i] / n, mb += rb[i] / n;
+  double sab = 0, saa = 0, sbb = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    sab += (ra[i] - ma) * (rb[i] - mb);
+    saa += (ra[i] - ma) * (ra[i] - ma);
+    sbb += (rb[i] - mb) * (rb[i] - mb);
+  }
+  return saa > 0 && sbb > 0 ? sab / std::sqrt(saa * sbb) : 0.0;
+}
+
+Calibration calibrate(const std::vector<CaseResult>& cases) {
+  std::vector<double> band, error;
+  for (const auto& c : cases) {
+    if (c.predicted_band_mm.size() != c.nonrigid_errors_mm.size()) continue;
+    band.insert(band.end(), c.predicted_band_mm.begin(), c.predicted_band_mm.end());
+    error.insert(error.end(), c.nonrigid_errors_mm.begin(), c.nonrigid_errors_mm.end());
+  }
+  Calibration out;
+  out.landmarks = band.size();
+  if (band.empty()) return out;
+  std::size_t inside = 0;
+  for (std::size_t i = 0; i < band.size(); ++i) {
+    inside += error[i] <= band[i];
+    out.mean_band_mm += band[i] / static_cast<double>(band.size());
+    out.mean_error_mm += error[i] / static_cast<double>(band.size());
+  }
+  out.spearman = spearman(band, error);
+  out.coverage = static_cast<double>(inside) / static_cast<double>(band.size());
+  out.width_ratio = out.mean_error_mm > 0 ? out.mean_band_mm / out.mean_error_mm : 0.0;
+  return out;
+}
+
+nlohmann::json to_json(const Calibration& c) {
+  return {{"landmarks", c.landmarks}, {"spearman", c.spearman}, {"coverage_95", c.coverage},
+          {"width_ratio", c.width_ratio}, {"mean_band_mm", c.mean_band_mm}, {"mean_error_mm", c.mean_error_mm}};
 }
 
 }  // namespace brainshift::evaluation

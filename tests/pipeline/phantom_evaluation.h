@@ -19,7 +19,10 @@ struct CaseResult {
   double max_true_displacement_mm = 0;
   double intraop_total_seconds = 0;
   bool fallback = false;
+  std::string fallback_reason;  // when fallback
   std::vector<double> nonrigid_errors_mm;  // per landmark
+  // The uncertainty map's 95 % band at each landmark (empty without the map).
+  std::vector<double> predicted_band_mm;
   nlohmann::json timings, metrics;
 };
 
@@ -39,5 +42,20 @@ struct Summary {
   double removed_fraction = 0, affine_mean_mm = 0, uncorrected_mean_mm = 0;
 };
 Summary summarise(const std::vector<CaseResult>& cases);
+
+// How well the uncertainty map predicts the landmark errors, pooled over
+// every landmark of the cases that have a map.
+struct Calibration {
+  std::size_t landmarks = 0;
+  double spearman = 0;        // rank correlation of predicted band and actual error
+  double coverage = 0;        // fraction of landmarks whose error is inside the band
+  double width_ratio = 0;     // mean band / mean actual error
+  double mean_band_mm = 0, mean_error_mm = 0;
+};
+Calibration calibrate(const std::vector<CaseResult>& cases);
+nlohmann::json to_json(const Calibration& c);
+
+// Spearman rank correlation (ties take their mean rank); 0 when either is constant.
+double spearman(const std::vector<double>& a, const std::vector<double>& b);
 
 }  // namespace brainshift::evaluation

@@ -35,15 +35,21 @@ CaseAnatomy case_anatomy(const RobustnessInputs& in, const RobustnessSpec& spec)
   return a;
 }
 
-RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& anatomy, const RobustnessSpec& spec) {
+RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& anatomy, const RobustnessSpec& spec,
+                                  bool with_uncertainty) {
   PhantomSpec phantom = spec.phantom;
   phantom.preop_tumor.reset();  // already in anatomy.preop and the truth
   RobustnessSpec s = spec;
   s.phantom = phantom;
   const PhantomCase c = make_robustness_case(anatomy.preop.t1, anatomy.truth_labels, s);
   RobustnessRun run;
-  run.with_image = evaluate_result(spec.phantom.name, c, session.register_scan({c.intraop_labels, c.intraop_t1}, nullptr));
-  run.labels_only = evaluate_result(spec.phantom.name, c, session.register_scan({c.intraop_labels, std::nullopt}, nullptr));
+  const auto registered = [&](const IntraopInput& input) {
+    ScanResult r = session.register_scan(input, nullptr);
+    if (with_uncertainty) session.add_uncertainty(input, r, nullptr);
+    return evaluate_result(spec.phantom.name, c, r);
+  };
+  run.with_image = registered({c.intraop_labels, c.intraop_t1});
+  run.labels_only = registered({c.intraop_labels, std::nullopt});
   return run;
 }
 

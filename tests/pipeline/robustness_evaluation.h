@@ -36,6 +36,9 @@ struct RobustnessRun {
 };
 
 // session must hold anatomy.preop. Both registrations use the same case.
-RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& anatomy, const RobustnessSpec& spec);
+// with_uncertainty: each result also gets its uncertainty map (after the
+// timed stages), sampled at the landmarks (CaseResult::predicted_band_mm).
+RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& anatomy, const RobustnessSpec& spec,
+                                  bool with_uncertainty = false);
 
 }  // namespace brainshift::evaluation

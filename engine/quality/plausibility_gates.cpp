@@ -1,0 +1,200 @@
+#include "quality/plausibility_gates.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "image/resample.h"
+
+namespace brainshift {
+namespace {
+
+std::string fixed(double v, int digits = 3) {
+  std::ostringstream s;
+  s.precision(digits);
+  s << std::fixed << v;
+  return s.str();
+}
+
+GateResult untested(const std::string& name, const std::string& why) {
+  GateResult g;
+  g.name = name;
+  g.tested = false;
+  g.detail = why;
+  return g;
+}
+
+double affine_det(const Eigen::Matrix4d& A) { return A.topLeftCorner<3, 3>().determinant(); }
+
+}  // namespace
+
+std::string PlausibilityReport::first_failure() const {
+  for (const auto& g : gates_)
+    if (g.tested && !g.passed)
+      return "plausibility gate " + g.name + ": " + g.detail + " (value " + fixed(g.value) + ", limit " + g.limit + ")";
+  return {};
+}
+
+nlohmann::json PlausibilityReport::to_json() const {
+  nlohmann::json out = nlohmann::json::object();
+  bool all = true;
+  for (const auto& g : gates_) {
+    nlohmann::json j = {{"tested", g.tested}, {"detail", g.detail}};
+    if (g.tested) {
+      j["value"] = g.value;
+      j["limit"] = g.limit;
+      j["passed"] = g.passed;
+      all = all && g.passed;
+    }
+    for (const auto& [k, v] : g.extra.items()) j[k] = v;
+    out[g.name] = std::move(j);
+  }
+  // No gate run (an earlier stage failed, or the gates are off) is no pass.
+  out["all_passed"] = all && !gates_.empty();
+  return out;
+}
+
+GateResult volume_gate(double intraop_ml, double preop_ml, const Eigen::Matrix4d& A, const PlausibilityLimits& limits) {
+  if (preop_ml <= 0) return untested("volume", "no preop brain volume");
+  GateResult g;
+  g.name = "volume";
+  const double mapped_ml = affine_det(A) * preop_ml;
+  g.value = std::abs(intraop_ml / mapped_ml - 1.0);
+  g.limit = "<= " + fixed(limits.max_volume_change);
+  g.passed = g.value <= limits.max_volume_change;
+  g.detail = "intraop brain " + fixed(intraop_ml, 1) + " ml against the preop brain mapped by the affine " +
+             fixed(mapped_ml, 1) + " ml (relative change)";
+  g.extra = {{"intraop_ml", intraop_ml}, {"preop_mapped_ml", mapped_ml}};
+  return g;
+}
+
+GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen::Matrix4d& A,
+                                 const PlausibilityLimits& limits) {
+  if (preop_ml <= 0 || intraop_ml <= 0) return untested("ventricle_volume", "ventricles absent from one of the scans");
+  GateResult g;
+  g.name = "ventricle_volume";
+  const double mapped_ml = affine_det(A) * preop_ml;
+  // Symmetric in the ratio, but only growth is refused: shrinking ventricles
+  // (drained CSF, a segmenter losing horns) is reported, never a reason to
+  // withhold an answer; a label grown over brain tissue is.
+  g.value = intraop_ml / mapped_ml;
+  g.limit = "<= " + fixed(limits.max_ventricle_volume_ratio, 2);
+  g.passed = g.value <= limits.max_ventricle_volume_ratio;
+  g.detail = "intraop ventricles " + fixed(intraop_ml, 1) + " ml against the preop's mapped by the affine " +
+             fixed(mapped_ml, 1) + " ml (ratio)";
+  return g;
+}
+
+std::vector<GateResult> affine_gates(const Eigen::Matrix4d& A, const PlausibilityLimits& limits) {
+  const Eigen::Matrix3d L = A.topLeftCorner<3, 3>();
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(L, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Eigen::Vector3d s = svd.singularValues();
+  GateResult stretch;
+  stretch.name = "affine_stretch";
+  // A mirror (det < 0) can never be a head moving: infinite deviation.
+  const double worst = L.determinant() <= 0 ? INFINITY : std::max(s.maxCoeff() - 1.0, 1.0 / s.minCoeff() - 1.0);
+  stretch.value = worst;
+  stretch.limit = "<= " + fixed(limits.max_affine_stretch_deviation);
+  stretch.passed = worst <= limits.max_affine_stretch_deviation;
+  stretch.detail = "largest principal stretch of the affine away from 1 (scale and shear; the same head)";
+  stretch.extra = {{"principal_stretches", {s[0], s[1], s[2]}}, {"determinant", L.determinant()}};
+
+  // Rotation part of the polar decomposition L = R S.
+  Eigen::Matrix3d R = svd.matrixU() * svd.matrixV().transpose();
+  if (R.determinant() < 0) R = -R;
+  const double angle_deg = Eigen::AngleAxisd(R).angle() * 180.0 / M_PI;
+  GateResult rotation;
+  rotation.name = "head_rotation";
+  rotation.value = angle_deg;
+  rotation.limit = "<= " + fixed(limits.max_head_rotation_deg, 1);
+  rotation.passed = angle_deg <= limits.max_head_rotation_deg;
+  rotation.detail = "rotation of the head between the scans (degrees)";
+  return {stretch, rotation};
+}
+
+std::vector<GateResult> field_gates(const TetMesh& mesh, const std::vector<Eigen::Vector3d>& w,
+                                    const PlausibilityLimits& limits) {
+  double largest_mm = 0;
+  for (const auto& x : w) largest_mm = std::max(largest_mm, x.norm());
+  GateResult largest;
+  largest.name = "max_displacement";
+  largest.value = largest_mm;
+  largest.limit = "<= " + fixed(limits.max_displacement_mm, 1) + " mm";
+  largest.passed = largest.value <= limits.max_displacement_mm;
+  largest.detail = "largest non-rigid displacement (mm, beyond the affine)";
+
+  // RMS small strain sym(grad w) over the mesh volume, w linear in each tet.
+  double strain2 = 0, volume = 0;
+  for (std::size_t t = 0; t < mesh.tets.size(); ++t) {
+    const auto& n = mesh.tets[t];
+    Eigen::Matrix3d P, W;
+    for (int c = 0; c < 3; ++c) {
+      P.col(c) = mesh.nodes_mm[n[c + 1]] - mesh.nodes_mm[n[0]];
+      W.col(c) = w[n[c + 1]] - w[n[0]];
+    }
+    const double v = std::abs(P.determinant()) / 6.0;
+    if (v <= 0) continue;
+    const Eigen::Matrix3d G = W * P.inverse();
+    const Eigen::Matrix3d e = 0.5 * (G + G.transpose());
+    strain2 += v * e.squaredNorm();
+    volume += v;
+  }
+  GateResult strain;
+  strain.name = "strain";
+  strain.value = volume > 0 ? std::sqrt(strain2 / volume) : 0.0;
+  strain.limit = "<= " + fixed(limits.max_rms_strain);
+  strain.passed = strain.value <= limits.max_rms_strain;
+  strain.detail = "RMS small strain of the non-rigid field over the brain (strain energy per volume / shear modulus)";
+  return {largest, strain};
+}
+
+double squared_correlation(const std::vector<double>& a, const std::vector<double>& b) {
+  const std::size_t n = std::min(a.size(), b.size());
+  if (n < 3) return 0;
+  double ma = 0, mb = 0;
+  for (std::size_t i = 0; i < n; ++i) ma += a[i], mb += b[i];
+  ma /= n, mb /= n;
+  double sab = 0, saa = 0, sbb = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    sab += (a[i] - ma) * (b[i] - mb);
+    saa += (a[i] - ma) * (a[i] - ma);
+    sbb += (b[i] - mb) * (b[i] - mb);
+  }
+  return saa > 0 && sbb > 0 ? sab * sab / (saa * sbb) : 0.0;
+}
+
+GateResult image_gate(const ImageF& preop_t1, const ImageF& intraop_t1, const Mask& brain, const VectorImage3& u,
+                      const Eigen::Matrix4d& A, const PlausibilityLimits& limits) {
+  const std::size_t n = brain.voxels.size();
+  if (intraop_t1.voxels.size() != n || u.vectors.size() != n) return untested("image", "no intraop image");
+  // About 60k samples: the correlation's sampling error (~(1-r^2)/sqrt(n))
+  // stays far below the tolerance, at a few ms.
+  std::size_t inside = 0;
+  for (auto m : brain.voxels) inside += m != 0;
+  const std::size_t stride = std::max<std::size_t>(1, inside / 60000);
+  const GridSampler preop(preop_t1.grid);
+  const Eigen::Matrix4d preop_from_intraop = A.inverse();
+  const Grid3& g = brain.grid;
+  std::vector<double> fixed_v, warped_v, affine_v;
+  std::size_t seen = 0;
+  for (std::size_t v = 0; v < n; ++v) {
+    if (!brain.voxels[v] || (seen++ % stride) != 0) continue;
+    const int i = static_cast<int>(v % g.dims[0]), j = static_cast<int>((v / g.dims[0]) % g.dims[1]),
+              k = static_cast<int>(v / (static_cast<std::size_t>(g.dims[0]) * g.dims[1]));
+    const Eigen::Vector3d x = g.world_mm(i, j, k);
+    fixed_v.push_back(intraop_t1.voxels[v]);
+    warped_v.push_back(preop.linear(preop_t1.voxels, x + u.vectors[v].cast<double>(), 0.f));
+    affine_v.push_back(preop.linear(preop_t1.voxels, (preop_from_intraop * x.homogeneous()).head<3>(), 0.f));
+  }
+  const double r2_warped = squared_correlation(fixed_v, warped_v), r2_affine = squared_correlation(fixed_v, affine_v);
+  GateResult gate;
+  gate.name = "image";
+  gate.value = r2_warped - r2_affine;
+  gate.limit = ">= " + fixed(-limits.image_r2_tolerance);
+  gate.passed = gate.value >= -limits.image_r2_tolerance;
+  gate.detail = "squared correlation of the warped preop T1 with the intraop image minus that of the affine alone";
+  gate.extra = {{"r2_warped", r2_warped}, {"r2_affine", r2_affine}, {"samples", fixed_v.size()}};
+  return gate;
+}
+
+}  // namespace brainshift

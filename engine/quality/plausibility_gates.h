@@ -1,0 +1,97 @@
+#pragma once
+// Plausibility gates: is the input, and the answer made from it, physically
+// possible for one patient between two scans of one operation? Every other
+// quality figure measures agreement with the input (a leaking segmentation is
+// matched beautifully); these measure the input and the result against what
+// brain shift, head positioning and soft tissue allow.
+//
+// Each gate reports its value, its limit and pass/fail (metrics.json
+// "plausibility", PROTOCOL.md); a failed gate turns the scan into the marked
+// affine-only fallback with the gate's reason. The limits and why they are
+// where they are: docs/DESIGN.md, "Plausibility gates".
+#include <string>
+#include <vector>
+
+#include <Eigen/Dense>
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "core/tet_mesh.h"
+#include "image/morphology.h"
+
+namespace brainshift {
+
+struct PlausibilityLimits {
+  bool enabled = true;
+  // |intraop brain (+ enclosed cavities) / (det A x preop brain) - 1|.
+  double max_volume_change = 0.15;
+  // Intraop over affine-mapped preop ventricle volume: CSF drainage halves
+  // them at most; a ventricle label covering brain tissue multiplies them.
+  double max_ventricle_volume_ratio = 3.0;
+  // Principal stretches of the affine within [1/(1+d), 1+d] (scale and shear).
+  double max_affine_stretch_deviation = 0.15;
+  // Rotation angle of the affine's rotation part.
+  double max_head_rotation_deg = 90.0;
+  // Left-right: a test prefers one side when its score beats the other's by
+  // this much (label overlap, and squared image correlation).
+  double left_right_overlap_margin = 0.05;
+  double left_right_r2_margin = 0.02;
+  // The field: largest non-rigid displacement anywhere and the RMS small
+  // strain over the brain. (Motion beyond what the surface data ask for is
+  // QualityGates::max_unsupported_displacement_mm's gate.)
+  double max_displacement_mm = 40.0;
+  double max_rms_strain = 0.20;
+  // The warped preop T1 may not match the intraop image worse than the affine
+  // alone by more than this (squared correlation).
+  double image_r2_tolerance = 0.01;
+};
+
+struct GateResult {
+  std::string name;        // "volume", "affine_stretch", ...
+  bool tested = true;      // false: not applicable (reason in detail)
+  bool passed = true;
+  double value = 0;
+  std::string limit;       // e.g. "<= 0.15"
+  std::string detail;      // what the value is, or why untested
+  nlohmann::json extra = nlohmann::json::object();
+};
+
+class PlausibilityReport {
+ public:
+  void add(GateResult g) { gates_.push_back(std::move(g)); }
+  // "plausibility gate <name>: <detail> (value v, limit l)" of the first
+  // failed gate; empty when all passed.
+  std::string first_failure() const;
+  nlohmann::json to_json() const;
+  const std::vector<GateResult>& gates() const { return gates_; }
+
+ private:
+  std::vector<GateResult> gates_;
+};
+
+// Brain volume: intraop outline (enclosed cavities filled) against the preop
+// outline mapped by the affine.
+GateResult volume_gate(double intraop_ml, double preop_ml, const Eigen::Matrix4d& intraop_from_preop,
+                       const PlausibilityLimits& limits);
+// Lateral ventricles, the same way; untested when either side has none.
+GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen::Matrix4d& intraop_from_preop,
+                                 const PlausibilityLimits& limits);
+// Principal stretches and rotation angle of the affine (polar decomposition).
+std::vector<GateResult> affine_gates(const Eigen::Matrix4d& intraop_from_preop, const PlausibilityLimits& limits);
+
+// The solved non-rigid displacement at the mesh nodes: largest displacement
+// and RMS small strain over the mesh volume.
+std::vector<GateResult> field_gates(const TetMesh& preop_mesh, const std::vector<Eigen::Vector3d>& nonrigid_mm,
+                                    const PlausibilityLimits& limits);
+
+// Squared correlation of the intraop T1 with the preop T1 pulled back by the
+// served field, against the same through the affine alone, over the intraop
+// brain (sampled). Untested without an intraop image.
+GateResult image_gate(const ImageF& preop_t1, const ImageF& intraop_t1, const Mask& intraop_brain,
+                      const VectorImage3& pullback_field_mm, const Eigen::Matrix4d& intraop_from_preop,
+                      const PlausibilityLimits& limits);
+
+// Squared Pearson correlation of paired samples (0 when either is constant).
+double squared_correlation(const std::vector<double>& a, const std::vector<double>& b);
+
+}  // namespace brainshift

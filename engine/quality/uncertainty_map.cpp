@@ -1,0 +1,168 @@
+#include "quality/uncertainty_map.h"
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include "image/distance_map.h"
+#include "image/morphology.h"
+#include "image/resample.h"
+#include "models/carry.h"
+
+namespace brainshift {
+namespace {
+
+// A smooth random 3-vector field of unit variance per component with a
+// Gaussian correlation of length ell: random Fourier features.
+class SmoothNoise {
+ public:
+  SmoothNoise(std::mt19937_64& rng, double ell_mm) {
+    std::normal_distribution<double> k(0.0, 1.0 / ell_mm);
+    std::uniform_real_distribution<double> phase(0.0, 2 * M_PI);
+    for (auto& c : waves_)
+      for (auto& w : c) w = {Eigen::Vector3d(k(rng), k(rng), k(rng)), phase(rng)};
+  }
+  Eigen::Vector3d at(const Eigen::Vector3d& p) const {
+    Eigen::Vector3d out;
+    for (int c = 0; c < 3; ++c) {
+      double s = 0;
+      for (const auto& w : waves_[c]) s += std::cos(w.k.dot(p) + w.phase);
+      out[c] = s * std::sqrt(2.0 / kWaves);
+    }
+    return out;
+  }
+
+ private:
+  static constexpr int kWaves = 32;
+  struct Wave {
+    Eigen::Vector3d k;
+    double phase;
+  };
+  std::array<std::array<Wave, kWaves>, 3> waves_;
+};
+
+Eigen::Vector3d voxel_centre(const Grid3& g, std::size_t v) {
+  const std::size_t nx = g.dims[0], ny = g.dims[1];
+  return g.world_mm(static_cast<double>(v % nx), static_cast<double>((v / nx) % ny), static_cast<double>(v / (nx * ny)));
+}
+
+// The intraop grid's orientation at about spacing_mm.
+Grid3 coarse_grid(const Grid3& fine, double spacing_mm) {
+  Grid3 g = fine;
+  const Eigen::Vector3d s = fine.spacing_mm();
+  Eigen::Vector3d f;
+  for (int a = 0; a < 3; ++a) {
+    f[a] = std::max(1.0, spacing_mm / s[a]);
+    g.dims[a] = std::max(1, static_cast<int>(std::ceil(fine.dims[a] / f[a])));
+  }
+  g.world_from_voxel.topLeftCorner<3, 3>() = fine.world_from_voxel.topLeftCorner<3, 3>() * f.asDiagonal();
+  // Voxel 0 of both grids at the same place; the coarse grid covers the fine one.
+  g.world_from_voxel.topRightCorner<3, 1>() = fine.world_from_voxel.topRightCorner<3, 1>();
+  return g;
+}
+
+}  // namespace
+
+std::vector<double> propagate_surface_noise(const std::vector<Eigen::Vector3d>& fixed_preop_mm,
+                                            const std::vector<double>& sigma_mm, const LinearSolve& solve,
+                                            const UncertaintyParameters& params) {
+  std::mt19937_64 rng(params.seed);
+  std::vector<double> variance;
+  const int samples = std::clamp(params.samples, 1, 256);
+  std::vector<Eigen::Vector3d> values(fixed_preop_mm.size());
+  for (int s = 0; s < samples; ++s) {
+    const SmoothNoise noise(rng, params.noise_correlation_mm);
+    // Per component sigma / sqrt 3: sigma is the RMS length of the 3-D error.
+    for (std::size_t i = 0; i < values.size(); ++i)
+      values[i] = noise.at(fixed_preop_mm[i]) * (sigma_mm[i] / std::sqrt(3.0));
+    const std::vector<Eigen::Vector3d> nodes = solve(values);
+    if (variance.empty()) variance.assign(nodes.size(), 0.0);
+    for (std::size_t n = 0; n < nodes.size() && n < variance.size(); ++n) variance[n] += nodes[n].squaredNorm();
+  }
+  for (auto& v : variance) v = std::sqrt(v / samples);
+  return variance;
+}
+
+ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParameters& params, nlohmann::json* summary) {
+  const Grid3& fine = in.intraop_labels.grid;
+  const Grid3 coarse = coarse_grid(fine, params.grid_spacing_mm);
+  const GridSampler on_fine(fine);
+  const Eigen::Matrix4d preop_from_intraop = in.intraop_from_preop.inverse();
+
+  // Tissue on the coarse grid; boundary data is wherever tissue ends.
+  const LabelImage coarse_labels = resample_nearest(in.intraop_labels, coarse);
+  Mask tissue(coarse), not_tissue(coarse);
+  for (std::size_t v = 0; v < coarse.voxel_count(); ++v) {
+    const std::uint16_t l = coarse_labels.voxels[v];
+    const bool t = std::find(in.tissue_labels.begin(), in.tissue_labels.end(), l) != in.tissue_labels.end();
+    tissue.voxels[v] = t;
+    not_tissue.voxels[v] = !t;
+  }
+  const ImageF depth_mm = distance_to_mask_mm(not_tissue);
+  // Where an answer is claimed: the brain with its cavities (ventricles, an
+  // enclosed resection), and one voxel beyond its outline, which is itself
+  // only known to a voxel (a landmark just outside a segmentation is still
+  // in the brain).
+  Mask region(fine);
+  for (std::size_t v = 0; v < region.voxels.size(); ++v) region.voxels[v] = in.intraop_labels.voxels[v] != 0;
+  region = dilate(fill_holes(region), fine.spacing_mm().maxCoeff());
+  Mask coarse_region(coarse);
+  for (std::size_t v = 0; v < coarse.voxel_count(); ++v) {
+    std::size_t f;
+    coarse_region.voxels[v] = nearest_voxel(fine, on_fine.voxel(voxel_centre(coarse, v)), &f) && region.voxels[f];
+  }
+  // The map is also evaluated a cell and a half beyond the coarse region (a
+  // fine region voxel lies within half a cell of it, its interpolation
+  // corners within a cell of that), so the interpolation to the fine grid
+  // does not fade it toward the boundary.
+  const ImageF outside_mm = distance_to_mask_mm(coarse_region);
+  const double reach_mm = 1.5 * coarse.spacing_mm().norm();
+
+  // Preop point of each coarse tissue voxel, and its non-rigid displacement.
+  TriSurface points;
+  std::vector<std::size_t> where;
+  std::vector<double> nonrigid_mm;
+  for (std::size_t v = 0; v < coarse.voxel_count(); ++v) {
+    if (!(outside_mm.voxels[v] <= reach_mm)) continue;
+    const Eigen::Vector3d x = voxel_centre(coarse, v);
+    std::size_t f;
+    if (!nearest_voxel(fine, on_fine.voxel(x), &f)) continue;
+    const Eigen::Vector3d p = x + in.pullback_field_mm.vectors[f].cast<double>();
+    points.vertices_mm.push_back(p);
+    where.push_back(v);
+    nonrigid_mm.push_back((p - (preop_from_intraop * x.homogeneous()).head<3>()).norm());
+  }
+  ImageF band_coarse(coarse, 0.f);
+  if (!points.vertices_mm.empty()) {
+    const ModelBinding b = bind_to_mesh(points, in.preop_mesh);
+    for (std::size_t i = 0; i < where.size(); ++i) {
+      double noise2 = 0;
+      for (int q = 0; q < 4; ++q) {
+        const double s = in.node_noise_rms_mm[b.nodes[i][q]];
+        noise2 += b.weights[i][q] * s * s;
+      }
+      const double depth = depth_mm.voxels[where[i]];
+      const double model = params.model_error_fraction * nonrigid_mm[i] * (1.0 - std::exp(-depth / params.depth_scale_mm));
+      band_coarse.voxels[where[i]] = static_cast<float>(kBand95PerRms * std::sqrt(noise2 + model * model));
+    }
+  }
+  // To the intraop grid, kept to the region.
+  ImageF band = resample_linear(band_coarse, fine);
+  std::vector<double> inside;
+  for (std::size_t v = 0; v < band.voxels.size(); ++v) {
+    if (!region.voxels[v]) band.voxels[v] = 0.f;
+    else inside.push_back(band.voxels[v]);
+  }
+  if (summary && !inside.empty()) {
+    std::sort(inside.begin(), inside.end());
+    double mean = 0;
+    for (double d : inside) mean += d / inside.size();
+    (*summary)["band95_mm"] = {{"mean", mean},
+                               {"median", inside[inside.size() / 2]},
+                               {"p95", inside[inside.size() * 95 / 100]},
+                               {"max", inside.back()}};
+  }
+  return band;
+}
+
+}  // namespace brainshift

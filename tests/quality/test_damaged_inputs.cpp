@@ -1,0 +1,239 @@
+// The damaged-input suite: segmentations and images broken the ways a
+// conversion or a segmenter breaks them, registered end to end on the small
+// synthetic head (coarse mesh) with a known deformation. Not one may come
+// back as a silent "nonrigid" worse than the affine alone: each is refused
+// (the marked affine-only fallback with its reason, or an input error) or
+// its non-rigid result is no worse than the affine. The undamaged scan must
+// pass every gate (a false refusal is a failure too).
+#include <gtest/gtest.h>
+#include <mpi.h>
+
+#include <cstdio>
+#include <functional>
+
+#include "config_file.h"
+#include "core/errors.h"
+#include "image/resample.h"
+#include "phantom/brain_shift_phantom.h"
+#include "phantom_evaluation.h"  // tests/pipeline
+#include "pipeline/engine_session.h"
+#include "synthetic_head.h"  // tests/support
+
+using namespace brainshift;
+
+namespace {
+
+// The synthetic head with one more occipital horn on the left: real
+// ventricles are rarely symmetric, and a mirror is only visible through
+// what is not.
+PreopInput asymmetric_head() {
+  test::SyntheticHead h = test::synthetic_head();
+  const Grid3& g = h.labels.grid;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        if ((p - Eigen::Vector3d(-14, -24, 4)).cwiseQuotient(Eigen::Vector3d(5, 12, 6)).norm() < 1) {
+          h.labels.at(i, j, k) = 2;
+          h.t1.at(i, j, k) = 30.f;
+        }
+      }
+  return {std::move(h.t1), std::move(h.labels)};
+}
+
+PipelineParameters coarse_parameters() {
+  auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
+  p.meshing.cell_size_mm = 7;
+  p.meshing.facet_size_mm = 4;
+  p.meshing.facet_distance_mm = 1.5;
+  return p;
+}
+
+PhantomSpec spec() {
+  PhantomSpec s;
+  s.name = "damaged-suite base";
+  s.seed = 7;
+  s.sinking.cortex_mm = 9;
+  s.sinking.deep_mm = 1.5;
+  s.rigid.rotation_deg = {3, -2, 4};
+  s.rigid.translation_mm = {2, -1, 1.5};
+  s.dims = {136, 156, 50};
+  s.landmark_count = 150;
+  return s;
+}
+
+void for_each_voxel(const Grid3& g, const std::function<void(int, int, int)>& f) {
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) f(i, j, k);
+}
+
+// A threshold segmenter leaking into dura and fluid: the outline grown by
+// `voxels` voxels along every axis (26-neighbourhood), as brain.
+LabelImage leaked(const LabelImage& in, int voxels) {
+  LabelImage out = in;
+  const Grid3& g = in.grid;
+  for (int round = 0; round < voxels; ++round) {
+    const LabelImage prev = out;
+    for_each_voxel(g, [&](int i, int j, int k) {
+      if (prev.at(i, j, k) != 0) return;
+      for (int dk = -1; dk <= 1; ++dk)
+        for (int dj = -1; dj <= 1; ++dj)
+          for (int di = -1; di <= 1; ++di)
+            if (g.contains(i + di, j + dj, k + dk) && prev.at(i + di, j + dj, k + dk) != 0) {
+              out.at(i, j, k) = 1;
+              return;
+            }
+    });
+  }
+  return out;
+}
+
+Eigen::Vector3d centroid(const LabelImage& l) {
+  Eigen::Vector3d c = Eigen::Vector3d::Zero();
+  double n = 0;
+  for_each_voxel(l.grid, [&](int i, int j, int k) {
+    if (l.at(i, j, k) != 0) c += l.grid.world_mm(i, j, k), n += 1;
+  });
+  return c / n;
+}
+
+template <class T>
+Image3<T> flipped_first_axis(const Image3<T>& in) {
+  Image3<T> out = in;
+  const auto& d = in.grid.dims;
+  for_each_voxel(in.grid, [&](int i, int j, int k) { out.at(i, j, k) = in.at(d[0] - 1 - i, j, k); });
+  return out;
+}
+
+struct Outcome {
+  std::string how;  // "refused: ...", "input error: ...", or "nonrigid"
+  bool refused = false;
+  double affine_mm = 0, nonrigid_mm = 0;
+};
+
+class DamagedInputs : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    preop_ = new PreopInput(asymmetric_head());
+    session_ = new EngineSession(MPI_COMM_WORLD, coarse_parameters());
+    session_->load_preop(*preop_, nullptr);
+    case_ = new PhantomCase(make_phantom(preop_->t1, preop_->labels, spec()));
+  }
+  static void TearDownTestSuite() {
+    delete case_;
+    delete session_;
+    delete preop_;
+  }
+  static Outcome run(const std::string& name, const IntraopInput& scan) {
+    Outcome o;
+    try {
+      const ScanResult r = session_->register_scan(scan, nullptr);
+      const auto e = evaluation::evaluate_result(name, *case_, r);
+      o.affine_mm = e.affine_mean_mm;
+      o.nonrigid_mm = e.nonrigid_mean_mm;
+      o.refused = r.kind != ResultKind::nonrigid;
+      o.how = o.refused ? "refused: " + r.fallback_reason : "nonrigid";
+      last_metrics_ = r.metrics;
+      for (const auto& [gate, g] : r.metrics["plausibility"].items())
+        if (g.is_object() && g.value("tested", false) && !g.value("passed", true)) o.how += " [gate " + gate + " failed]";
+    } catch (const InputError& e) {
+      o.refused = true;
+      o.how = std::string("input error: ") + e.what();
+    }
+    std::printf("%-34s %-5s affine %5.2f non-rigid %5.2f mm | %s\n", name.c_str(), scan.t1 ? "+T1" : "", o.affine_mm,
+                o.nonrigid_mm, o.how.c_str());
+    return o;
+  }
+  // Refused, or a non-rigid answer no worse than the affine alone.
+  static void expect_not_silent(const std::string& name, const IntraopInput& scan) {
+    const Outcome o = run(name, scan);
+    if (!o.refused) EXPECT_LE(o.nonrigid_mm, o.affine_mm + 0.05) << name << ": a silent non-rigid failure";
+  }
+  // gates: the plausibility gates of which at least one must have failed
+  // (whatever else refused the scan first).
+  static void expect_refused(const std::string& name, const IntraopInput& scan, std::vector<std::string> gates) {
+    const Outcome o = run(name, scan);
+    EXPECT_TRUE(o.refused) << name << ": accepted as non-rigid (" << o.nonrigid_mm << " mm against the affine's "
+                           << o.affine_mm << ")";
+    if (o.how.rfind("input error", 0) == 0) return;
+    const auto& p = last_metrics_["plausibility"];
+    bool tripped = false;
+    for (const auto& g : gates) tripped |= p.contains(g) && p[g].value("tested", false) && !p[g].value("passed", true);
+    EXPECT_TRUE(tripped) << name << ": none of the expected gates failed: " << p.dump(1);
+  }
+  static IntraopInput both(LabelImage labels, ImageF t1) { return {std::move(labels), std::move(t1)}; }
+  static IntraopInput labels_only(LabelImage labels) { return {std::move(labels), std::nullopt}; }
+
+  static PreopInput* preop_;
+  static EngineSession* session_;
+  static PhantomCase* case_;
+  static nlohmann::json last_metrics_;
+};
+PreopInput* DamagedInputs::preop_ = nullptr;
+EngineSession* DamagedInputs::session_ = nullptr;
+PhantomCase* DamagedInputs::case_ = nullptr;
+nlohmann::json DamagedInputs::last_metrics_;
+
+}  // namespace
+
+TEST_F(DamagedInputs, TheUndamagedScanPassesEveryGate) {
+  for (const auto& scan : {both(case_->intraop_labels, case_->intraop_t1), labels_only(case_->intraop_labels)}) {
+    const Outcome o = run("undamaged", scan);
+    EXPECT_FALSE(o.refused) << o.how;
+    EXPECT_LT(o.nonrigid_mm, o.affine_mm);
+    EXPECT_EQ(last_metrics_["plausibility"]["all_passed"], true) << last_metrics_["plausibility"].dump(1);
+    for (const char* gate : {"volume", "affine_stretch", "head_rotation", "left_right", "strain", "max_displacement"})
+      EXPECT_TRUE(last_metrics_["plausibility"][gate]["tested"].get<bool>()) << gate;
+  }
+}
+
+TEST_F(DamagedInputs, AnOutlineLeakingFourVoxelsIn3DIsRefused) {
+  const LabelImage leak = leaked(case_->intraop_labels, 4);
+  expect_refused("leak 4 voxels 3D", both(leak, case_->intraop_t1), {"volume", "affine_stretch"});
+  expect_refused("leak 4 voxels 3D", labels_only(leak), {"volume", "affine_stretch"});
+}
+
+TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {
+  LabelImage lost = case_->intraop_labels;
+  const Eigen::Vector3d c = centroid(lost) + Eigen::Vector3d(38, 0, 0);
+  for_each_voxel(lost.grid, [&](int i, int j, int k) {
+    if (((lost.grid.world_mm(i, j, k) - c).cwiseAbs().array() < 22.5).all()) lost.at(i, j, k) = 0;
+  });
+  expect_not_silent("lost 45 mm block", both(lost, case_->intraop_t1));
+  expect_not_silent("lost 45 mm block", labels_only(lost));
+}
+
+TEST_F(DamagedInputs, MirroredLabelsAndImageAreRefused) {
+  const LabelImage labels = flipped_first_axis(case_->intraop_labels);
+  expect_refused("mirrored left-right", both(labels, flipped_first_axis(case_->intraop_t1)), {"left_right"});
+  expect_refused("mirrored left-right", labels_only(labels), {"left_right"});
+}
+
+TEST_F(DamagedInputs, AScanOfAnotherHeadIsRefused) {
+  // Another, smaller head: the scan's anatomy scaled by 0.86 about its
+  // centroid and bent by a smooth 3 mm warp.
+  const Eigen::Vector3d c = centroid(case_->intraop_labels);
+  Eigen::Matrix4d source_from_target = Eigen::Matrix4d::Identity();
+  source_from_target.topLeftCorner<3, 3>() /= 0.86;
+  source_from_target.block<3, 1>(0, 3) = c - c / 0.86;
+  const LabelImage labels = resample_nearest(case_->intraop_labels, case_->intraop_labels.grid, source_from_target);
+  const ImageF t1 = resample_linear(case_->intraop_t1, case_->intraop_t1.grid, source_from_target);
+  expect_refused("another head", both(labels, t1), {"affine_stretch", "volume"});
+  expect_refused("another head", labels_only(labels), {"affine_stretch", "volume"});
+}
+
+TEST_F(DamagedInputs, SwappedVentricleAndBrainLabelsAreRefused) {
+  LabelImage swapped = case_->intraop_labels;
+  for (auto& v : swapped.voxels) v = v == 1 ? 2 : v == 2 ? 1 : v;
+  expect_refused("ventricle and brain labels swapped", both(swapped, case_->intraop_t1), {"ventricle_volume"});
+  expect_refused("ventricle and brain labels swapped", labels_only(swapped), {"ventricle_volume"});
+}
+
+TEST_F(DamagedInputs, ASegmentationOneSliceOutOfStepIsNotASilentFailure) {
+  LabelImage shifted(case_->intraop_labels.grid, 0);
+  for_each_voxel(shifted.grid, [&](int i, int j, int k) {
+    if (k > 0) shifted.at(i, j, k) = case_->intraop_labels.at(i, j, k - 1);
+  });
+  expect_not_silent("labels one slice out of step", both(shifted, case_->intraop_t1));
+}
