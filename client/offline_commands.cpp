@@ -104,7 +104,7 @@ int run_register_rank0(const RegisterOptions& o) {
   if (scan.labels && scan.image && !scan.image->grid.same_geometry(scan.labels->grid))
     throw InputError((o.intraop_image.empty() ? o.intraop_dicom : o.intraop_image) +
                      ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
-  const double read_seconds = read_clock.seconds();
+  scan.read_seconds = read_clock.seconds();
 
   EngineSession session(MPI_COMM_WORLD, params);
   Stopwatch atlas_clock;
@@ -115,9 +115,6 @@ int run_register_rank0(const RegisterOptions& o) {
   std::fprintf(stderr, "[preop] mesh: %zu nodes, %zu tets\n", session.mesh().node_count(), session.mesh().tet_count());
 
   ScanResult result = session.register_scan(scan, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
-  // Decoding the files is part of what the surgeon waits for.
-  result.timings["intraop"]["read"] = result.timings["intraop"].value("read", 0.0) + read_seconds;
-  result.timings["intraop"]["total"] = result.timings["intraop"]["total"].get<double>() + read_seconds;
   // After the answer, as the daemon does: not part of "total".
   // The prepared input: the labels given, or those the engine derived.
   const IntraopInput prepared{scan.labels ? *scan.labels : *result.intraop_labels, scan.image};

@@ -109,15 +109,15 @@ std::optional<ServerState> server_state_from_string(std::string_view s) {
 std::optional<ScanState> scan_state_from_string(std::string_view s) {
   return value_of(kScanStates, s);
 }
-// ---- label table -----------------------------------------------------------
+// ---- label map -------------------------------------------------------------
 
-std::string make_label_table_json(const LabelTable& table) {
+std::string make_label_map_json(const LabelMap& map) {
   json structures = json::object();
-  for (const auto& [name, values] : table.structures) structures[name] = values;
+  for (const auto& [name, values] : map.structures) structures[name] = values;
   return json{{"v", 1}, {"structures", structures}}.dump(2);
 }
 
-LabelTable parse_label_table_json(std::string_view text) {
+LabelMap parse_label_map_json(std::string_view text) {
   if (text.size() > kMaxLabelTableBytes)
     throw ProtocolError(ErrorCode::kInvalidRequest, "label_table: " + std::to_string(text.size()) +
                                                         " bytes; a label table is at most " +
@@ -129,7 +129,7 @@ LabelTable parse_label_table_json(std::string_view text) {
   if (j.is_discarded()) throw ProtocolError(ErrorCode::kInvalidRequest, "label_table: not valid JSON");
   const FieldReader f(j, "label_table");
   if (f.uint("v") != 1) f.fail("v", "must be 1");
-  LabelTable table;
+  LabelMap table;
   if (f.object("structures").size() > kMaxStructures)
     f.fail("structures", "names more than " + std::to_string(kMaxStructures) + " structures");
   for (const auto& [name, values] : f.object("structures").items()) {
@@ -244,7 +244,7 @@ PreopLoadRequest parse_preop_load_request(const Message& m) {
       throw ProtocolError(ErrorCode::kInvalidRequest,
                           "preop.load: frames \"t1\" and \"labels\" are required unless "
                           "use_default_atlas is true");
-    if (r.label_table) parse_label_table_json(r.label_table->bytes);
+    if (r.label_table) r.label_map = parse_label_map_json(r.label_table->bytes);
     return r;
   });
 }

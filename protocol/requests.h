@@ -26,7 +26,7 @@ std::string_view to_string(ScanState s);
 std::optional<ServerState> server_state_from_string(std::string_view s);
 std::optional<ScanState> scan_state_from_string(std::string_view s);
 
-// ---- Label table (optional frame of preop.load) ---------------------------
+// ---- Label map (the optional "label_table" frame of preop.load) -----------
 
 // Bounds on what a client sends (PROTOCOL.md section 13.5).
 inline constexpr std::size_t kMaxLabelTableBytes = 64 * 1024;
@@ -38,12 +38,15 @@ inline constexpr std::size_t kMaxStructures = 64;
 // JHU labels 7 and 8 both belong to the corticospinal tract. Structure names
 // are those of the daemon's label table (config/labels.toml); the daemon, not
 // the codec, checks them against it.
-struct LabelTable {
+// A map from the sender's values to the daemon's label table (whose type is
+// brainshift::LabelTable, engine/core/label_table.h); on the wire it is the
+// frame "label_table" (PROTOCOL.md 5.2).
+struct LabelMap {
   std::map<std::string, std::vector<std::uint16_t>> structures{};
-  bool operator==(const LabelTable&) const = default;
+  bool operator==(const LabelMap&) const = default;
 };
-std::string make_label_table_json(const LabelTable& table);
-LabelTable parse_label_table_json(std::string_view text);
+std::string make_label_map_json(const LabelMap& map);
+LabelMap parse_label_map_json(std::string_view text);
 
 // ---- status ----------------------------------------------------------------
 
@@ -93,6 +96,7 @@ struct PreopLoadRequest {
   std::optional<Frame> t1{};           // "t1", NIfTI, required unless default atlas
   std::optional<Frame> labels{};       // "labels", NIfTI, same grid as t1
   std::optional<Frame> label_table{};  // "label_table", JSON, optional
+  std::optional<LabelMap> label_map{};  // label_table parsed by parse_preop_load_request
 };
 Message make_preop_load_request(const std::string& request_id, const PreopLoadRequest& r);
 PreopLoadRequest parse_preop_load_request(const Message& m);  // moves nothing; copies frames

@@ -15,6 +15,8 @@
 #include <string_view>
 #include <vector>
 
+#include "protocol/stage_names.h"
+
 namespace brainshift::protocol {
 
 enum class ResultPart {
@@ -77,21 +79,21 @@ inline constexpr ResultOutput kResultOutputs[] = {
     {ResultPart::kDisplacement, "displacement", "field", "field.nii.gz", "field.nii", MediaKind::kNifti, false, "",
      PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kDisplacementItk, "displacement_itk", "field_h5", "field.h5", "field.h5", MediaKind::kItkH5, true,
-     "itk_field", PartPresence::kEveryScan, ResultPart::kDisplacement},
+     stages::kItkField, PartPresence::kEveryScan, ResultPart::kDisplacement},
     {ResultPart::kWarpedImage, "warped_image", "warped_image", "warped_image.nii.gz", "warped_image.nii",
      MediaKind::kNifti, false, "", PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kWarpedLabels, "warped_labels", "warped_labels", "warped_labels.nii.gz", "warped_labels.nii",
      MediaKind::kNifti, false, "", PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kModels, "models", "models", "models/<structure>.vtp", "models/<structure>.vtp", MediaKind::kVtp,
      false, "", PartPresence::kEveryScan, std::nullopt},
-    {ResultPart::kMetrics, "metrics", "metrics", "metrics.json", "metrics.json", MediaKind::kJson, true, "metrics",
+    {ResultPart::kMetrics, "metrics", "metrics", "metrics.json", "metrics.json", MediaKind::kJson, true, stages::kQualityMetrics,
      PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kTimings, "timings", "timings", "timings.json", "timings.json", MediaKind::kJson, false, "",
      PartPresence::kEveryScan, std::nullopt},
-    {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true, "report",
+    {ResultPart::kReport, "report", "report", "report.png", "report.png", MediaKind::kPng, true, stages::kReport,
      PartPresence::kWithIntraopImage, std::nullopt},
     {ResultPart::kUncertainty, "uncertainty", "uncertainty", "uncertainty.nii.gz", "uncertainty.nii",
-     MediaKind::kNifti, true, "uncertainty", PartPresence::kEveryScan, std::nullopt},
+     MediaKind::kNifti, true, stages::kUncertainty, PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kIntraopLabels, "intraop_labels", "intraop_labels", "intraop_labels.nii.gz", "intraop_labels.nii",
      MediaKind::kNifti, false, "", PartPresence::kWithoutIntraopLabels, std::nullopt},
     {ResultPart::kSegmentationConfidence, "segmentation_confidence", "segmentation_confidence",

@@ -1,13 +1,16 @@
 #include "protocol/timing_log.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <ctime>
 #include <stdexcept>
+#include <tuple>
 #include <vector>
 
 #include "protocol/fields.h"
+#include "protocol/stage_names.h"
 #include "protocol/version.h"
 
 namespace brainshift::protocol {
@@ -35,11 +38,8 @@ std::string_view to_string(StageScope scope) {
 }
 
 bool is_known_stage(StageScope scope, std::string_view stage) {
-  static const std::vector<std::string_view> preop{"atlas", "mesh", "assemble", "factorise", "total"};
-  static const std::vector<std::string_view> intraop{"read", "affine", "surface", "solve",  "field",
-                                                     "refine", "warp", "models", "total"};
-  const auto& names = scope == StageScope::kPreop ? preop : intraop;
-  return std::find(names.begin(), names.end(), stage) != names.end();
+  auto in = [&](const auto& names) { return std::find(names.begin(), names.end(), stage) != names.end(); };
+  return scope == StageScope::kPreop ? in(stages::kPreopStages) : in(stages::kIntraopStages);
 }
 
 std::string format_utc(std::chrono::system_clock::time_point when) {
@@ -132,15 +132,31 @@ void TimingLogFile::write(const StageTiming& timing) {
   if (!out_) throw std::runtime_error("cannot write to timing log " + path_);
 }
 
+namespace {
+// The timings' seconds in the order of stages::kPreopTimings / kIntraopTimings.
+std::array<double, stages::kPreopTimings.size()> values(const PreopTimings& p) {
+  return {p.atlas, p.mesh, p.assemble, p.factorise, p.total};
+}
+std::array<double, stages::kIntraopTimings.size()> values(const IntraopTimings& i) {
+  return {i.read, i.affine, i.surface, i.solve, i.field, i.warp, i.models, i.total};
+}
+template <class Names, class Values>
+json keyed(const Names& names, const Values& seconds) {
+  json j = json::object();
+  for (std::size_t k = 0; k < names.size(); ++k) j[std::string(names[k])] = seconds[k];
+  return j;
+}
+template <class Names>
+std::array<double, std::tuple_size_v<Names>> read_keyed(const detail::FieldReader& f, const Names& names) {
+  std::array<double, std::tuple_size_v<Names>> out{};
+  for (std::size_t k = 0; k < names.size(); ++k) out[k] = seconds_field(f, std::string(names[k]).c_str());
+  return out;
+}
+}  // namespace
+
 std::string make_timings_json(const ScanTimings& s) {
-  const auto& p = s.preop;
-  const auto& i = s.intraop;
-  json j{{"preop",
-          {{"atlas", p.atlas}, {"mesh", p.mesh}, {"assemble", p.assemble},
-           {"factorise", p.factorise}, {"total", p.total}}},
-         {"intraop",
-          {{"read", i.read}, {"affine", i.affine}, {"surface", i.surface}, {"solve", i.solve},
-           {"field", i.field}, {"warp", i.warp}, {"models", i.models}, {"total", i.total}}},
+  json j{{"preop", keyed(stages::kPreopTimings, values(s.preop))},
+         {"intraop", keyed(stages::kIntraopTimings, values(s.intraop))},
          {"mesh", to_json_value(s.mesh)}};
   return j.dump(2);
 }
@@ -153,11 +169,10 @@ ScanTimings parse_timings_json(std::string_view text) {
   const detail::FieldReader p(top.object("preop"), "timings.preop");
   const detail::FieldReader i(top.object("intraop"), "timings.intraop");
   ScanTimings s;
-  s.preop = {seconds_field(p, "atlas"), seconds_field(p, "mesh"), seconds_field(p, "assemble"),
-             seconds_field(p, "factorise"), seconds_field(p, "total")};
-  s.intraop = {seconds_field(i, "read"),  seconds_field(i, "affine"), seconds_field(i, "surface"),
-               seconds_field(i, "solve"), seconds_field(i, "field"),  seconds_field(i, "warp"),
-               seconds_field(i, "models"), seconds_field(i, "total")};
+  const auto pv = read_keyed(p, stages::kPreopTimings);
+  s.preop = {pv[0], pv[1], pv[2], pv[3], pv[4]};
+  const auto iv = read_keyed(i, stages::kIntraopTimings);
+  s.intraop = {iv[0], iv[1], iv[2], iv[3], iv[4], iv[5], iv[6], iv[7]};
   s.mesh = mesh_size_from_json(top.object("mesh"), "timings.mesh");
   return s;
 }

@@ -111,7 +111,7 @@ void ServerCore::repair_scan(const std::string& scan_id) {
   try {
     const auto record = store_.find(scan_id);
     std::string preop_id;
-    std::shared_ptr<const protocol::LabelTable> label_map;
+    std::shared_ptr<const protocol::LabelMap> label_map;
     {
       std::lock_guard lock(mutex_);
       preop_id = ready_preop_id_;

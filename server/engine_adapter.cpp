@@ -7,6 +7,7 @@
 #include "field/itk_transform_io.h"
 #include "image/nifti_io.h"
 #include "pipeline/scan_outputs.h"
+#include "protocol/stage_names.h"
 #include "server/hdf5_file.h"
 
 namespace brainshift::server {
@@ -34,17 +35,16 @@ void EngineAdapter::load_preop(const PreopImages& preop, std::optional<TetMesh> 
 EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
                                               double read_seconds, const StageProgressFn& progress) {
   deferred_.reset();
-  ScanResult result = session_.register_scan(IntraopInput{labels, image}, progress, /*defer_quality_metrics=*/true);
-  auto& intraop = result.timings["intraop"];
-  intraop["read"] = intraop.value("read", 0.0) + read_seconds;
-  intraop["total"] = intraop.value("total", 0.0) + read_seconds;
+  ScanResult result =
+      session_.register_scan(IntraopInput{labels, image, read_seconds}, progress, /*defer_quality_metrics=*/true);
   const auto t_outputs = std::chrono::steady_clock::now();
-  progress("outputs", 0.0, 0.0);
+  const std::string outputs_stage(protocol::stages::kOutputs);
+  progress(outputs_stage, 0.0, 0.0);
   EngineScanOutput output;
   output.files = encode_scan_outputs(result, ImageEncoding::plain);
-  progress("outputs", 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
+  progress(outputs_stage, 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
   output.result = {result.kind, result.fallback_reason};
-  output.intraop_seconds = intraop.value("total", 0.0);
+  output.intraop_seconds = result.timings["intraop"].value(std::string(protocol::stages::kTotal), 0.0);
   deferred_ = std::make_unique<Deferred>(Deferred{IntraopInput{labels, image}, std::move(result)});
   return output;
 }

@@ -4,10 +4,12 @@
 
 #include <spdlog/spdlog.h>
 
+#include "config/toml_reader.h"
 #include "core/errors.h"
 #include "image/nifti_io.h"
 #include "protocol/events.h"
 #include "protocol/result_outputs.h"
+#include "protocol/stage_names.h"
 #include "server/label_mapping.h"
 #include "server/server_core_internal.h"
 
@@ -20,8 +22,11 @@ namespace {
 // Share of the whole warm-up each preop stage takes (measured on the default
 // atlas: meshing and factorisation dominate); only for the progress bar.
 double preop_fraction(const std::string& stage, double stage_fraction) {
-  static const std::vector<std::pair<std::string, double>> weights = {
-      {"atlas", 0.05}, {"mesh", 0.45}, {"assemble", 0.10}, {"factorise", 0.35}, {"models", 0.05}};
+  static const std::vector<std::pair<std::string_view, double>> weights = {{stages::kAtlas, 0.05},
+                                                                           {stages::kMesh, 0.45},
+                                                                           {stages::kAssemble, 0.10},
+                                                                           {stages::kFactorise, 0.35},
+                                                                           {stages::kPreopModels, 0.05}};
   double before = 0.0;
   for (const auto& [name, w] : weights) {
     if (name == stage) return std::min(1.0, before + w * stage_fraction);
@@ -45,26 +50,28 @@ void ServerCore::run_preop_job(PreopJob job) {
     if (fraction >= 1.0) log_stage(StageTiming{StageScope::kPreop, "", id, stage, seconds, ""});
   };
   try {
+    // A stored preop's map is parsed here, once (an upload's by the codec).
+    if (!job.label_map && !job.label_table_json.empty())
+      job.label_map = std::make_shared<const protocol::LabelMap>(parse_label_map_json(job.label_table_json));
     double atlas_seconds = 0.0;
     if (!job.images) {
-      progress("atlas", 0.0, 0.0);
+      progress(std::string(stages::kAtlas), 0.0, 0.0);
       const auto ta = Clock::now();
       if (job.source == "atlas") {
         job.images = engine_.load_default_atlas(settings_.atlas_cache_path());
       } else {
         PreopImages images{read_scalar_image(settings_.preop.t1), read_label_image(settings_.preop.labels)};
-        std::optional<protocol::LabelTable> table;
         if (!settings_.preop.label_table.empty()) {
-          job.label_table_json = read_text_file(settings_.preop.label_table);
-          table = parse_label_table_json(job.label_table_json);
+          job.label_table_json = config::read_text_file(settings_.preop.label_table, "label map");
+          job.label_map = std::make_shared<const protocol::LabelMap>(parse_label_map_json(job.label_table_json));
         }
         if (!images.t1.grid.same_geometry(images.labels.grid))
           throw InputError(settings_.preop.labels.string() + ": grid differs from the preop T1's");
-        map_label_values(images.labels, table ? &*table : nullptr, engine_.label_table());
+        map_label_values(images.labels, job.label_map.get(), engine_.label_table());
         job.images = std::move(images);
       }
       atlas_seconds = seconds_since(ta);
-      progress("atlas", 1.0, atlas_seconds);
+      progress(std::string(stages::kAtlas), 1.0, atlas_seconds);
     }
     const bool had_mesh = job.stored_mesh.has_value();
     engine_.load_preop(*job.images, std::move(job.stored_mesh), atlas_seconds, progress);
@@ -75,13 +82,10 @@ void ServerCore::run_preop_job(PreopJob job) {
     if (job.source != "store" || !had_mesh) store_.save_mesh(id, mesh);
     const MeshSize size{mesh.node_count(), mesh.tet_count()};
     const double seconds = seconds_since(t0);
-    std::shared_ptr<const protocol::LabelTable> label_map;
-    if (!job.label_table_json.empty())
-      label_map = std::make_shared<const protocol::LabelTable>(parse_label_table_json(job.label_table_json));
     {
       std::lock_guard lock(mutex_);
       ready_preop_id_ = id;
-      ready_label_map_ = std::move(label_map);
+      ready_label_map_ = std::move(job.label_map);
       loading_preop_id_.clear();
       mesh_size_ = size;
       progress_.reset();
@@ -127,12 +131,13 @@ void ServerCore::result_not_stored(const ScanRecord& record, const std::string& 
   const std::string message = "the result could not be stored (" + why +
                               "); the scan is kept and processed again once the store takes writes";
   spdlog::error("scan {}: {}", record.scan_id, message);
-  store_.mark_failed_unstored(record.scan_id, std::string(to_string(ErrorCode::kInternal)), message, "store");
+  const std::string stage(stages::kStore);
+  store_.mark_failed_unstored(record.scan_id, std::string(to_string(ErrorCode::kInternal)), message, stage);
   {
     std::lock_guard lock(mutex_);
     unstored_results_.push_back(record.scan_id);
   }
-  emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, "store", ErrorInfo{ErrorCode::kInternal, message}}));
+  emit(make_event(ScanFailedEvent{record.scan_id, record.client_scan_id, stage, ErrorInfo{ErrorCode::kInternal, message}}));
 }
 
 // The deferred parts (result_outputs.h: metrics.json, the label overlap
@@ -203,7 +208,7 @@ bool ServerCore::write_result(const UnwrittenResult& result, const std::string& 
     std::lock_guard lock(mutex_);
     unwritten_results_.erase(r.scan_id);  // the store serves it from now on
   }
-  log_stage(StageTiming{StageScope::kIntraop, r.scan_id, preop_id, "store", seconds_since(t0), ""});
+  log_stage(StageTiming{StageScope::kIntraop, r.scan_id, preop_id, std::string(stages::kStore), seconds_since(t0), ""});
   if (result_stored_) result_stored_(r.scan_id);
   return true;
 }
@@ -214,20 +219,20 @@ void ServerCore::run_scan(const std::string& scan_id) {
   if (!record) return;
   std::string preop_id;
   std::shared_ptr<DecodedScan> decoded;
-  std::shared_ptr<const protocol::LabelTable> label_map;
+  std::shared_ptr<const protocol::LabelMap> label_map;
   {
     std::lock_guard lock(mutex_);
     preop_id = ready_preop_id_;
     label_map = ready_label_map_;
     state_ = ServerState::kProcessing;
     current_scan_ = scan_id;
-    current_stage_ = "decode";
+    current_stage_ = std::string(stages::kDecode);
     if (auto it = decoded_.find(scan_id); it != decoded_.end()) {
       decoded = it->second;
       decoded_.erase(it);
     }
   }
-  std::string stage = "decode";
+  std::string stage(stages::kDecode);
   auto progress = [&](const std::string& s, double fraction, double seconds) {
     stage = s;
     {
@@ -243,7 +248,7 @@ void ServerCore::run_scan(const std::string& scan_id) {
     if (!decoded) decoded = std::make_shared<DecodedScan>(decode_scan(store_.load_scan_input(scan_id)));
     if (label_map) map_label_values(decoded->labels, label_map.get(), engine_.label_table());
     // "decode" (the pushed bytes to images) is the daemon's; the engine logs its own "read".
-    progress("decode", 1.0, decoded->read_seconds);
+    progress(std::string(stages::kDecode), 1.0, decoded->read_seconds);
     EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, progress);
     {
       // Marked before the result becomes visible: a pull in between must see

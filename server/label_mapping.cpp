@@ -1,8 +1,6 @@
 #include "server/label_mapping.h"
 
 #include <array>
-#include <fstream>
-#include <sstream>
 
 #include "core/errors.h"
 
@@ -23,7 +21,7 @@ std::string values_of(const LabelTable& table) {
 
 }  // namespace
 
-void map_label_values(LabelImage& labels, const protocol::LabelTable* map, const LabelTable& table) {
+void map_label_values(LabelImage& labels, const protocol::LabelMap* map, const LabelTable& table) {
   std::array<std::uint16_t, 65536> to{};  // 0 = unlisted
   std::array<bool, 65536> listed{};
   listed[0] = true;
@@ -60,14 +58,6 @@ void map_label_values(LabelImage& labels, const protocol::LabelTable* map, const
   if (parenchyma_voxels == 0)
     throw InputError("labels: no " + table.find(parenchyma)->name + " voxel (label " + std::to_string(parenchyma) +
                      " after mapping)");
-}
-
-std::string read_text_file(const std::filesystem::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw InputError(path.string() + ": cannot open");
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
 }
 
 }  // namespace brainshift::server

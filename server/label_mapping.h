@@ -2,7 +2,6 @@
 // Label values as the engine's label table has them, whatever values the
 // sender's atlas uses: the preop labels of preop.load, and the intraop labels
 // of every scan pushed against that preop (PROTOCOL.md: the same values).
-#include <filesystem>
 #include <string>
 
 #include "core/image.h"
@@ -16,9 +15,6 @@ namespace brainshift::server {
 // listed, and each becomes its structure's value in the table. Without one,
 // the values must already be the table's. InputError naming the first
 // offending structure or value, and when no voxel is the parenchyma label.
-void map_label_values(LabelImage& labels, const protocol::LabelTable* map, const LabelTable& table);
-
-// Whole file as bytes; InputError naming the path when unreadable.
-std::string read_text_file(const std::filesystem::path& path);
+void map_label_values(LabelImage& labels, const protocol::LabelMap* map, const LabelTable& table);
 
 }  // namespace brainshift::server

@@ -127,7 +127,7 @@ Message ServerCore::on_status(const Message& m) {
 }
 
 Message ServerCore::on_preop_load(const Message& m) {
-  PreopLoadRequest req = parse_preop_load_request(m);
+  PreopLoadRequest req = parse_preop_load_request(m);  // parses the label map once
   auto job = std::make_unique<PreopJob>();
   if (req.use_default_atlas) {
     job->source = "atlas";
@@ -138,12 +138,11 @@ Message ServerCore::on_preop_load(const Message& m) {
     images.labels = label_image_from_bytes(req.labels->bytes, "labels", max_bytes);
     if (!images.t1.grid.same_geometry(images.labels.grid))
       throw InputError("labels: grid differs from t1's (dims or world_from_voxel)");
-    std::optional<protocol::LabelTable> table;
-    if (req.label_table) {
-      table = parse_label_table_json(req.label_table->bytes);
+    if (req.label_map) {
+      job->label_map = std::make_shared<const protocol::LabelMap>(std::move(*req.label_map));
       job->label_table_json = req.label_table->bytes;
     }
-    map_label_values(images.labels, table ? &*table : nullptr, engine_.label_table());
+    map_label_values(images.labels, job->label_map.get(), engine_.label_table());
     job->images = std::move(images);
     job->source = "upload";
   }

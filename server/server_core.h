@@ -142,7 +142,7 @@ class ServerCore {
   std::string ready_preop_id_;    // non-empty once the engine is warm
   // The label map (preop.load label_table) of the ready preop, null when it
   // had none: the intraop labels of its scans use the same values.
-  std::shared_ptr<const protocol::LabelTable> ready_label_map_;
+  std::shared_ptr<const protocol::LabelMap> ready_label_map_;
   std::optional<protocol::MeshSize> mesh_size_;
   std::optional<std::string> current_scan_;
   std::optional<std::string> current_stage_;

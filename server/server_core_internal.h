@@ -24,7 +24,8 @@ struct ServerCore::PreopJob {
   std::string preop_id;
   std::string source;  // "atlas", "files", "upload", "store"
   std::optional<PreopImages> images;  // absent: build the atlas / read files on the engine thread
-  std::string label_table_json;
+  std::string label_table_json;  // the label map as received, stored with the preop
+  std::shared_ptr<const protocol::LabelMap> label_map;  // parsed once; null when none
   std::optional<TetMesh> stored_mesh;
 };
 

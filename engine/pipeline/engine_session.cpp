@@ -8,6 +8,7 @@
 #include "pipeline/prepare_stage.h"
 #include "pipeline/uncertainty_stage.h"
 #include "pipeline/warm_state.h"
+#include "protocol/stage_names.h"
 
 namespace brainshift {
 
@@ -24,6 +25,14 @@ void keep_scan_buffers_on_the_heap() {
     return true;
   }();
   (void)done;
+}
+
+// The preop timings count the atlas (reading or building the preop images)
+// in their total; set again, the old figure is taken out first.
+void with_atlas_seconds(nlohmann::json& timings, double seconds) {
+  const std::string atlas(protocol::stages::kAtlas), total(protocol::stages::kTotal);
+  timings[total] = timings.value(total, 0.0) - timings.value(atlas, 0.0) + seconds;
+  timings[atlas] = seconds;
 }
 
 }  // namespace
@@ -47,7 +56,7 @@ void EngineSession::load_preop(PreopInput input, const ProgressFn& progress,
                                std::optional<TetMesh> stored_mesh) {
   // Built aside and swapped in: a failed load keeps the previous warm state.
   auto next = build_warm_state(comm_, std::move(input), params_, progress, std::move(stored_mesh));
-  if (warm_ && warm_->timings.contains("atlas")) next->timings["atlas"] = warm_->timings["atlas"];
+  with_atlas_seconds(next->timings, atlas_seconds_);
   warm_ = std::move(next);
 }
 
@@ -64,24 +73,18 @@ const PreopInput& EngineSession::preop() const {
 }
 
 nlohmann::json EngineSession::preop_timings() const {
-  if (!warm_) return nlohmann::json::object();
-  nlohmann::json t = warm_->timings;
-  if (!t.contains("atlas")) t["atlas"] = atlas_seconds_;
-  t["total"] = t.value("total", 0.0) + t["atlas"].get<double>();
-  return t;
+  return warm_ ? warm_->timings : nlohmann::json::object();
 }
 
 void EngineSession::set_atlas_seconds(double seconds) {
   atlas_seconds_ = seconds;
-  if (warm_) warm_->timings["atlas"] = seconds;
+  if (warm_) with_atlas_seconds(warm_->timings, seconds);
 }
 
 ScanResult EngineSession::register_scan(const IntraopInput& input, const ProgressFn& progress,
                                         bool defer_quality_metrics) {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
-  ScanResult result = run_intraop(*warm_, input, params_, progress, !defer_quality_metrics);
-  result.timings["preop"] = preop_timings();
-  return result;
+  return run_intraop(*warm_, input, params_, progress, !defer_quality_metrics);
 }
 
 ScanResult EngineSession::register_scan(const ScanInput& scan, const ProgressFn& progress,
@@ -89,11 +92,11 @@ ScanResult EngineSession::register_scan(const ScanInput& scan, const ProgressFn&
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
   if (!scan.labels && !scan.image) throw InputError("a scan needs an intraop image, labels, or both");
   if (scan.labels && (!scan.image || !params_.auto_segmentation.check_given_labels))
-    return register_scan(IntraopInput{*scan.labels, scan.image}, progress, defer_quality_metrics);
+    return register_scan(IntraopInput{*scan.labels, scan.image, scan.read_seconds}, progress, defer_quality_metrics);
   ScanResult result =
-      scan.labels ? register_labels_with_image(*warm_, IntraopInput{*scan.labels, scan.image}, params_, progress,
+      scan.labels ? register_labels_with_image(*warm_, IntraopInput{*scan.labels, scan.image, scan.read_seconds}, params_, progress,
                                                !defer_quality_metrics)
-                  : register_image_only(*warm_, *scan.image, params_, progress, !defer_quality_metrics);
+                  : register_image_only(*warm_, *scan.image, scan.read_seconds, params_, progress, !defer_quality_metrics);
   result.timings["preop"] = preop_timings();
   return result;
 }

@@ -39,6 +39,9 @@ struct PreopInput {
 struct IntraopInput {
   LabelImage labels;          // 1 brain, 2 lateral ventricles (table values)
   std::optional<ImageF> t1;   // same grid as labels when given
+  // The caller's reading or decoding of these images: counted in the
+  // scan's "read" and "total" timings (run_intraop writes them all).
+  double read_seconds = 0.0;
 };
 
 // A scan as it arrives: an image, labels, or both (at least one). Without
@@ -46,6 +49,7 @@ struct IntraopInput {
 struct ScanInput {
   std::optional<LabelImage> labels;
   std::optional<ImageF> image;  // same grid as labels when both are given
+  double read_seconds = 0.0;    // as IntraopInput::read_seconds
 };
 
 // nonrigid, or affine_only_fallback when a non-rigid stage failed a quality

@@ -19,9 +19,11 @@
 #include "pipeline/surface_stage.h"
 #include "pipeline/warm_state.h"
 #include "registration/affine_registration.h"
+#include "protocol/stage_names.h"
 #include "registration/intensity_refinement.h"
 
 namespace brainshift {
+namespace stages = protocol::stages;
 namespace {
 
 struct StageClock {
@@ -29,29 +31,30 @@ struct StageClock {
   nlohmann::json& timings;
   Stopwatch watch;
   double nested_seconds = 0;
-  void start(const std::string& stage) {
+  // Stage names from protocol/stage_names.h, the one vocabulary.
+  void start(std::string_view stage) {
     watch.lap();
     nested_seconds = 0;
-    if (progress) progress(stage, 0.0, 0.0);
+    if (progress) progress(std::string(stage), 0.0, 0.0);
   }
-  double done(const std::string& stage) {
+  double done(std::string_view stage) {
     const double s = watch.lap() - nested_seconds;
-    timings[stage] = s;
-    if (progress) progress(stage, 1.0, s);
+    timings[std::string(stage)] = s;
+    if (progress) progress(std::string(stage), 1.0, s);
     return s;
   }
   // A stage run inside another one ("refine" between the field and its
   // Jacobian check): reported under its own name and not counted twice, so
   // the stages still add up to "total".
   template <class Fn>
-  void nested(const std::string& stage, Fn&& fn) {
-    if (progress) progress(stage, 0.0, 0.0);
+  void nested(std::string_view stage, Fn&& fn) {
+    if (progress) progress(std::string(stage), 0.0, 0.0);
     Stopwatch w;
     fn();
     const double s = w.seconds();
-    timings[stage] = s;
+    timings[std::string(stage)] = s;
     nested_seconds += s;
-    if (progress) progress(stage, 1.0, s);
+    if (progress) progress(std::string(stage), 1.0, s);
   }
 };
 
@@ -131,7 +134,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   nlohmann::json metrics;
   StageClock clock{progress, timings, {}};
 
-  clock.start("read");
+  clock.start(stages::kRead);
   validate_intraop_input(input, table);
   const auto cavities = table.cavity_labels();
   const std::uint16_t ventricle = cavities.empty() ? 0 : cavities.front();
@@ -143,9 +146,11 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
     throw InputError("intraop labels: the brain covers only " + std::to_string(intraop_volume_ml) +
                      " ml against " + std::to_string(warm.brain_volume_ml) +
                      " ml preop; the field of view misses most of the brain");
-  clock.done("read");
+  clock.done(stages::kRead);
+  // Reading or decoding the images (the caller's) is part of what the surgeon waits for.
+  timings[std::string(stages::kRead)] = timings[std::string(stages::kRead)].get<double>() + input.read_seconds;
 
-  clock.start("affine");
+  clock.start(stages::kAffine);
   const IntraopDistanceMaps maps = prepare_intraop_maps(input.labels, brain_region, table.brain_label(), ventricle);
   const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine);
   const Eigen::Matrix4d A = affine.intraop_from_preop;
@@ -155,7 +160,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
                        {"inlier_fraction", affine.inlier_fraction}, {"tolerance_met", affine.tolerance_met}, {"affine_kept", affine.affine_kept},
                        {"residual_sigma_mm", affine.residual_sigma_mm}, {"robust_scale_mm", affine.robust_scale_mm},
                        {"message", affine.message}};
-  clock.done("affine");
+  clock.done(stages::kAffine);
 
   std::string failure = forced_fallback;
   if (failure.empty() && !affine.converged) failure = "affine registration did not converge: " + affine.message;
@@ -166,12 +171,12 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   const std::string implausible = check_input_plausibility(warm, input, brain_region, A, params, plausibility);
   if (failure.empty()) failure = implausible;
 
-  clock.start("surface");
+  clock.start(stages::kSurface);
   std::vector<Eigen::Vector3d> fixed_values;
   if (failure.empty()) fixed_values = match_surfaces(warm, maps, A, input, params, metrics, &failure);
-  clock.done("surface");
+  clock.done(stages::kSurface);
 
-  clock.start("solve");
+  clock.start(stages::kSolve);
   MeshDeformation deformation;
   deformation.intraop_from_preop = A;
   deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
@@ -189,12 +194,12 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
       deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
     }
   }
-  clock.done("solve");
+  clock.done(stages::kSolve);
 
-  clock.start("field");
+  clock.start(stages::kField);
   FieldStats field_stats;
   result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
-  clock.nested("refine", [&] {
+  clock.nested(stages::kRefine, [&] {
     metrics["refine"] = refine_interior(result.pullback_field_mm, warm, input, maps, params, failure);
   });
   if (failure.empty()) {
@@ -224,29 +229,29 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   }
   metrics["jacobian"] = {{"min", jac.min_det}, {"max", jac.max_det},
                          {"folded_voxels", jac.folded_voxels}};
-  clock.done("field");
+  clock.done(stages::kField);
 
-  clock.start("warp");
+  clock.start(stages::kWarp);
   // The two warps are independent: the labels on the second core.
   auto warped_labels = std::async(std::launch::async, [&] {
     return warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
   });
   result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
   result.warped_labels = warped_labels.get();
-  clock.done("warp");
+  clock.done(stages::kWarp);
 
   result.nonrigid_node_mm = deformation.nonrigid_mm;
-  clock.start("models");
+  clock.start(stages::kModels);
   for (const auto& [name, model] : warm.models)
     result.models[name] = carry(model.surface, model.binding, deformation);
-  clock.done("models");
+  clock.done(stages::kModels);
 
   // "total" is the registration itself: the stages the issue lists (read,
   // affine, surface, solve, field, warp, models) and "refine" (timed inside
   // "field", counted once). The quality metrics are timed on their own as
   // "metrics" (about 0.3 s) and reported next to it, never hidden; the daemon
   // computes them just after announcing the field.
-  timings["total"] = total.seconds();
+  timings[std::string(stages::kTotal)] = total.seconds() + input.read_seconds;
   if (!failure.empty()) {
     result.kind = ResultKind::affine_only_fallback;
     result.fallback_reason = failure;
@@ -270,7 +275,7 @@ void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const
   const LabelTable& table = params.label_table;
   nlohmann::json& timings = result.timings["intraop"];
   StageClock clock{progress, timings, {}};
-  clock.start("metrics");
+  clock.start(stages::kQualityMetrics);
   const Eigen::Matrix4d preop_from_intraop = result.intraop_from_preop.inverse();
   auto affine_only = std::async(std::launch::async, [&] {
     const LabelImage affine_labels = resample_nearest(warm.preop.labels, input.labels.grid, preop_from_intraop);
@@ -282,7 +287,7 @@ void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const
   result.metrics["labels"] = label_metrics(result.warped_labels, input.labels, table);
   result.metrics["labels_affine_only"] = affine_only.get();
   result.warped_t1_affine_only = affine_t1.get();
-  clock.done("metrics");
+  clock.done(stages::kQualityMetrics);
 }
 
 }  // namespace brainshift

@@ -13,12 +13,16 @@
 #include "mesh/surface_extraction.h"
 #include "models/surface_models.h"
 #include "pipeline/warm_state.h"
+#include "protocol/stage_names.h"
 
 namespace brainshift {
 namespace {
 
-void report(const ProgressFn& progress, const std::string& stage, double fraction, double seconds) {
-  if (progress) progress(stage, fraction, seconds);
+namespace stages = protocol::stages;
+
+// Stage names from protocol/stage_names.h, the one vocabulary.
+void report(const ProgressFn& progress, std::string_view stage, double fraction, double seconds) {
+  if (progress) progress(std::string(stage), fraction, seconds);
 }
 
 ElasticOptions elastic_options_for(const PipelineParameters& params) {
@@ -141,7 +145,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   Stopwatch total;
 
   Stopwatch stage;
-  report(progress, "mesh", 0.0, 0.0);
+  report(progress, stages::kMesh, 0.0, 0.0);
   MeshingParameters meshing = params.meshing;
   meshing.cavity_labels = table.cavity_labels();
   meshing.default_tissue_label = table.brain_label();
@@ -151,13 +155,13 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   // engine/mesh), exudation is bounded, assembly is short.
   MeshingStats mesh_stats;
   const MeshingProgressFn mesh_progress = [&](const std::string& step, const MeshingStats&) {
-    report(progress, "mesh", step == "refine" ? 0.7 : 0.9, stage.seconds());
+    report(progress, stages::kMesh, step == "refine" ? 0.7 : 0.9, stage.seconds());
   };
   const bool meshed = !stored_mesh;
   TetMesh mesh = stored_mesh ? std::move(*stored_mesh)
                              : mesh_label_image(input.labels, meshing, &mesh_stats, mesh_progress);
   const double mesh_seconds = stage.lap();
-  report(progress, "mesh", 1.0, mesh_seconds);
+  report(progress, stages::kMesh, 1.0, mesh_seconds);
 
   std::vector<int> fixed_nodes = boundary_nodes(mesh);
   // A brain label of a few voxels meshes to a handful of tets with every node
@@ -198,7 +202,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
     return m;
   });
 
-  report(progress, "factorise", 0.0, 0.0);
+  report(progress, stages::kFactorise, 0.0, 0.0);
   double fem_seconds = 0;
   try {
     // A copy: the models thread reads `mesh` meanwhile.
@@ -216,9 +220,9 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
     assemble_seconds += times.create + times.assemble;
     factorise_seconds += times.setup;
   }
-  report(progress, "factorise", 1.0, fem_seconds);
+  report(progress, stages::kFactorise, 1.0, fem_seconds);
 
-  report(progress, "models", 0.0, 0.0);
+  report(progress, stages::kPreopModels, 0.0, 0.0);
   Models models = models_job.get();
   warm->affine_samples = std::move(models.affine_samples);
   warm->models = std::move(models.models);
@@ -226,14 +230,14 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   // What the models cost beyond the factorisation (their own time is
   // "surfaces_and_models_work").
   const double models_seconds = stage.lap();
-  report(progress, "models", 1.0, models_seconds);
+  report(progress, stages::kPreopModels, 1.0, models_seconds);
 
-  warm->timings = {{"mesh", mesh_seconds},
-                   {"assemble", assemble_seconds},
-                   {"factorise", factorise_seconds},
+  warm->timings = {{std::string(stages::kMesh), mesh_seconds},
+                   {std::string(stages::kAssemble), assemble_seconds},
+                   {std::string(stages::kFactorise), factorise_seconds},
                    {"surfaces_and_models", models_seconds},
                    {"surfaces_and_models_work", models.seconds},
-                   {"total", total.seconds()}};
+                   {std::string(stages::kTotal), total.seconds()}};
   if (meshed) warm->timings["meshing"] = meshing_report(mesh_stats);
   warm->preop = std::move(input);
   return warm;

@@ -1,4 +1,5 @@
 #include "pipeline/prepare_stage.h"
+#include "protocol/stage_names.h"
 
 #include <cmath>
 #include <future>
@@ -13,6 +14,7 @@
 #include "segmentation/label_image_check.h"
 
 namespace brainshift {
+namespace stages = protocol::stages;
 namespace {
 
 // Head outlines as label maps (1 = head) for the label affine; no ventricle
@@ -161,7 +163,7 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
   return g;
 }
 
-ScanResult register_image_only(WarmState& warm, const ImageF& image, const PipelineParameters& params,
+ScanResult register_image_only(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
                                const ProgressFn& progress, bool with_quality_metrics) {
   const LabelTable& table = params.label_table;
   const AutoSegmentationParameters& ap = params.auto_segmentation;
@@ -172,7 +174,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, const Pipel
   Stopwatch watch;
   double segment_seconds = 0, earlier_passes_seconds = 0;
   nlohmann::json seg_metrics;
-  if (progress) progress("segment", 0.0, 0.0);
+  if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
   auto segment = [&](const LabelImage& carried, double width_mm) {
     segmentation::SegmentationParameters sp = ap.classifier;
@@ -186,14 +188,14 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, const Pipel
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm);
   SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap);
   segment_seconds += watch.lap();
-  if (progress) progress("segment", 1.0, segment_seconds);
+  if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
 
   ScanResult result;
   nlohmann::json rounds = nlohmann::json::array();
   for (int round = 0;; ++round) {
     rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
     watch.lap();
-    result = run_intraop(warm, IntraopInput{seg.labels, image}, params, progress, false, gates.failure);
+    result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false, gates.failure);
     if (round >= ap.rematch_rounds || result.kind != ResultKind::nonrigid) break;
     earlier_passes_seconds += watch.lap();
     // Re-match: the preop carried by the non-rigid estimate, a narrower prior.
@@ -214,7 +216,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, const Pipel
   seg_metrics["rounds"] = rounds;
   result.metrics["segmentation"] = seg_metrics;
   auto& t = result.timings["intraop"];
-  t["segment"] = segment_seconds;
+  t[std::string(stages::kSegment)] = segment_seconds;
   t["earlier_passes"] = earlier_passes_seconds;
   t["total"] = t.value("total", 0.0) + segment_seconds + earlier_passes_seconds;
   result.intraop_labels = std::move(seg.labels);

@@ -20,7 +20,7 @@
 
 namespace brainshift {
 
-ScanResult register_image_only(WarmState& warm, const ImageF& image, const PipelineParameters& params,
+ScanResult register_image_only(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
                                const ProgressFn& progress, bool with_quality_metrics);
 
 // A scan given with both labels and an image: the stages run while the labels

@@ -5,6 +5,7 @@
 
 #include "core/timer.h"
 #include "image/distance_map.h"
+#include "protocol/stage_names.h"
 #include "quality/uncertainty_map.h"
 #include "registration/linear_sampler.h"
 
@@ -50,7 +51,7 @@ std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& 
 void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineParameters& params, ScanResult& result,
                      const ProgressFn& progress) {
   if (!params.uncertainty.enabled) return;
-  if (progress) progress("uncertainty", 0.0, 0.0);
+  if (progress) progress(std::string(protocol::stages::kUncertainty), 0.0, 0.0);
   Stopwatch watch;
   const auto tissue = tissue_labels(params.label_table);
   const std::vector<double> sigma = surface_noise_mm(warm, input, tissue, result);
@@ -75,7 +76,7 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   summary["seconds"] = seconds;
   result.metrics["uncertainty"] = std::move(summary);
   result.timings["intraop"]["uncertainty"] = seconds;
-  if (progress) progress("uncertainty", 1.0, seconds);
+  if (progress) progress(std::string(protocol::stages::kUncertainty), 1.0, seconds);
 }
 
 }  // namespace brainshift

@@ -98,6 +98,30 @@ class LabelTableE2E : public ::testing::Test {
     argv.insert(argv.end(), args.begin(), args.end());
     return run(argv, dir, timeout_s);
   }
+  DaemonSpec spec(const std::string& name) const {
+    DaemonSpec s;
+    s.work_dir = dir;
+    s.config = dir / "test.toml";
+    s.store = dir / "store";
+    s.name = name;
+    return s;
+  }
+  // load-preop with these labels (and extra arguments), push the scan with
+  // these labels and wait, pull it with a scene into pulled/: the first
+  // command that fails, or the pull.
+  RunResult preop_scan_pull(const Daemon& d, const fs::path& preop_labels, std::vector<std::string> preop_extra,
+                            const fs::path& scan_labels) {
+    std::vector<std::string> load = {"load-preop", "--image", (dir / "preop_t1.nii.gz").string(), "--labels",
+                                     preop_labels.string(), "--wait"};
+    load.insert(load.end(), preop_extra.begin(), preop_extra.end());
+    RunResult r = cli(d, load);
+    if (r.code != 0) return r;
+    r = cli(d, {"push", "--labels", scan_labels.string(), "--image", (dir / "scan_t1.nii.gz").string(), "--wait"});
+    if (r.code != 0) return r;
+    const std::string scan_id = r.out.substr(0, r.out.find('\n'));
+    return cli(d, {"pull", "--scan", scan_id, "--out", (dir / "pulled").string(), "--scene", "--scene-labels",
+                   (dir / "labels5.toml").string()});
+  }
   void TearDown() override {
     if (HasFailure()) tmp.keep();
   }
@@ -116,23 +140,10 @@ TEST_F(LabelTableE2E, AFifthStructureIsCarriedPulledAndNamedLikeTheOthers) {
   write_synthetic_scan(dir, "scan", kShiftMm);
   write_label_image(dir / "sender_scan_labels.nii.gz", in_sender_values(read_label_image(dir / "scan_labels.nii.gz")));
 
-  DaemonSpec spec;
-  spec.work_dir = dir;
-  spec.config = dir / "test.toml";
-  spec.store = dir / "store";
-  spec.name = "labels";
-  Daemon daemon(spec);
-  RunResult r = cli(daemon, {"load-preop", "--image", (dir / "preop_t1.nii.gz").string(), "--labels",
-                             (dir / "sender_labels.nii.gz").string(), "--label-table", (dir / "map.json").string(),
-                             "--wait"});
+  Daemon daemon(spec("labels"));
+  RunResult r = preop_scan_pull(daemon, dir / "sender_labels.nii.gz", {"--label-table", (dir / "map.json").string()},
+                                dir / "sender_scan_labels.nii.gz");
   ASSERT_EQ(r.code, 0) << r.err << daemon.log();
-  r = cli(daemon, {"push", "--labels", (dir / "sender_scan_labels.nii.gz").string(), "--image",
-                   (dir / "scan_t1.nii.gz").string(), "--wait"});
-  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
-  const std::string scan_id = r.out.substr(0, r.out.find('\n'));
-  r = cli(daemon, {"pull", "--scan", scan_id, "--out", (dir / "pulled").string(), "--scene", "--scene-labels",
-                   (dir / "labels5.toml").string()});
-  ASSERT_EQ(r.code, 0) << r.err;
 
   // Carried like the others: its model, in RAS, moved with the brain.
   const std::string vtp = read_file(dir / "pulled" / "models" / "arcuate_fasciculus.vtp");
@@ -186,23 +197,10 @@ TEST_F(LabelTableE2E, ARenamedParenchymaNamesTheWholeBrainModelEverywhere) {
   write_synthetic_preop(dir);
   write_synthetic_scan(dir, "scan", kShiftMm);
 
-  DaemonSpec spec;
-  spec.work_dir = dir;
-  spec.config = dir / "test.toml";
-  spec.store = dir / "store";
-  spec.name = "renamed";
-  Daemon daemon(spec);
-  RunResult r = cli(daemon, {"load-preop", "--image", (dir / "preop_t1.nii.gz").string(), "--labels",
-                             (dir / "preop_labels.nii.gz").string(), "--wait"});
-  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
-  r = cli(daemon, {"push", "--labels", (dir / "scan_labels.nii.gz").string(), "--image",
-                   (dir / "scan_t1.nii.gz").string(), "--wait"});
-  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
-  const std::string scan_id = r.out.substr(0, r.out.find('\n'));
+  Daemon daemon(spec("renamed"));
   // The default pull asks for the table's structures: the whole brain among them.
-  r = cli(daemon, {"pull", "--scan", scan_id, "--out", (dir / "pulled").string(), "--scene", "--scene-labels",
-                   (dir / "labels5.toml").string()});
-  ASSERT_EQ(r.code, 0) << r.err;
+  const RunResult r = preop_scan_pull(daemon, dir / "preop_labels.nii.gz", {}, dir / "scan_labels.nii.gz");
+  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
   EXPECT_EQ(r.err.find("model.cerebrum not available"), std::string::npos) << r.err;
   ASSERT_TRUE(fs::exists(dir / "pulled" / "models" / "cerebrum.vtp"));
   EXPECT_FALSE(fs::exists(dir / "pulled" / "models" / "brain.vtp"));

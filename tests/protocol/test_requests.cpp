@@ -98,20 +98,20 @@ TEST(PreopLoad, DefaultAtlasRoundTrip) {
 }
 
 TEST(PreopLoad, FramesRoundTripWithLabelTable) {
-  bp::LabelTable table;
+  bp::LabelMap table;
   table.structures["brain"] = {1};
   table.structures["corticospinal_tract"] = {7, 8};
   table.structures["arcuate_fasciculus"] = {9};  // any name of the daemon's table
   bp::PreopLoadRequest r;
   r.t1 = bp::media::nifti_frame("t1", bp::testing::fake_gzip(4096));
   r.labels = bp::media::nifti_frame("labels", bp::testing::fake_nifti(8, 8, 8));
-  r.label_table = bp::media::json_frame("label_table", bp::make_label_table_json(table));
+  r.label_table = bp::media::json_frame("label_table", bp::make_label_map_json(table));
   const auto back = bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", r)));
   EXPECT_FALSE(back.use_default_atlas);
   ASSERT_TRUE(back.t1 && back.labels && back.label_table);
   EXPECT_EQ(back.t1->bytes, r.t1->bytes);
   EXPECT_EQ(back.labels->bytes, r.labels->bytes);
-  EXPECT_EQ(bp::parse_label_table_json(back.label_table->bytes), table);
+  EXPECT_EQ(bp::parse_label_map_json(back.label_table->bytes), table);
 
   const auto reply = bp::parse_preop_load_reply(wire_trip(bp::make_preop_load_reply("p", {"p-7"})));
   EXPECT_EQ(reply.preop_id, "p-7");
@@ -143,21 +143,21 @@ TEST(PreopLoad, RefusesMissingFramesFramesWithDefaultAtlasAndBadContent) {
 // Structure names are the daemon's label table's (it checks them); the codec
 // refuses what cannot be one: a name that would not be a safe file name.
 TEST(LabelTable, RefusesBadStructureNamesAndOutOfRangeValues) {
-  EXPECT_EQ(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[1],"arcuate_fasciculus":[9]}})")
+  EXPECT_EQ(bp::parse_label_map_json(R"({"v":1,"structures":{"brain":[1],"arcuate_fasciculus":[9]}})")
                 .structures.at("arcuate_fasciculus"),
             std::vector<std::uint16_t>{9});
   for (const char* name : {"../x", "Liver", "", "5th", "model.brain"})
-    EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{")" + std::string(name) + R"(":[9]}})"),
+    EXPECT_THROW(bp::parse_label_map_json(R"({"v":1,"structures":{")" + std::string(name) + R"(":[9]}})"),
                  bp::ProtocolError) << name;
-  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{}})"), bp::ProtocolError);
+  EXPECT_THROW(bp::parse_label_map_json(R"({"v":1,"structures":{}})"), bp::ProtocolError);
   json many = {{"v", 1}, {"structures", json::object()}};
   for (std::size_t i = 0; i <= bp::kMaxStructures; ++i) many["structures"]["s" + std::to_string(i)] = {i + 1};
-  EXPECT_THROW(bp::parse_label_table_json(many.dump()), bp::ProtocolError);
-  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[70000]}})"),
+  EXPECT_THROW(bp::parse_label_map_json(many.dump()), bp::ProtocolError);
+  EXPECT_THROW(bp::parse_label_map_json(R"({"v":1,"structures":{"brain":[70000]}})"),
                bp::ProtocolError);
-  EXPECT_THROW(bp::parse_label_table_json(R"({"v":1,"structures":{"brain":[0]}})"),
+  EXPECT_THROW(bp::parse_label_map_json(R"({"v":1,"structures":{"brain":[0]}})"),
                bp::ProtocolError);
-  EXPECT_THROW(bp::parse_label_table_json("not json"), bp::ProtocolError);
+  EXPECT_THROW(bp::parse_label_map_json("not json"), bp::ProtocolError);
 }
 
 TEST(ScanPush, RoundTripWithImageAndClientScanId) {

@@ -6,20 +6,10 @@
 #include <set>
 
 #include "protocol/result_outputs.h"
+#include "protocol/timing_log.h"
 
 namespace bp = brainshift::protocol;
 using bp::ResultPart;
-
-namespace {
-
-bool is_stage_name(std::string_view s) {
-  if (s.empty() || s.size() > 32) return false;
-  for (char c : s)
-    if (!((c >= 'a' && c <= 'z') || c == '_')) return false;
-  return true;
-}
-
-}  // namespace
 
 class OutputRow : public ::testing::TestWithParam<bp::ResultOutput> {};
 
@@ -45,7 +35,7 @@ TEST_P(OutputRow, DeferredPresenceAndRepairColumnsAgree) {
   // A deferred part is timed as the stage that makes it; a part of the answer has none.
   EXPECT_EQ(row.deferred, !row.deferred_stage.empty());
   if (row.deferred) {
-    EXPECT_TRUE(is_stage_name(row.deferred_stage)) << row.deferred_stage;
+    EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kIntraop, row.deferred_stage)) << row.deferred_stage;
   }
   if (row.remade_from) {
     // Only a lost deferred part is made again, from a part stored with the answer.

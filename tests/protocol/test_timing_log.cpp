@@ -70,6 +70,11 @@ TEST(TimingLog, KnownStages) {
   EXPECT_FALSE(bp::is_known_stage(bp::StageScope::kPreop, "affine"));
   EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kIntraop, "models"));
   EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kIntraop, "refine"));
+  // One vocabulary: the daemon's own stages and the preop's models are known too.
+  for (const char* daemon_stage : {"decode", "outputs", "store", "metrics", "itk_field", "report"})
+    EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kIntraop, daemon_stage)) << daemon_stage;
+  EXPECT_TRUE(bp::is_known_stage(bp::StageScope::kPreop, "models"));
+  EXPECT_FALSE(bp::is_known_stage(bp::StageScope::kIntraop, "atlas"));
 }
 
 TEST(TimingLog, FileGetsOneLinePerStage) {

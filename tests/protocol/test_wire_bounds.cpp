@@ -53,7 +53,7 @@ TEST(WireBounds, LabelTableFrameIsBounded) {
   r.label_table = bp::media::json_frame("label_table", padded(bp::kMaxLabelTableBytes + 1));
   EXPECT_EQ(error_of([&] { bp::parse_preop_load_request(bp::decode(bp::encode(bp::make_preop_load_request("p", r)))); }),
             ErrorCode::kInvalidRequest);
-  EXPECT_EQ(error_of([&] { bp::parse_label_table_json(padded(bp::kMaxLabelTableBytes + 1)); }), ErrorCode::kInvalidRequest);
+  EXPECT_EQ(error_of([&] { bp::parse_label_map_json(padded(bp::kMaxLabelTableBytes + 1)); }), ErrorCode::kInvalidRequest);
 }
 
 TEST(WireBounds, ShutdownReasonIsBounded) {

@@ -117,10 +117,10 @@ TEST(ServerCore, PreopWithLabelTableIsMappedToEngineLabels) {
   for (auto& v : labels.voxels) v = v == 1 ? 17 : (v == 2 ? 43 : 0);
   r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
   r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
-  protocol::LabelTable table;
+  protocol::LabelMap table;
   table.structures["brain"] = {17};
   table.structures["ventricles"] = {43};
-  r.label_table = media::json_frame("label_table", make_label_table_json(table));
+  r.label_table = media::json_frame("label_table", make_label_map_json(table));
   EXPECT_EQ(h.call(make_preop_load_request("p", r)).type(), MessageType::kPreopLoadReply);
   ASSERT_TRUE(h.core->step(10ms));
   const LabelImage& seen = h.engine.last_preop.labels;
@@ -146,11 +146,11 @@ TEST(ServerCore, LabelMapWithAFifthStructureFlowsToPreopAndScans) {
   PreopLoadRequest r;
   r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
   r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
-  protocol::LabelTable map;
+  protocol::LabelMap map;
   map.structures["brain"] = {17};
   map.structures["ventricles"] = {43};
   map.structures["liver"] = {99};
-  r.label_table = media::json_frame("label_table", make_label_table_json(map));
+  r.label_table = media::json_frame("label_table", make_label_map_json(map));
   const Message refused = h.call(make_preop_load_request("p0", r));
   expect_error(refused, ErrorCode::kInvalidRequest, "p0");
   EXPECT_NE(parse_error_reply(refused).message.find("\"liver\" is not in the daemon's label table"),
@@ -158,7 +158,7 @@ TEST(ServerCore, LabelMapWithAFifthStructureFlowsToPreopAndScans) {
 
   map.structures.erase("liver");
   map.structures["arcuate_fasciculus"] = {99};
-  r.label_table = media::json_frame("label_table", make_label_table_json(map));
+  r.label_table = media::json_frame("label_table", make_label_map_json(map));
   ASSERT_EQ(h.call(make_preop_load_request("p1", r)).type(), MessageType::kPreopLoadReply);
   ASSERT_TRUE(h.core->step(10ms));
   auto engine_value = [](std::uint16_t v) -> std::uint16_t { return v == 17 ? 1 : v == 43 ? 2 : v == 99 ? 5 : 0; };

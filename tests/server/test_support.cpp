@@ -73,6 +73,7 @@ std::map<std::string, std::string> FakeEngine::files_for(const LabelImage& label
   // As the daemon's adapter: the field as plain NIfTI; the labels gzipped, as a
   // store written before the daemon stored plain NIfTI holds them.
   files["field.nii"] = displacement_field_to_bytes(field, false);
+  files["uncertainty.nii"] = scalar_image_to_bytes(ramp_image(labels.grid), VoxelType::float32, false);
   files["warped_labels.nii.gz"] = label_image_to_bytes(labels, true);
   // The preop T1 warped onto the intraop grid: there is one with or without
   // an intraop image, as with the real engine.

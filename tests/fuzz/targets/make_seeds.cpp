@@ -156,7 +156,7 @@ Frame nifti(const std::string& name, const std::string& bytes) { return media::n
 void message_seeds() {
   const std::string labels_gz = label_image_to_bytes(small_labels(), true);
   const std::string image_gz = scalar_image_to_bytes(small_image(), VoxelType::uint8, true);
-  const std::string table = make_label_table_json({{{"brain", {1}}, {"ventricles", {2}},
+  const std::string table = make_label_map_json({{{"brain", {1}}, {"ventricles", {2}},
                                                     {"tumor", {4}}}});
   // Requests.
   save_message("req_status", make_status_request("s-1"));
