@@ -122,8 +122,9 @@ PhantomCase make_phantom(const ImageF& preop_t1, const LabelImage& preop_labels,
   const GridSampler sdt(phi.resection_uses_tumor_label() ? maps.sd_tumor.grid : grid);
   auto cavity_distance = [&](const Eigen::Vector3d& p) -> double {
     if (!resect) return 1e9;
-    if (phi.resection_uses_tumor_label()) return sdt.linear(maps.sd_tumor.voxels, p, 1e3f);
-    return (p - phi.resection_centre_mm()).norm() - phi.resection_radius_mm();
+    const double region = phi.resection_uses_tumor_label() ? sdt.linear(maps.sd_tumor.voxels, p, 1e3f)
+                                                           : (p - phi.resection_centre_mm()).norm() - phi.resection_radius_mm();
+    return std::max(region, phi.resection_cut_mm(p));
   };
   const GridSampler sdb(maps.sd_brain.grid), sdv(maps.sd_ventricles.grid);
   parallel_slices(grid.dims[2], [&](int k) {
@@ -235,6 +236,19 @@ PhantomCase make_phantom(const ImageF& preop_t1, const LabelImage& preop_labels,
                       {"radius_mm", phi.resection_radius_mm()},
                       {"from_tumor_label", phi.resection_uses_tumor_label()},
                       {"collapse_mm", spec.resection.collapse_mm * phi.nonrigid_scale()}};
+  if (spec.retractor.enabled)
+    d["retractor"] = {{"blade_centre_preop_mm", vec(phi.retractor_centre_mm())},
+                      {"depth_mm", spec.retractor.depth_mm * phi.nonrigid_scale()},
+                      {"half_length_mm", spec.retractor.half_length_mm},
+                      {"half_width_mm", spec.retractor.half_width_mm}};
+  if (spec.midline_shift.enabled)
+    d["midline_shift"] = {{"centre_preop_mm", vec(phi.brain_centroid_mm() + spec.midline_shift.centre_offset_mm)},
+                          {"amplitude_mm", spec.midline_shift.amplitude_mm * phi.nonrigid_scale()},
+                          {"radius_mm", spec.midline_shift.radius_mm}};
+  if (resect) {
+    d["resection"]["resected_fraction"] = spec.resection.resected_fraction;
+    d["resection"]["blood_fill_fraction"] = spec.resection.blood_fill_fraction;
+  }
   d["rigid"] = {{"rotation_deg", vec(spec.rigid.rotation_deg)}, {"translation_mm", vec(spec.rigid.translation_mm)}};
   d["grid"] = {{"dims", spec.dims}, {"spacing_mm", vec(spec.spacing_mm)}, {"oblique_deg", vec(spec.oblique_deg)},
                {"flip_first_axis", spec.flip_first_axis}};

@@ -5,8 +5,12 @@
 // can be judged against it without grading its own physics.
 //
 // The truth is built as a FORWARD map in the preop frame, composed of
-//   sinking under a craniotomy -> swelling -> collapse toward a resection,
-// each of the form p -> p + f(p) with |grad f| < 1 (hence a diffeomorphism),
+//   midline shift -> sinking under a craniotomy -> swelling -> collapse toward
+//   a resection -> retractor dent,
+// each of the form p -> p + f(p) with |grad f| < 1, or a displacement along
+// one fixed direction whose derivative along that direction is > -1 (the
+// sinking, the shift and the dent; their inverse is then a 1-D contraction),
+// hence a diffeomorphism,
 // followed by a rigid head repositioning M (intraop_from_preop). The pull-back
 // field on the intraop grid, u(x) = phi^-1(x) - x (engine/core/deformation.h),
 // is obtained by undoing M and then inverting each component by fixed-point
@@ -78,6 +82,43 @@ struct ResectionSpec {
   Eigen::Vector3d centre_offset_mm{0, 30, 20};
   double collapse_mm = 4;     // inward displacement of the cavity wall (< cavity radius)
   double collapse_decay_mm = 15;
+  // Partial resection: the part of the region nearest the surface (along
+  // -gravity, or away from the brain centroid without sinking) is removed,
+  // this fraction of its extent; the rest stays as tissue.
+  double resected_fraction = 1;
+  // Blood settled in the cavity: its dependent part (along gravity), this
+  // fraction of the cavity's extent; T1 of blood relative to the brain's
+  // median (methaemoglobin: intermediate to bright). Used by the intraop
+  // scene (intraop_scene.h); make_phantom fills the cavity with fluid.
+  double blood_fill_fraction = 0;
+  double blood_t1_relative = 1.1;
+};
+
+// A retractor blade pressed into the cortex after the brain has sunk: a dent
+// of depth_mm along the push direction under a blade of half_length_mm along
+// its long axis (flat, then a Gaussian edge of half_width_mm) and
+// half_width_mm across (Gaussian), fading (Gaussian) with depth below the
+// dented surface. The lateral gradient is steep (7 mm over 3 mm): it only
+// shears, the Jacobian is 1 + d(dent)/d(depth) > 0.
+struct RetractorSpec {
+  bool enabled = false;
+  Eigen::Vector3d offset_mm{0, 0, 0};  // blade centre: the sunken craniotomy point + this
+  std::optional<Eigen::Vector3d> push; // empty: into the brain (minus the craniotomy direction)
+  double blade_angle_deg = 0;          // long axis, rotated about the push in its normal plane
+  double depth_mm = 7;
+  double half_length_mm = 12;
+  double half_width_mm = 3;
+  double depth_decay_mm = 12;
+};
+
+// Midline shift (subfalcine, from mass effect): deep structures pushed
+// across the midline, amplitude_mm at the centre, Gaussian of radius_mm.
+struct MidlineShiftSpec {
+  bool enabled = false;
+  Eigen::Vector3d centre_offset_mm{0, 0, 10};  // from the brain centroid (the ventricles' depth)
+  Eigen::Vector3d direction{1, 0, 0};
+  double amplitude_mm = 4;
+  double radius_mm = 30;
 };
 
 struct RigidSpec {
@@ -91,6 +132,8 @@ struct PhantomSpec {
   SinkingSpec sinking;
   SwellingSpec swelling;
   ResectionSpec resection;
+  RetractorSpec retractor;
+  MidlineShiftSpec midline_shift;
   RigidSpec rigid;
   // Intraop (iMRI-like) grid, centred on the moved brain centroid.
   std::array<int, 3> dims{256, 256, 60};
@@ -154,11 +197,19 @@ class PhantomDeformation {
   double brain_depth_along_gravity_mm() const { return brain_depth_mm_; }
   double resection_radius_mm() const { return resection_radius_; }
   bool resection_uses_tumor_label() const { return resection_uses_label_; }
+  // Signed distance (mm) to the cut of a partial resection, negative on the
+  // resected side (-1e9 everywhere for a complete one). The cavity is the
+  // resected region intersected with that side.
+  double resection_cut_mm(const Eigen::Vector3d& preop_mm) const;
+  const Eigen::Vector3d& retractor_centre_mm() const { return retractor_centre_; }
 
  private:
   Eigen::Vector3d sink(const Eigen::Vector3d& p) const;
   Eigen::Vector3d swell(const Eigen::Vector3d& p) const;
   Eigen::Vector3d collapse(const Eigen::Vector3d& p) const;
+  Eigen::Vector3d retract(const Eigen::Vector3d& p) const;
+  Eigen::Vector3d shift(const Eigen::Vector3d& p) const;
+  void place_retractor();
   template <class F>
   static Eigen::Vector3d invert_component(const Eigen::Vector3d& y, F&& f);
 
@@ -172,6 +223,11 @@ class PhantomDeformation {
   Eigen::Vector3d swelling_centre_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d resection_centre_ = Eigen::Vector3d::Zero();
   double resection_radius_ = 0;
+  Eigen::Vector3d resection_up_ = Eigen::Vector3d::UnitZ();  // toward the surface
+  Eigen::Vector3d retractor_centre_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d retractor_push_ = Eigen::Vector3d::UnitZ();
+  Eigen::Vector3d retractor_long_ = Eigen::Vector3d::UnitX();
+  Eigen::Vector3d retractor_across_ = Eigen::Vector3d::UnitY();
   double brain_depth_mm_ = 100;  // brain extent along gravity from the craniotomy
   bool resection_uses_label_ = false;
 };

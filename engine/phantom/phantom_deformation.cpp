@@ -50,6 +50,19 @@ void check_spec(const PhantomSpec& s) {
   const auto& r = s.resection;
   if (r.enabled && !(r.ball_radius_mm > 0 && r.collapse_mm >= 0 && r.collapse_decay_mm > 0))
     fail("resection needs ball_radius_mm > 0, collapse_mm >= 0, collapse_decay_mm > 0");
+  if (r.enabled && !(r.resected_fraction > 0 && r.resected_fraction <= 1 && r.blood_fill_fraction >= 0 &&
+                     r.blood_fill_fraction <= 1 && r.blood_t1_relative > 0))
+    fail("resection needs resected_fraction in (0,1], blood_fill_fraction in [0,1], blood_t1_relative > 0");
+  const auto& t = s.retractor;
+  if (t.enabled && !(t.depth_mm >= 0 && t.depth_mm <= 20 && t.half_length_mm >= 0 && t.half_width_mm > 0.5 &&
+                     t.depth_decay_mm > 0 && 0.86 * t.depth_mm < 0.9 * t.depth_decay_mm &&
+                     (!t.push || t.push->norm() > 0)))
+    fail("retractor needs depth in [0,20] mm, half width > 0.5 mm, and depth_decay_mm > 0.96 x depth_mm "
+         "(the dent must stay invertible along its push)");
+  const auto& m = s.midline_shift;
+  if (m.enabled && !(m.amplitude_mm >= 0 && m.radius_mm > 0 && 0.61 * m.amplitude_mm < 0.9 * m.radius_mm &&
+                     m.direction.norm() > 0))
+    fail("midline shift needs amplitude_mm >= 0, radius_mm > 0.68 x amplitude_mm, a non-zero direction");
   if (!(s.bias_amplitude >= 0 && s.bias_amplitude < 1 && s.noise_fraction >= 0 && s.label_noise_mm >= 0 &&
         s.label_noise_correlation_mm > 0 && s.min_jacobian > 0 && s.min_jacobian < 1))
     fail("bias in [0,1), noise >= 0, correlation > 0 and min_jacobian in (0,1) are required");
@@ -77,7 +90,7 @@ PhantomDeformation::PhantomDeformation(const LabelImage& labels, const PhantomSp
       found = t > 0;
     }
   }
-  if (sk.enabled && !found)
+  if ((sk.enabled || spec.retractor.enabled) && !found)
     throw InputError("phantom '" + spec.name + "': the craniotomy ray from the brain centroid finds no cortex");
   gravity_ = sk.gravity ? sk.gravity->normalized() : Eigen::Vector3d(-outward);
   if (sk.enabled && gravity_.dot(-outward) < 0.3)
@@ -105,17 +118,48 @@ PhantomDeformation::PhantomDeformation(const LabelImage& labels, const PhantomSp
                                      : Eigen::Vector3d(centroid_ + rs.centre_offset_mm);
       resection_radius_ = rs.ball_radius_mm;
     }
+    resection_up_ = sk.enabled ? Eigen::Vector3d(-gravity_) : Eigen::Vector3d(resection_centre_ - centroid_);
+    if (resection_up_.norm() < 1e-9) resection_up_ = -gravity_;
+    resection_up_.normalize();
     if (rs.collapse_mm >= 0.8 * resection_radius_)
       throw InputError("phantom '" + spec.name + "': collapse_mm must be below 0.8 x the cavity radius (" +
                        std::to_string(resection_radius_) + " mm)");
   }
+
+  const auto& rt = spec.retractor;
+  retractor_push_ = rt.push ? rt.push->normalized() : Eigen::Vector3d(-outward);
+  // The blade's long axis: any unit vector normal to the push, turned by the angle.
+  Eigen::Vector3d any = std::abs(retractor_push_.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
+  const Eigen::Vector3d e1 = (any - any.dot(retractor_push_) * retractor_push_).normalized();
+  retractor_long_ = Eigen::AngleAxisd(rt.blade_angle_deg * kPi / 180, retractor_push_) * e1;
+  retractor_across_ = retractor_push_.cross(retractor_long_);
+  place_retractor();
 
   rigid_.topLeftCorner<3, 3>() = rotation_deg(spec.rigid.rotation_deg);
   rigid_.topRightCorner<3, 1>() = centroid_ + spec.rigid.translation_mm - rigid_.topLeftCorner<3, 3>() * centroid_;
   rigid_inverse_ = rigid_.inverse();
 }
 
-void PhantomDeformation::scale_nonrigid(double factor) { scale_ *= factor; }
+void PhantomDeformation::scale_nonrigid(double factor) {
+  scale_ *= factor;
+  place_retractor();
+}
+
+// The blade rests on the cortex where the craniotomy point has moved to.
+void PhantomDeformation::place_retractor() {
+  Eigen::Vector3d p = craniotomy_ + shift(craniotomy_);
+  p += sink(p);
+  p += swell(p);
+  p += collapse(p);
+  retractor_centre_ = p + spec_.retractor.offset_mm;
+}
+
+double PhantomDeformation::resection_cut_mm(const Eigen::Vector3d& p) const {
+  const double f = spec_.resection.resected_fraction;
+  if (!spec_.resection.enabled || f >= 1) return -1e9;
+  const double level = resection_radius_ * (1 - 2 * f);  // along up, from the centre
+  return level - (p - resection_centre_).dot(resection_up_);
+}
 
 // Sinking along gravity: full amplitude at and above the craniotomy depth,
 // decaying (Gaussian) with depth to deep_mm, and fading (Gaussian) with the
@@ -162,6 +206,27 @@ Eigen::Vector3d PhantomDeformation::collapse(const Eigen::Vector3d& p) const {
   return -amplitude * std::exp(-beyond * beyond) / n * r;
 }
 
+// The dent: along the push, full under the blade at and above the dented
+// surface, Gaussian with depth below it. Its derivative along the push is at
+// least -0.86 depth/decay > -0.9 (checked), so the dent is invertible.
+Eigen::Vector3d PhantomDeformation::retract(const Eigen::Vector3d& p) const {
+  const auto& s = spec_.retractor;
+  if (!s.enabled) return Eigen::Vector3d::Zero();
+  const Eigen::Vector3d r = p - retractor_centre_;
+  const double depth = std::max(0.0, r.dot(retractor_push_)) / s.depth_decay_mm;
+  const double beyond_blade = std::max(0.0, std::abs(r.dot(retractor_long_)) - s.half_length_mm) / s.half_width_mm;
+  const double across = r.dot(retractor_across_) / s.half_width_mm;
+  const double a = scale_ * s.depth_mm * std::exp(-depth * depth - 0.5 * beyond_blade * beyond_blade - 0.5 * across * across);
+  return a * retractor_push_;
+}
+
+Eigen::Vector3d PhantomDeformation::shift(const Eigen::Vector3d& p) const {
+  const auto& s = spec_.midline_shift;
+  if (!s.enabled) return Eigen::Vector3d::Zero();
+  const double q = (p - centroid_ - s.centre_offset_mm).squaredNorm() / (s.radius_mm * s.radius_mm);
+  return scale_ * s.amplitude_mm * std::exp(-0.5 * q) * s.direction.normalized();
+}
+
 template <class F>
 Eigen::Vector3d PhantomDeformation::invert_component(const Eigen::Vector3d& y, F&& f) {
   // Solve p + f(p) = y by fixed-point iteration: a contraction since |grad f| < 1.
@@ -176,17 +241,21 @@ Eigen::Vector3d PhantomDeformation::invert_component(const Eigen::Vector3d& y, F
 }
 
 Eigen::Vector3d PhantomDeformation::forward(const Eigen::Vector3d& preop_mm) const {
-  Eigen::Vector3d p = preop_mm + sink(preop_mm);
+  Eigen::Vector3d p = preop_mm + shift(preop_mm);
+  p += sink(p);
   p += swell(p);
   p += collapse(p);
+  p += retract(p);
   return (rigid_ * p.homogeneous()).head<3>();
 }
 
 Eigen::Vector3d PhantomDeformation::inverse(const Eigen::Vector3d& intraop_mm) const {
   Eigen::Vector3d y = (rigid_inverse_ * intraop_mm.homogeneous()).head<3>();
+  if (spec_.retractor.enabled) y = invert_component(y, [this](const Eigen::Vector3d& q) { return retract(q); });
   if (spec_.resection.enabled) y = invert_component(y, [this](const Eigen::Vector3d& q) { return collapse(q); });
   if (spec_.swelling.enabled) y = invert_component(y, [this](const Eigen::Vector3d& q) { return swell(q); });
   if (spec_.sinking.enabled) y = invert_component(y, [this](const Eigen::Vector3d& q) { return sink(q); });
+  if (spec_.midline_shift.enabled) y = invert_component(y, [this](const Eigen::Vector3d& q) { return shift(q); });
   return y;
 }
 

@@ -25,6 +25,14 @@ inline std::array<bool, 65536> label_set(const std::vector<std::uint16_t>& label
   return s;
 }
 
+// The q-quantile (0..1) of the values (0 when empty).
+inline double quantile(std::vector<float> v, double q) {
+  if (v.empty()) return 0;
+  const auto at = v.begin() + static_cast<std::ptrdiff_t>(q * static_cast<double>(v.size() - 1));
+  std::nth_element(v.begin(), at, v.end());
+  return *at;
+}
+
 // Runs fn(k) for every slice k on two threads (the target machines have 2 cores).
 template <class F>
 void parallel_slices(int nk, F&& fn) {

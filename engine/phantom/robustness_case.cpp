@@ -9,9 +9,12 @@
 #include "image/distance_map.h"
 #include "image/morphology.h"
 #include "phantom/phantom_artefacts.h"
+#include "phantom/phantom_support.h"
 
 namespace brainshift {
 namespace {
+
+using phantom_detail::quantile;
 
 void check(const RobustnessSpec& s) {
   const auto& g = s.segmentation;
@@ -24,13 +27,6 @@ void check(const RobustnessSpec& s) {
         i.wm_snr > 0 && i.slice_fwhm_slices >= 0))
     throw InputError("robustness case '" + s.phantom.name +
                      "': image artefacts need contrast in (0,1], bias in [0,1), positive SNR, slice FWHM >= 0");
-}
-
-double quantile(std::vector<float> v, double q) {
-  if (v.empty()) return 0;
-  const auto at = v.begin() + static_cast<std::ptrdiff_t>(q * (v.size() - 1));
-  std::nth_element(v.begin(), at, v.end());
-  return *at;
 }
 
 Mask nonzero(const LabelImage& labels) {
@@ -114,26 +110,6 @@ LabelImage degrade_segmentation(const LabelImage& clean, const SegmentationArtef
   return out;
 }
 
-// Gaussian blur along the third voxel axis (across slices), sigma in slices.
-void blur_across_slices(ImageF& image, double fwhm_slices) {
-  const double sigma = fwhm_slices / 2.3548;
-  if (sigma < 0.05) return;
-  const int half = static_cast<int>(std::ceil(3 * sigma));
-  std::vector<double> w(2 * half + 1);
-  double sum = 0;
-  for (int t = -half; t <= half; ++t) sum += w[t + half] = std::exp(-0.5 * t * t / (sigma * sigma));
-  for (auto& x : w) x /= sum;
-  const Grid3& g = image.grid;
-  const ImageF src = image;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        double acc = 0;
-        for (int t = -half; t <= half; ++t) acc += w[t + half] * src.at(i, j, std::clamp(k + t, 0, g.dims[2] - 1));
-        image.at(i, j, k) = static_cast<float>(acc);
-      }
-}
-
 ImageF degrade_image(const ImageF& clean, const LabelImage& clean_labels, const ImageArtefacts& a, std::mt19937_64& rng) {
   std::vector<float> tissue;
   for (std::size_t v = 0; v < clean.voxels.size(); ++v)
@@ -143,7 +119,7 @@ ImageF degrade_image(const ImageF& clean, const LabelImage& clean_labels, const 
   ImageF out = clean;
   for (auto& v : out.voxels)
     if (v > gm) v = static_cast<float>(gm + a.gm_wm_contrast * (v - gm));
-  blur_across_slices(out, a.slice_fwhm_slices);
+  gaussian_smooth_voxels(out, Eigen::Vector3d(0, 0, a.slice_fwhm_slices / 2.3548));
   const auto bias = bias_field(out.grid, std::log1p(a.bias_amplitude), rng);
   for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] *= bias[v];
   const double wm_level = gm + a.gm_wm_contrast * (wm - gm);

@@ -76,14 +76,19 @@ TumorImplantResult implant_tumor(ImageF& t1, LabelImage& labels, const TumorImpl
   std::array<bool, 65536> brain{}, replaceable{};
   for (auto l : spec.brain_labels) brain[l] = true;
   for (auto l : spec.replaceable) replaceable[l] = true;
-  const Eigen::Vector3d centroid = brain_centroid(labels, brain);
-  const Eigen::Vector3d out = spec.direction.normalized();
-  double cortex_t = -1;
-  for (double t = 0; t <= 200; t += 0.5)
-    if (inside_brain(labels, brain, centroid + t * out)) cortex_t = t;
-  if (cortex_t <= spec.depth_mm) throw InputError("tumor implant: the ray from the brain centroid finds no cortex that deep");
   TumorImplantResult result;
-  result.centre_mm = centroid + (cortex_t - spec.depth_mm) * out;
+  if (spec.centre_mm) {
+    if (!inside_brain(labels, brain, *spec.centre_mm)) throw InputError("tumor implant: the given centre is not in the brain");
+    result.centre_mm = *spec.centre_mm;
+  } else {
+    const Eigen::Vector3d centroid = brain_centroid(labels, brain);
+    const Eigen::Vector3d out = spec.direction.normalized();
+    double cortex_t = -1;
+    for (double t = 0; t <= 200; t += 0.5)
+      if (inside_brain(labels, brain, centroid + t * out)) cortex_t = t;
+    if (cortex_t <= spec.depth_mm) throw InputError("tumor implant: the ray from the brain centroid finds no cortex that deep");
+    result.centre_mm = centroid + (cortex_t - spec.depth_mm) * out;
+  }
 
   const float tumor_value = static_cast<float>(spec.intensity_fraction * median_in(t1, labels, brain));
   const LobulatedRadius radius(spec.lobulation, spec.seed);

@@ -5,6 +5,7 @@
 // untreated glioma looks on a non-contrast T1, with a partial-volume rim.
 #include <Eigen/Dense>
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 #include "core/image.h"
@@ -16,6 +17,9 @@ struct TumorImplantSpec {
   // brain centroid along `direction` (preop RAS), like a craniotomy site.
   Eigen::Vector3d direction{0.55, 0.7, 0.45};
   double depth_mm = 18;
+  // Or here (world mm), e.g. beside a ventricle (subject_anatomy.h); then
+  // direction and depth are not used.
+  std::optional<Eigen::Vector3d> centre_mm;
   double radius_mm = 12;
   double lobulation = 0.15;          // relative radius variation (0 = ball)
   std::uint64_t seed = 1;

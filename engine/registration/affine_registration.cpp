@@ -374,12 +374,12 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
   const auto fine_terms = make_terms(preop, intraop, p, p.levels - 1, centre, radius);
   const double sigma_mm = mad_sigma_mm(fine_terms, best.state);
   const double fit_c = std::clamp(p.data_scale_factor * sigma_mm, p.min_robust_scale_mm, p.robust_scale_mm);
-  // The affine's five extra parameters (anisotropic scale, shear) are kept
-  // only when they explain a misfit of the whole outline: then the median
-  // residual falls (a real 2 % anisotropy: MAD sigma 0.96 -> 0.42 mm). A
-  // local sink moves a minority of the points, which the median ignores; the
-  // affine can only bend toward its flanks (25 mm sink: 0.56 -> 0.51 mm) and
-  // that is not kept (docs/DESIGN.md, "Quality gates").
+  // The affine's five extra parameters (anisotropic scale, shear) may be
+  // kept only when they explain a misfit of the whole outline
+  // (max_affine_sigma_ratio < 1): then the median residual falls (a real 2 %
+  // anisotropy: MAD sigma 0.96 -> 0.42 mm), while a local sink's flanks
+  // barely move it (25 mm sink: 0.56 -> 0.51 mm). Off by default
+  // (docs/DESIGN.md, "Quality gates").
   double affine_sigma_mm = sigma_mm;
   if (p.affine_stage) {
     LevelOutcome affine = run_level(fine_terms, best.state, fit_c, Model::affine, p.iterations_per_level, p.tolerance_mm);

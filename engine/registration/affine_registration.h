@@ -65,8 +65,10 @@ struct AffineRegistrationParameters {
   // The full affine replaces the similarity only when its MAD sigma is at
   // most this fraction of the similarity's: anisotropy and shear that are
   // real shift every outline point and lower the median residual; the
-  // flanks of a local sink are a minority and barely move it.
-  double max_affine_sigma_ratio = 0.8;
+  // flanks of a local sink are a minority and barely move it. 1 = always
+  // (the default: on an 18 mm vertex sink the similarity left the whole sink
+  // to the elastic field, which folded; see docs/DESIGN.md).
+  double max_affine_sigma_ratio = 1.0;
 };
 
 struct AffineRegistrationResult {

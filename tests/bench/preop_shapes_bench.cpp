@@ -1,6 +1,6 @@
 // The preop warm-up (mesh + FEM assembly and factorisation + models) on label
 // maps of heads other than the atlas (tests/mesh/head_shapes.h), at the
-// configured (default) mesh size, for issue 17's "at most 30 s" target. JSON
+// configured (default) mesh size, against the target of at most 30 s. JSON
 // on stdout, one object per head: wall and CPU seconds, the preop timings and
 // the meshing report (exudation steps and budget, min dihedral angle).
 //   brainshift_preop_shapes_bench [--config FILE] [--atlas-cache DIR] [--cases a,b]

@@ -168,6 +168,42 @@ LabelImage add_specks(const LabelImage& labels, const HeadLabels& l, int count, 
   return out;
 }
 
+namespace {
+
+// Issue 17's runaway kind, drawn from a seed: proportions 0.9-1.1 per axis,
+// a 3-6 mm reshaping, a 12-20 mm tumour 2 mm lateral (left or right) of the
+// ventricles compressing them; odd seeds keep the tumour label, even seeds
+// paint it as brain (a map that does not label the tumour).
+// rescale_voxels: the proportions are given to the voxels instead (the same
+// label array on voxels of 0.9-1.1 mm per axis), then a 2 mm smooth reshaping.
+LabelImage searched_head(const LabelImage& atlas, const HeadLabels& l, unsigned seed, bool rescale_voxels = false) {
+  std::mt19937 rng(seed);
+  auto uniform = [&](double lo, double hi) { return lo + (hi - lo) * static_cast<double>(rng() % 10001) / 10000.0; };
+  const Eigen::Vector3d scale(uniform(0.9, 1.1), uniform(0.9, 1.1), uniform(0.9, 1.1));
+  const double bump = uniform(3, 6), radius = uniform(12, 20);
+  const Eigen::Vector3d lateral((rng() % 2) ? 1.0 : -1.0, 0, 0);
+  LabelImage head;
+  if (rescale_voxels) {
+    LabelImage scaled = atlas;
+    const Eigen::Vector3d c = label_centroid_mm(atlas, l.brain);
+    scaled.grid.world_from_voxel.topLeftCorner<3, 3>() = scale.asDiagonal() * atlas.grid.world_from_voxel.topLeftCorner<3, 3>();
+    scaled.grid.world_from_voxel.topRightCorner<3, 1>() =
+        c + scale.asDiagonal() * (atlas.grid.world_from_voxel.topRightCorner<3, 1>() - c);
+    head = reshape_head(scaled, l, Eigen::Vector3d::Ones(), 2.0, seed);
+  } else {
+    head = reshape_head(atlas, l, scale, bump, seed);
+  }
+  const Eigen::Vector3d c = point_at_distance_from_label(head, l.ventricles, label_centroid_mm(head, l.ventricles),
+                                                         lateral, radius + 2.0);
+  LabelImage out = collapse_ventricles_near(add_tumour_with_mass_effect(head, l, c, radius), l, c, 0.4);
+  if (seed % 2 == 0)
+    for (auto& v : out.voxels)
+      if (v == l.tumour) v = l.brain;
+  return out;
+}
+
+}  // namespace
+
 std::vector<std::string> head_case_names() {
   return {"atlas",           "enlarged_ventricles_x1.8", "enlarged_ventricles_x2.4",
           "compressed_ventricles", "reshaped",           "reshaped_compressed",
@@ -177,7 +213,7 @@ std::vector<std::string> head_case_names() {
 // Sizes: a 15 mm tumour 2 mm from the ventricle pushes its near wall ~5.5 mm
 // and its far wall (~10 mm on) ~1.6 mm, and the 40 % of the ventricles
 // nearest to it collapse (CSF is pressed out; tissue is not). Proportions 0.9-1.1 per axis with a 4-5 mm reshaping are those
-// of issue 17's second set of cases.
+// of the independent cases that once made the mesher run away.
 HeadCase make_head_case(const std::string& name, const LabelImage& atlas, const HeadLabels& l) {
   const Eigen::Vector3d lateral(1, 0, 0);
   auto compressed = [&](const LabelImage& head) {
@@ -206,6 +242,9 @@ HeadCase make_head_case(const std::string& name, const LabelImage& atlas, const 
     return {name, out};
   }
   if (name == "specks") return {name, add_specks(atlas, l, 300, 7)};
+  if (name.rfind("search_voxels_", 0) == 0)
+    return {name, searched_head(atlas, l, static_cast<unsigned>(std::stoul(name.substr(14))), true)};
+  if (name.rfind("search_", 0) == 0) return {name, searched_head(atlas, l, static_cast<unsigned>(std::stoul(name.substr(7))))};
   throw InputError("make_head_case: unknown case " + name);
 }
 

@@ -63,8 +63,9 @@ struct HeadCase {
   LabelImage labels;
 };
 // The names: "atlas", "enlarged_ventricles_x1.8", "enlarged_ventricles_x2.4",
-// "compressed_ventricles", "reshaped", "reshaped_compressed" (the runaway kind
-// of issue 17), "tumour_at_ventricle_wall", "tumour_at_surface", "specks".
+// "compressed_ventricles", "reshaped", "reshaped_compressed" (the kind of map
+// that once made exudation run away), "tumour_at_ventricle_wall",
+// "tumour_at_surface", "specks".
 std::vector<std::string> head_case_names();
 HeadCase make_head_case(const std::string& name, const LabelImage& atlas, const HeadLabels& l);
 

@@ -1,4 +1,4 @@
-// Meshing label maps of heads other than the atlas (issue 17): enlarged and
+// Meshing label maps of heads other than the atlas: enlarged and
 // compressed ventricles, other proportions, a tumour at the ventricle wall or
 // the brain surface, specks. Meshing must finish within its budgets, be
 // bitwise reproducible, keep every surface and make only positive tets.

@@ -194,6 +194,24 @@ TEST(LabelMesher, IsDeterministic) {
   for (std::size_t f = 0; f < a.boundary_faces.size(); ++f) ASSERT_EQ(a.boundary_faces[f].nodes, b.boundary_faces[f].nodes);
 }
 
+TEST(LabelMesher, ReportsRefinementThenExudationWithTheirBudgets) {
+  std::vector<std::string> steps;
+  std::vector<MeshingStats> seen;
+  MeshingStats final_stats;
+  mesh_label_image(small_phantom(), test_parameters(), &final_stats,
+                   [&](const std::string& step, const MeshingStats& s) {
+                     steps.push_back(step);
+                     seen.push_back(s);
+                   });
+  ASSERT_EQ(steps, (std::vector<std::string>{"refine", "exude"}));
+  EXPECT_GT(seen[0].refined_vertices, 0u);
+  EXPECT_LT(seen[0].refined_vertices, seen[0].vertex_cap);
+  EXPECT_EQ(seen[0].exude_steps, 0u);
+  EXPECT_EQ(seen[1].exude_budget, seen[1].refined_vertices);  // one step per vertex
+  EXPECT_LE(seen[1].exude_steps, seen[1].exude_budget);
+  EXPECT_EQ(final_stats.exude_steps, seen[1].exude_steps);
+}
+
 TEST(LabelMesher, SmallSecondCavityIsNotMissed) {
   const Eigen::Vector3d c(30, 25, 22);
   // Two separate "ventricles" of label 2, one much smaller than the mesh size.

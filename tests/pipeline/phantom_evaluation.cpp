@@ -58,6 +58,7 @@ CaseResult evaluate_result(const std::string& name, const PhantomCase& c, const 
   out.max_true_displacement_mm = *std::max_element(e.uncorrected.begin(), e.uncorrected.end());
   out.intraop_total_seconds = r.timings["intraop"]["total"].get<double>();
   out.fallback = r.kind != ResultKind::nonrigid;
+  out.fallback_reason = r.fallback_reason;
   out.nonrigid_errors_mm = e.nonrigid;
   if (!r.uncertainty_mm.voxels.empty()) {
     const GridSampler map(r.uncertainty_mm.grid);
@@ -76,6 +77,7 @@ nlohmann::json to_json(const CaseResult& r) {
           {"tre_nonrigid_mm", {{"mean", r.nonrigid_mean_mm}, {"p95", r.nonrigid_p95_mm}, {"max", r.nonrigid_max_mm}}},
           {"max_landmark_displacement_mm", r.max_true_displacement_mm},
           {"fallback", r.fallback},
+          {"fallback_reason", r.fallback_reason},
           {"timings", r.timings},
           {"metrics", r.metrics}};
 }

@@ -19,6 +19,7 @@ struct CaseResult {
   double max_true_displacement_mm = 0;
   double intraop_total_seconds = 0;
   bool fallback = false;
+  std::string fallback_reason;  // when fallback
   std::vector<double> nonrigid_errors_mm;  // per landmark
   // The uncertainty map's 95 % band at each landmark (empty without the map).
   std::vector<double> predicted_band_mm;

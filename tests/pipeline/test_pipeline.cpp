@@ -153,6 +153,40 @@ TEST_F(PipelineTest, AFailedPreopLoadKeepsTheWarmState) {
   EXPECT_EQ(session_->register_scan(translated_scan(*preop_, {1, 0, 0}), nullptr).kind, ResultKind::nonrigid);
 }
 
+// Meshing reports its progress inside the "mesh" stage, puts its budgets in
+// the preop timings, and a mesher failure (here its vertex cap) reaches the
+// caller as an error with the reason, not a hang.
+TEST(PreopWarmUp, ReportsMeshingProgressAndBudgetsAndFailsWithTheMeshersReason) {
+  std::vector<double> mesh_fractions;
+  const ProgressFn progress = [&](const std::string& stage, double fraction, double) {
+    if (stage == "mesh") mesh_fractions.push_back(fraction);
+  };
+  PipelineParameters capped = coarse_parameters();
+  capped.meshing.max_vertices = 200;
+  EngineSession failing(MPI_COMM_WORLD, capped);
+  try {
+    failing.load_preop(synthetic_head(), progress);
+    FAIL() << "no error";
+  } catch (const ComputeError& e) {
+    EXPECT_NE(std::string(e.what()).find("cap of 200 vertices"), std::string::npos) << e.what();
+  }
+  EXPECT_FALSE(failing.ready());
+  EXPECT_EQ(mesh_fractions, std::vector<double>{0.0});
+
+  mesh_fractions.clear();
+  EngineSession session(MPI_COMM_WORLD, coarse_parameters());
+  session.load_preop(synthetic_head(), progress);
+  ASSERT_GE(mesh_fractions.size(), 4u);
+  EXPECT_TRUE(std::is_sorted(mesh_fractions.begin(), mesh_fractions.end()));
+  EXPECT_EQ(mesh_fractions.front(), 0.0);
+  EXPECT_EQ(mesh_fractions.back(), 1.0);
+  const auto meshing = session.preop_timings().at("meshing");
+  EXPECT_LE(meshing.at("exude_steps").get<std::size_t>(), meshing.at("exude_budget").get<std::size_t>());
+  EXPECT_GT(meshing.at("exude_budget").get<std::size_t>(), 0u);
+  EXPECT_LT(meshing.at("refined_vertices").get<std::size_t>(), meshing.at("vertex_cap").get<std::size_t>());
+  EXPECT_GE(meshing.at("min_dihedral_after_deg").get<double>(), meshing.at("min_dihedral_before_deg").get<double>());
+}
+
 TEST_F(PipelineTest, OutputsAreWrittenCompletelyOrNotAtAll) {
   const IntraopInput scan = translated_scan(*preop_, {2, 0, 0});
   const ScanResult r = session_->register_scan(scan, nullptr);
@@ -336,6 +370,11 @@ void floppy_outer_membrane(PipelineParameters& p) {
   p.outer_surface.edge_weight = 0.0;
   p.outer_surface.max_step_mm = 20.0;
   p.outer_surface.max_iterations = 200;
+  // Without the match's own defences (one level, no fold guard, no normal
+  // search), so that the crossing the repair must handle happens.
+  p.outer_surface.stiffness_levels = 1;
+  p.outer_surface.fold_guard_enabled = false;
+  p.outer_surface.normal_search_mm = 0.0;
 }
 
 TEST_F(PipelineTest, ASurfaceMatchThatCrossesItselfIsRefusedWithoutRepair) {

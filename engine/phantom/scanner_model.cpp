@@ -1,0 +1,124 @@
+// Scanner image synthesis (scanner_model.h).
+#include "phantom/scanner_model.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "core/errors.h"
+#include "image/resample.h"
+#include "phantom/phantom_artefacts.h"
+#include "phantom/phantom_support.h"
+
+namespace brainshift {
+namespace {
+
+using namespace phantom_detail;
+
+void check(const ScannerSpec& s) {
+  if (!(s.spacing_mm.minCoeff() >= 0.3 && s.spacing_mm.maxCoeff() <= 8 && s.fov_mm.minCoeff() >= 10 &&
+        s.fov_mm.maxCoeff() <= 400 && s.slice_profile_fwhm >= 0.3 && s.slice_profile_fwhm <= 3 && s.snr > 0 &&
+        s.bias_amplitude >= 0 && s.bias_amplitude < 1))
+    throw InputError("scanner '" + s.name + "': spacing in [0.3, 8] mm, FOV in [10, 400] mm, slice profile in "
+                     "[0.3, 3] slices, SNR > 0 and bias in [0, 1) are required");
+}
+
+// T2-like value of brain tissue from its T1: piecewise linear through
+// (CSF, 1), (GM, 0.45), (WM, 0.3), flat beyond; times the CSF reference.
+double t2_of_tissue(double t1, const IntraopScene& s, double reference) {
+  const double xs[3] = {s.csf_t1, s.gm_t1, s.wm_t1}, ys[3] = {1.0, 0.45, 0.3};
+  if (t1 <= xs[0]) return reference * ys[0];
+  if (t1 >= xs[2]) return reference * ys[2];
+  const int seg = t1 < xs[1] ? 0 : 1;
+  const double f = (t1 - xs[seg]) / std::max(1e-9, xs[seg + 1] - xs[seg]);
+  return reference * (ys[seg] + f * (ys[seg + 1] - ys[seg]));
+}
+
+}  // namespace
+
+Eigen::Vector3d axial_deg() { return {0, 0, 0}; }
+Eigen::Vector3d sagittal_deg() { return {0, 90, 0}; }  // third axis along R
+Eigen::Vector3d coronal_deg() { return {90, 0, 0}; }   // third axis along -A
+
+void apply_scanner_grid(const ScannerSpec& scanner, PhantomSpec& spec) {
+  check(scanner);
+  for (int a = 0; a < 3; ++a) spec.dims[a] = std::max(2, static_cast<int>(std::lround(scanner.fov_mm[a] / scanner.spacing_mm[a])));
+  spec.spacing_mm = scanner.spacing_mm;
+  spec.oblique_deg = scanner.orientation_deg;
+}
+
+ImageF scene_contrast(const IntraopScene& scene, Contrast contrast) {
+  if (contrast == Contrast::t1) return scene.t1;
+  ImageF out(scene.t1.grid, 0.f);
+  // The CSF signal sets the scale: as bright as white matter is on the T1.
+  const double reference = scene.wm_t1;
+  for (std::size_t v = 0; v < out.voxels.size(); ++v) {
+    const double t1 = scene.t1.voxels[v];
+    double value = 0;
+    switch (static_cast<SceneClass>(scene.classes.voxels[v])) {
+      case SceneClass::tissue: value = t2_of_tissue(t1, scene, reference); break;
+      case SceneClass::cavity_fluid:
+      case SceneClass::gap_fluid:
+      case SceneClass::extracerebral_csf: value = reference; break;
+      case SceneClass::blood: value = 0.35 * reference; break;
+      case SceneClass::head: value = 0.5 * t1; break;
+      case SceneClass::air: value = 0; break;
+    }
+    out.voxels[v] = static_cast<float>(value);
+  }
+  return out;
+}
+
+ImageF acquire(const IntraopScene& scene, const ScannerSpec& spec, const Grid3& grid, std::mt19937_64& rng) {
+  check(spec);
+  const ImageF contrast = scene_contrast(scene, spec.contrast);
+  const double scene_mm = scene.t1.grid.spacing_mm().minCoeff();
+  const Eigen::Vector3d sp = grid.spacing_mm();
+  // Sub-samples of a voxel (voxel-coordinate offsets and weights): a box
+  // in-plane, the Gaussian slice profile over +-1.5 FWHM across.
+  std::vector<std::pair<Eigen::Vector3d, double>> taps;
+  const int n0 = std::max(1, static_cast<int>(std::lround(sp[0] / scene_mm)));
+  const int n1 = std::max(1, static_cast<int>(std::lround(sp[1] / scene_mm)));
+  const double fwhm_mm = spec.slice_profile_fwhm * sp[2];
+  const int ns = std::max(1, static_cast<int>(std::ceil(3 * fwhm_mm / scene_mm)));
+  const double sigma_mm = fwhm_mm / 2.3548;
+  double total = 0;
+  for (int a = 0; a < n0; ++a)
+    for (int b = 0; b < n1; ++b)
+      for (int c = 0; c < ns; ++c) {
+        const double t_mm = ns == 1 ? 0.0 : -1.5 * fwhm_mm + (c + 0.5) * 3 * fwhm_mm / ns;
+        const double w = std::exp(-0.5 * t_mm * t_mm / (sigma_mm * sigma_mm));
+        taps.emplace_back(Eigen::Vector3d((a + 0.5) / n0 - 0.5, (b + 0.5) / n1 - 0.5, t_mm / sp[2]), w);
+        total += w;
+      }
+  for (auto& t : taps) t.second /= total;
+
+  ImageF out(grid, 0.f);
+  const GridSampler scene_sampler(contrast.grid);
+  parallel_slices(grid.dims[2], [&](int k) {
+    for (int j = 0; j < grid.dims[1]; ++j)
+      for (int i = 0; i < grid.dims[0]; ++i) {
+        double acc = 0;
+        for (const auto& [offset, w] : taps)
+          acc += w * scene_sampler.linear(contrast.voxels, grid.world_mm(i + offset.x(), j + offset.y(), k + offset.z()), 0.f);
+        out.at(i, j, k) = static_cast<float>(acc);
+      }
+  });
+  const auto bias = bias_field(grid, std::log1p(spec.bias_amplitude), rng);
+  for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] *= bias[v];
+  std::vector<float> parenchyma;
+  for (std::size_t v = 0; v < contrast.voxels.size(); ++v)
+    if (scene.classes.voxels[v] == static_cast<std::uint8_t>(SceneClass::tissue)) parenchyma.push_back(contrast.voxels[v]);
+  const double reference = quantile(parenchyma, 0.5);
+  if (reference > 0) add_rician_noise(out.voxels, reference / spec.snr, rng);
+  return out;
+}
+
+nlohmann::json to_json(const ScannerSpec& s) {
+  auto vec = [](const Eigen::Vector3d& v) { return nlohmann::json::array({v.x(), v.y(), v.z()}); };
+  return {{"name", s.name}, {"spacing_mm", vec(s.spacing_mm)}, {"fov_mm", vec(s.fov_mm)},
+          {"orientation_deg", vec(s.orientation_deg)}, {"slice_profile_fwhm", s.slice_profile_fwhm},
+          {"snr", s.snr}, {"bias_amplitude", s.bias_amplitude},
+          {"contrast", s.contrast == Contrast::t1 ? "t1" : "t2_like"}};
+}
+
+}  // namespace brainshift

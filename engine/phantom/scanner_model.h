@@ -1,0 +1,57 @@
+#pragma once
+// Intraop scanners: the image a given scanner makes of an intraop scene
+// (intraop_scene.h). Not the preop T1 resampled: each scanner voxel
+// integrates the scene over its footprint (a box in-plane, the slice profile
+// across: a Gaussian of FWHM slice_profile_fwhm slice thicknesses), so thick
+// slices carry partial volume; then a smooth multiplicative coil bias and
+// Rician noise with the parenchyma's median signal at `snr`.
+// Contrasts: T1 (the scene's values), or T2-like, set by tissue class from
+// the T1 values: inside the brain a falling map through the subject's levels
+// (CSF -> 1, grey matter -> 0.45, white matter -> 0.3 of the CSF signal, so a
+// hypointense tumour is bright), fluid in the cavity, the gap and
+// subarachnoid CSF bright, blood dark (0.35), air 0, the rest of the head at
+// half its T1 value. The grid is the phantom's (PhantomSpec dims, spacing,
+// oblique_deg), so the truth field and the image share it.
+#include <Eigen/Dense>
+#include <random>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "phantom/brain_shift_phantom.h"
+#include "phantom/intraop_scene.h"
+
+namespace brainshift {
+
+enum class Contrast { t1, t2_like };
+
+struct ScannerSpec {
+  std::string name = "1.5T_1mm";
+  Eigen::Vector3d spacing_mm{1, 1, 1};      // in-plane, in-plane, slice
+  Eigen::Vector3d fov_mm{200, 230, 170};    // along the three grid axes
+  Eigen::Vector3d orientation_deg{0, 0, 0}; // grid axes rotated (as PhantomSpec::oblique_deg)
+  double slice_profile_fwhm = 1.0;          // in slice thicknesses
+  double snr = 25;
+  double bias_amplitude = 0.1;              // multiplicative, within about 1 +- this
+  Contrast contrast = Contrast::t1;
+};
+
+// Presets for slice orientations (orientation_deg): slices across S, R, A.
+Eigen::Vector3d axial_deg();
+Eigen::Vector3d sagittal_deg();
+Eigen::Vector3d coronal_deg();
+
+// Writes the scanner's grid into a phantom spec (dims, spacing, obliquity).
+void apply_scanner_grid(const ScannerSpec& scanner, PhantomSpec& spec);
+
+// The contrast's value of every scene voxel (T1 or T2-like, see above).
+ImageF scene_contrast(const IntraopScene& scene, Contrast contrast);
+
+// The scanner's image on `grid` (made by apply_scanner_grid + make_phantom).
+// InputError on a bad spec (spacing, SNR, bias, profile).
+ImageF acquire(const IntraopScene& scene, const ScannerSpec& spec, const Grid3& grid, std::mt19937_64& rng);
+
+nlohmann::json to_json(const ScannerSpec& spec);
+
+}  // namespace brainshift

@@ -1,0 +1,159 @@
+#include "hospital_evaluation.h"
+
+#include <algorithm>
+#include <map>
+
+#include "atlas/default_atlas.h"
+#include "core/errors.h"
+#include "field/metrics.h"
+
+namespace brainshift::evaluation {
+
+AtlasInputs load_atlas_inputs(const std::string& atlas_cache, const std::string& templates_dir) {
+  DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache, templates_dir);
+  return {std::move(atlas.t1), std::move(atlas.labels)};
+}
+
+Subject make_named_subject(const AtlasInputs& atlas, const std::string& name) {
+  for (const auto& s : hospital_subjects())
+    if (s.name == name) return make_subject(atlas.t1, atlas.labels, s);
+  throw InputError("no hospital subject named '" + name + "'");
+}
+
+const char* mode_name(InputMode m) {
+  switch (m) {
+    case InputMode::labels_and_image: return "labels+image";
+    case InputMode::labels_only: return "labels";
+    case InputMode::image_only: return "image";
+  }
+  return "?";
+}
+
+InputMode mode_from_name(const std::string& name) {
+  for (InputMode m : {InputMode::labels_and_image, InputMode::labels_only, InputMode::image_only})
+    if (name == mode_name(m)) return m;
+  throw InputError("unknown mode '" + name + "' (labels+image, labels, image)");
+}
+
+ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) {
+  ModeRun run;
+  run.mode = mode;
+  // Built field by field: an image-only input leaves the labels as the
+  // engine's IntraopInput defaults them (empty, or absent once optional).
+  IntraopInput input;
+  if (mode != InputMode::image_only) input.labels = c.phantom.intraop_labels;
+  if (mode != InputMode::labels_only) input.t1 = c.phantom.intraop_t1;
+  try {
+    run.result = evaluate_result(c.phantom.description["name"].get<std::string>(), c.phantom,
+                                 session.register_scan(input, nullptr));
+  } catch (const InputError& e) {
+    run.status = mode == InputMode::image_only ? ModeRun::Status::skipped : ModeRun::Status::error;
+    run.note = mode == InputMode::image_only ? std::string("the engine does not take an image alone: ") + e.what()
+                                             : std::string("input error: ") + e.what();
+  } catch (const std::exception& e) {
+    run.status = ModeRun::Status::error;
+    run.note = e.what();
+  }
+  return run;
+}
+
+namespace {
+
+nlohmann::json mode_json(const ModeRun& r) {
+  if (r.status == ModeRun::Status::skipped) return {{"status", "skipped"}, {"note", r.note}};
+  if (r.status == ModeRun::Status::error) return {{"status", "error"}, {"note", r.note}};
+  const CaseResult& c = r.result;
+  return {{"status", "ran"},
+          {"kind", c.fallback ? "affine_only_fallback" : "nonrigid"},
+          {"fallback_reason", c.fallback_reason},
+          {"tre_mm", {{"mean", c.nonrigid_mean_mm}, {"p95", c.nonrigid_p95_mm}, {"max", c.nonrigid_max_mm}}},
+          {"tre_uncorrected_mm", {{"mean", c.uncorrected_mean_mm}, {"p95", c.uncorrected_p95_mm}}},
+          {"tre_affine_mm", {{"mean", c.affine_mean_mm}, {"p95", c.affine_p95_mm}}},
+          {"intraop_total_seconds", c.intraop_total_seconds},
+          {"min_jacobian", c.metrics.contains("jacobian") ? c.metrics["jacobian"].value("min", 0.0) : 0.0},
+          {"errors_mm", c.nonrigid_errors_mm}};
+}
+
+nlohmann::json brief(const nlohmann::json& d) {
+  nlohmann::json b;
+  for (const char* key : {"subject", "nonrigid_scale_applied", "min_jacobian", "landmarks", "sinking", "retractor",
+                          "midline_shift", "resection", "swelling", "rigid"})
+    if (d.contains(key)) b[key] = d[key];
+  if (d.contains("scanner")) b["scanner"] = d["scanner"]["name"];
+  if (d.contains("segmentation")) b["segmentation"] = d["segmentation"];
+  if (d.contains("seconds")) b["generation_seconds"] = d["seconds"];
+  return b;
+}
+
+}  // namespace
+
+nlohmann::json case_record(const HospitalCaseSpec& spec, const HospitalCase& c, const std::vector<ModeRun>& runs) {
+  nlohmann::json modes = nlohmann::json::object();
+  for (const auto& r : runs) modes[mode_name(r.mode)] = mode_json(r);
+  return {{"record", "case"}, {"case", spec.deformation.name}, {"subject", spec.subject},
+          {"description", brief(c.description)}, {"modes", modes}};
+}
+
+nlohmann::json unfinished_case_record(const HospitalCaseSpec& spec, const std::string& why) {
+  return {{"record", "case"}, {"case", spec.deformation.name}, {"subject", spec.subject},
+          {"unfinished", why}, {"modes", nlohmann::json::object()}};
+}
+
+nlohmann::json summarise_records(const std::vector<nlohmann::json>& records) {
+  struct Pool {
+    int registrations = 0, nonrigid = 0, skipped = 0;
+    double mean_sum = 0, worst = 0;
+    int measured = 0;
+    std::vector<double> errors;
+  };
+  std::map<std::string, Pool> pools;
+  std::vector<std::string> all_modes;
+  nlohmann::json cases = nlohmann::json::array(), preops = nlohmann::json::array();
+  for (const auto& r : records)
+    if (r.value("record", "") == "case")
+      for (const auto& [mode, m] : r["modes"].items())
+        if (std::find(all_modes.begin(), all_modes.end(), mode) == all_modes.end()) all_modes.push_back(mode);
+  for (auto r : records) {
+    const std::string kind = r.value("record", "");
+    if (kind == "preop") {
+      preops.push_back(r);
+      continue;
+    }
+    if (kind != "case") continue;
+    for (const auto& mode : all_modes) {
+      Pool& p = pools[mode];
+      if (r.contains("unfinished")) {
+        ++p.registrations;  // a lost answer in every mode
+        continue;
+      }
+      if (!r["modes"].contains(mode)) continue;
+      nlohmann::json& m = r["modes"][mode];
+      const std::string status = m.value("status", "");
+      if (status == "skipped") {
+        ++p.skipped;
+        continue;
+      }
+      ++p.registrations;
+      if (status != "ran") continue;
+      p.nonrigid += m["kind"] == "nonrigid";
+      p.mean_sum += m["tre_mm"]["mean"].get<double>();
+      p.worst = std::max(p.worst, m["tre_mm"]["max"].get<double>());
+      ++p.measured;
+      for (const auto& e : m["errors_mm"]) p.errors.push_back(e.get<double>());
+      m.erase("errors_mm");
+    }
+    cases.push_back(r);
+  }
+  nlohmann::json summary = nlohmann::json::object();
+  for (const auto& [mode, p] : pools)
+    summary[mode] = {{"registrations", p.registrations},
+                     {"skipped", p.skipped},
+                     {"nonrigid_fraction", p.registrations ? static_cast<double>(p.nonrigid) / p.registrations : 0.0},
+                     {"tre_mean_over_cases_mm", p.measured ? p.mean_sum / p.measured : 0.0},
+                     {"tre_pooled_p95_mm", p.errors.empty() ? 0.0 : percentile(p.errors, 95.0)},
+                     {"tre_worst_landmark_mm", p.worst},
+                     {"cases_measured", p.measured}};
+  return {{"summary", summary}, {"preops", preops}, {"cases", cases}};
+}
+
+}  // namespace brainshift::evaluation

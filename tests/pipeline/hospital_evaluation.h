@@ -1,0 +1,53 @@
+#pragma once
+// The hospital-variation suite's runs (engine/phantom/hospital_suite.h): the
+// subjects made from the default atlas, one case registered in each input
+// mode, and the records the benchmark prints and pools.
+#include <string>
+#include <vector>
+
+#include "phantom/hospital_suite.h"
+#include "phantom_evaluation.h"
+
+namespace brainshift::evaluation {
+
+struct AtlasInputs {
+  ImageF t1;
+  LabelImage labels;
+};
+AtlasInputs load_atlas_inputs(const std::string& atlas_cache,
+                              const std::string& templates_dir = "/usr/share/mricron/templates");
+
+// The subject of hospital_subjects() with this name (InputError if none).
+Subject make_named_subject(const AtlasInputs& atlas, const std::string& name);
+
+// What the engine is given: segmentation + intraop T1, segmentation alone,
+// or the image alone (only where the engine accepts it).
+enum class InputMode { labels_and_image, labels_only, image_only };
+const char* mode_name(InputMode m);
+InputMode mode_from_name(const std::string& name);  // InputError on an unknown name
+
+struct ModeRun {
+  InputMode mode = InputMode::labels_and_image;
+  enum class Status { ran, skipped, error } status = Status::ran;
+  std::string note;   // why skipped, or the error
+  CaseResult result;  // when ran
+};
+
+// Registers the case in one mode on the warm session. An image-only run the
+// engine refuses with InputError is "skipped" (the engine does not take an
+// image alone yet); other errors are recorded, not thrown.
+ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode);
+
+// One case's record: the case's brief description and each mode's TRE,
+// kind, fallback reason and time (with the landmark errors, for pooling).
+nlohmann::json case_record(const HospitalCaseSpec& spec, const HospitalCase& c, const std::vector<ModeRun>& runs);
+// A case that never ran (its subject's warm-up did not finish, ...).
+nlohmann::json unfinished_case_record(const HospitalCaseSpec& spec, const std::string& why);
+
+// The suite's document from the records (case records, preop records): per
+// mode the non-rigid fraction (unfinished and skipped runs count against it
+// except skipped image-only runs, which are left out), mean TRE over cases,
+// pooled p95, worst landmark; the landmark errors dropped from the cases.
+nlohmann::json summarise_records(const std::vector<nlohmann::json>& records);
+
+}  // namespace brainshift::evaluation
