@@ -7,6 +7,7 @@
 #include "field/itk_transform_io.h"
 #include "image/nifti_io.h"
 #include "pipeline/scan_outputs.h"
+#include "protocol/result_outputs.h"
 #include "protocol/stage_names.h"
 #include "server/hdf5_file.h"
 
@@ -64,7 +65,6 @@ void EngineAdapter::render_deferred(const std::string& scan_id, const DeferredOu
   const std::unique_ptr<Deferred> d = std::move(deferred_);
   ScanResult& r = d->result;
   session_.add_quality_metrics(d->input, r, nullptr);
-  session_.add_uncertainty(d->input, r, nullptr);
   DeferredOutputOptions options;
   options.itk_single_precision = true;  // as field.nii holds it
   options.label_table = &session_.parameters().label_table;
@@ -72,6 +72,12 @@ void EngineAdapter::render_deferred(const std::string& scan_id, const DeferredOu
   options.hdf5_mutex = &h5::hdf5_mutex();
   encode_deferred_outputs(r, d->input.t1 ? &*d->input.t1 : nullptr, options,
                           [&](const std::string& name, const std::string& bytes) { add(name, bytes); });
+  // The uncertainty map last (seconds of Monte Carlo solves): metrics.json,
+  // field.h5 and report.png do not wait for it, so the daemon's metrics.json
+  // lacks its summary (register's has it).
+  session_.add_uncertainty(d->input, r, nullptr);
+  add(std::string(protocol::result_output(protocol::ResultPart::kUncertainty).stored),
+      scalar_image_to_bytes(r.uncertainty_mm, VoxelType::float32, false));
 }
 
 }  // namespace brainshift::server

@@ -148,7 +148,9 @@ class DamagedInputs : public ::testing::Test {
   // Refused, or a non-rigid answer no worse than the affine alone.
   static void expect_not_silent(const std::string& name, const IntraopInput& scan) {
     const Outcome o = run(name, scan);
-    if (!o.refused) EXPECT_LE(o.nonrigid_mm, o.affine_mm + 0.05) << name << ": a silent non-rigid failure";
+    if (!o.refused) {
+      EXPECT_LE(o.nonrigid_mm, o.affine_mm + 0.05) << name << ": a silent non-rigid failure";
+    }
   }
   // gates: the plausibility gates of which at least one must have failed
   // (whatever else refused the scan first).
