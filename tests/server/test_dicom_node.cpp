@@ -11,8 +11,10 @@
 #include <fstream>
 #include <thread>
 
+#include "core/errors.h"
 #include "e2e/process.h"
 #include "phantom/phantom_dicom.h"
+#include "server/dicom_node.h"
 #include "synthetic_head.h"
 #include "temp_dir.h"
 
@@ -148,6 +150,43 @@ TEST_F(DicomNode, SeriesWithMissingSliceIsRejectedNotQueued) {
   EXPECT_TRUE(lines(queue_log_).empty());
   const std::string why = e2e::read_file(staging_ / "rejected" / kUidA / "reason.txt");
   EXPECT_NE(why.find("missing"), std::string::npos) << why;
+}
+
+}  // namespace
+
+namespace {
+
+std::string settings_error(const std::string& toml) {
+  try {
+    server::dicom_node_settings_from_text(toml, "test.toml", "/base");
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "(accepted)";
+}
+
+TEST(DicomNodeSettings, ShippedConfigHasTheNodeOff) {
+  const auto s = server::dicom_node_settings_from_file(BRAINSHIFT_SOURCE_DIR "/config/brainshiftd.toml");
+  EXPECT_FALSE(s.enabled);
+  EXPECT_EQ(s.ae_title, "BRAINSHIFT");
+  EXPECT_DOUBLE_EQ(s.series_quiet_s, 30.0);
+}
+
+TEST(DicomNodeSettings, RelativeStagingIsUnderTheConfigFolder) {
+  const auto s = server::dicom_node_settings_from_text(
+      "[dicom_node]\nenabled = true\nallowed_peers = [\"MR\"]\nstaging = \"in\"\nqueue_command = [\"true\"]\n",
+      "test.toml", "/base");
+  EXPECT_EQ(s.staging, fs::path("/base/in"));
+}
+
+TEST(DicomNodeSettings, BadValuesAreRefusedByName) {
+  EXPECT_NE(settings_error("[dicom_node]\nenabled = true\nstaging = \"s\"\nqueue_command = [\"true\"]\n")
+                .find("allowed_peers"),
+            std::string::npos);
+  EXPECT_NE(settings_error("[dicom_node]\nae_title = \"SEVENTEEN_CHARS_X\"\n").find("ae_title"), std::string::npos);
+  EXPECT_NE(settings_error("[dicom_node]\nseries_quiet_s = 0.1\n").find("series_quiet_s"), std::string::npos);
+  EXPECT_NE(settings_error("[dicom_node]\nport = 0\n").find("port"), std::string::npos);
+  EXPECT_NE(settings_error("[dicom_node]\nqueue_comand = [\"x\"]\n").find("queue_comand"), std::string::npos);
 }
 
 }  // namespace
