@@ -228,8 +228,21 @@ DicomNodeSettings dicom_node_settings_from_file(const fs::path& path) {
   return dicom_node_settings_from_text(config::read_text_file(path), path.string(), path.parent_path());
 }
 
+// Series folders left by an earlier run (stopped or crashed mid-series) may be
+// half-stored, and nothing knows when their last instance came: dropped whole,
+// like those of an aborted association.
+void discard_leftovers(const fs::path& staging) {
+  for (const auto& e : fs::directory_iterator(staging)) {
+    const std::string name = e.path().filename().string();
+    if (name == "queued" || name == "rejected" || !e.is_directory()) continue;
+    spdlog::warn("dicom node: series {} left from an earlier run discarded", name);
+    fs::remove_all(e.path());
+  }
+}
+
 void run_dicom_node(const DicomNodeSettings& s, const std::function<bool()>& stop) {
   fs::create_directories(s.staging);
+  discard_leftovers(s.staging);
   NodeScp scp(s, stop);
   scp.setAETitle(s.ae_title.c_str());
   scp.setPort(s.port);

@@ -23,6 +23,7 @@ namespace fs = std::filesystem;
 
 namespace {
 
+const std::string kUidLeft = "1.2.826.0.1.3680043.2.1125.7.9";
 constexpr double kQuietS = 1.0;  // the node's series_quiet_s here (the smallest it accepts)
 
 int free_port() {
@@ -57,6 +58,9 @@ class DicomNode : public ::testing::Test {
   void SetUp() override {
     port_ = free_port();
     staging_ = dir_.path() / "staging";
+    // A series folder left by an earlier run: half-stored as far as anyone knows.
+    fs::create_directories(staging_ / kUidLeft);
+    std::ofstream(staging_ / kUidLeft / "1.dcm") << "partial";
     queue_log_ = dir_.path() / "queued.log";
     std::ofstream(dir_.path() / "node.toml")
         << "[dicom_node]\nenabled = true\nae_title = \"BRAINSHIFT\"\nport = " << port_
@@ -140,6 +144,8 @@ TEST_F(DicomNode, AbortedTransferRegistersNothing) {
   EXPECT_FALSE(fs::exists(staging_ / kUidB));
   EXPECT_FALSE(fs::exists(staging_ / "queued" / kUidB));
   EXPECT_FALSE(fs::exists(staging_ / "rejected" / kUidB));
+  EXPECT_FALSE(fs::exists(staging_ / kUidLeft));  // dropped at start-up, never queued
+  EXPECT_FALSE(fs::exists(staging_ / "rejected" / kUidLeft));
 }
 
 TEST_F(DicomNode, SeriesWithMissingSliceIsRejectedNotQueued) {
