@@ -2,9 +2,6 @@
 // brainshift-dicom-node, which queues it on the real daemon with
 // `brainshift push --dicom` (its queue_command) once the series is quiet.
 #include <gtest/gtest.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
-#include <unistd.h>
 
 #include <chrono>
 #include <fstream>
@@ -23,18 +20,6 @@ namespace fs = std::filesystem;
 
 namespace {
 
-int free_port() {
-  const int s = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  bind(s, reinterpret_cast<sockaddr*>(&a), sizeof a);
-  socklen_t n = sizeof a;
-  getsockname(s, reinterpret_cast<sockaddr*>(&a), &n);
-  close(s);
-  return ntohs(a.sin_port);
-}
-
 TEST(DicomNodeE2E, SeriesFromStorescuIsQueuedOnTheDaemonOnce) {
   test::TempDir tmp("e2e_dicom_node");
   const fs::path dir = tmp.path();
@@ -50,7 +35,7 @@ TEST(DicomNodeE2E, SeriesFromStorescuIsQueuedOnTheDaemonOnce) {
   c.load_preop(read_file(dir / "preop_t1.nii.gz"), read_file(dir / "preop_labels.nii.gz"));
   ASSERT_NO_THROW(c.wait_ready(300s)) << d.log();
 
-  const int port = free_port();
+  const int port = free_loopback_port();
   std::ofstream(dir / "node.toml") << "[dicom_node]\nenabled = true\nport = " << port
                                    << "\nallowed_peers = [\"MR_OR1\"]\nstaging = \"staging\"\nseries_quiet_s = 1\n"
                                    << "queue_command = [\"" << BRAINSHIFT_BIN << "\", \"--server\", \"" << d.endpoint

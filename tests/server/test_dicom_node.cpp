@@ -3,9 +3,6 @@
 // aborted association leaves nothing staged or queued, and a series with a
 // slice missing is not queued.
 #include <gtest/gtest.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
-#include <unistd.h>
 
 #include <chrono>
 #include <fstream>
@@ -26,18 +23,6 @@ namespace {
 const std::string kUidLeft = "1.2.826.0.1.3680043.2.1125.7.9";
 constexpr double kQuietS = 1.0;  // the node's series_quiet_s here (the smallest it accepts)
 
-int free_port() {
-  const int s = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  bind(s, reinterpret_cast<sockaddr*>(&a), sizeof a);
-  socklen_t n = sizeof a;
-  getsockname(s, reinterpret_cast<sockaddr*>(&a), &n);
-  close(s);
-  return ntohs(a.sin_port);
-}
-
 std::vector<fs::path> dicom_files(const fs::path& dir) {
   std::vector<fs::path> out;
   if (fs::exists(dir))
@@ -56,7 +41,7 @@ std::vector<std::string> lines(const fs::path& file) {
 class DicomNode : public ::testing::Test {
  protected:
   void SetUp() override {
-    port_ = free_port();
+    port_ = e2e::free_loopback_port();
     staging_ = dir_.path() / "staging";
     // A series folder left by an earlier run: half-stored as far as anyone knows.
     fs::create_directories(staging_ / kUidLeft);
