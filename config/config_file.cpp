@@ -200,7 +200,7 @@ LabelTable label_table_file(TomlSection& root, const std::string& path, const st
 PipelineParameters parameters_from(const toml::table& document, const std::string& src,
                                    const std::filesystem::path* base_dir) {
   TomlSection root(&document, src, "");
-  root.allow({"server", "security", "openigtlink"});  // brainshiftd's (server/server_settings.cpp)
+  root.allow({"server", "security", "openigtlink", "dicom_node"});  // brainshiftd's (server/server_settings.cpp) and brainshift-dicom-node's (server/dicom_node.cpp)
   PipelineParameters p;
   const std::string label_table = root.string("label_table", "");
   if (root.node("label")) p.label_table = label_table_from(root);

@@ -201,3 +201,9 @@ TEST(Config, SurfaceRepairAndSelfContactAreConfiguredWithTheEnginesDefaults) {
   EXPECT_NE(message_of("[surface.repair]\nringz = 2\n").find("ringz"), std::string::npos);
   EXPECT_NE(message_of("[surface.ventricles]\ncontact_fraction = 1.0\n").find("contact_fraction"), std::string::npos);
 }
+
+// The shipped file, with the tables of brainshiftd ([server]...) and of
+// brainshift-dicom-node ([dicom_node]) the pipeline's reader must let through.
+TEST(ConfigFile, ShippedBrainshiftdTomlIsAccepted) {
+  EXPECT_NO_THROW(config::pipeline_parameters_from_file(BRAINSHIFT_SOURCE_DIR "/config/brainshiftd.toml"));
+}

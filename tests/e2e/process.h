@@ -39,4 +39,8 @@ RunResult run(const std::vector<std::string>& argv, const std::filesystem::path&
 
 std::string read_file(const std::filesystem::path& path);
 
+// A loopback TCP port that was free a moment ago (for a server under test
+// that needs its port on the command line, e.g. a DICOM node).
+int free_loopback_port();
+
 }  // namespace brainshift::e2e
