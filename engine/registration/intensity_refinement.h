@@ -10,11 +10,13 @@
 // What: a smooth correction v moves the intraop point before the FEM's
 // pull-back u maps it (x + u(x) is the preop point): u'(x) = v(x) + u(x + v(x)),
 // with v chosen so that the preop T1 at x + u'(x) matches the intraop T1 at
-// x up to a smooth intensity bias:
-//   I(x) ~ b(x) P(x + u'(x)) + d
-// I intraop T1, P preop T1 (trilinear), b a low-order polynomial over the
+// x up to a smooth intensity bias and a transfer function:
+//   I(x) ~ b(x) f(P(x + u'(x))) + d
+// I intraop image, P preop T1 (trilinear), b a low-order polynomial over the
 // brain (receive-coil bias and the scanners' different global scales), d a
-// constant (noise floor, black level). v is trilinear on a coarse control
+// constant (noise floor, black level), f the identity for a T1 or a smooth
+// 1-D function estimated from the data for another contrast (T2-like, a
+// compressed low-field T1; see intensity_bias.h). v is trilinear on a coarse control
 // lattice aligned with the intraop voxel axes (isotropic spacing in mm); it is
 // used inside the brain region and fades to 0 outside it, where the field is
 // the FEM's continuation that fades to the affine. Composed rather than
@@ -86,14 +88,16 @@ struct IntensityRefinementParameters {
   int bias_degree = 2;
   // Distance (mm) outside the brain region over which v fades to 0.
   double outside_fade_mm = 8.0;
-  // The stage is skipped (the FEM's field kept) when the bias model explains
-  // less than this share of the intraop intensity variance at the start: an
-  // image unrelated to the preop T1 carries no trustworthy motion. Measured
-  // (brainshift_refine_bench): the phantom suite 0.84-0.96; with noise of
-  // 10 / 25 / 40 % of the brain's p99 added 0.6 / 0.23 / 0.1, where the
-  // refinement still lowers the TRE (0.56 / 0.78 / 0.89 against 0.96 mm);
-  // the brain's voxels shuffled ~0, an inverted (T2-like) contrast < 0.
-  // Noise alone lowers it; an unrelated image takes it to 0 or below.
+  // The stage is skipped (the FEM's field kept) when the intensity model
+  // (linear, or through a transfer function f for another contrast)
+  // explains less than this share of the intraop intensity variance left by
+  // a smooth trend of position alone, at the start: an image unrelated to the
+  // preop carries no trustworthy motion. Measured (test_intensity_refinement):
+  // pure noise 0.002, the same head 30 mm away 0.02, a T2-like image 0.93;
+  // (brainshift_refine_bench, plain R^2) the phantom suite 0.84-0.96, with
+  // noise of 10 / 25 / 40 % of the brain's p99 added 0.6 / 0.23 / 0.1, where
+  // the refinement still lowers the TRE (0.56 / 0.78 / 0.89 against 0.96 mm).
+  // Why and how in docs/DESIGN.md "Interior refinement from the intraop T1".
   double min_explained_variance = 0.1;
 };
 

@@ -43,6 +43,11 @@ struct DataTerm {
   double offset = 0;  // bias model's d
   double sigma = 1;   // robust residual spread
   double robust_scale = 3;
+  Transfer transfer;  // f of the intensity model
+
+  double residual(const Sample& s, double preop_value) const {
+    return s.intensity - (s.bias * transfer.at(preop_value, nullptr) + offset);
+  }
 
   Vec3 point(std::size_t n) const { return samples[n].preop_mm(lattice.value(samples[n].cell)); }
 
@@ -59,11 +64,12 @@ struct DataTerm {
       double value;
       Vec3 g;
       if (!preop.sample(y, &value, &g)) return;
-      const double r = s.intensity - (s.bias * value + offset);
+      double slope;
+      const double r = s.intensity - (s.bias * transfer.at(value, &slope) + offset);
       out->sum_r2 += r * r;
       ++out->used;
       const double w = s.weight * geman_mcclure_weight(r, scale) / (sigma * sigma);
-      const Vec3 dr = -static_cast<double>(s.bias) * (s.jac.cast<double>().transpose() * g);  // d r / d v
+      const Vec3 dr = -static_cast<double>(s.bias) * slope * (s.jac.cast<double>().transpose() * g);  // d r / d v
       NodeSystem::Sym3 h;
       h << dr[0] * dr[0], dr[0] * dr[1], dr[0] * dr[2], dr[1] * dr[1], dr[1] * dr[2], dr[2] * dr[2];
       h *= w;
@@ -91,7 +97,7 @@ struct DataTerm {
     for_samples(0, samples.size(), 4, [&](std::size_t n, const Vec3& y) {
       double value;
       if (!preop.sample(y, &value, nullptr)) return;
-      abs_r.push_back(std::abs(samples[n].intensity - (samples[n].bias * value + offset)));
+      abs_r.push_back(std::abs(residual(samples[n], value)));
       sum2 += abs_r.back() * abs_r.back();
     });
     const double rms = abs_r.empty() ? 0.0 : std::sqrt(sum2 / static_cast<double>(abs_r.size()));
@@ -184,13 +190,19 @@ int optimise(Lattice& lattice, std::vector<Sample>& motion, const std::vector<Sa
   const double h = lattice.spacing_mm();
   const double alpha = p.membrane_weight * density_per_mm3 * h;       // int |grad v|^2 dV on the lattice
   const double beta = p.shrink_weight_per_mm2 * density_per_mm3 * h * h * h;  // int |v|^2 dV
-  DataTerm data{motion, lattice, preop, 0.0, 1.0, p.robust_scale};
+  DataTerm data{motion, lattice, preop, 0.0, 1.0, p.robust_scale, Transfer{}};
   int it = 0;
   for (; it < p.iterations; ++it) {
-    // The bias is fitted at v = 0 and re-fitted once half way, when the
-    // edges are closer to aligned (the first fit stays if the second fails).
+    // The intensity model is fitted at v = 0 and re-fitted once half way,
+    // when the edges are closer to aligned (the first fit stays if the second
+    // fails); the kind chosen at the start (linear or with a transfer
+    // function) is kept.
     if (it == 0 || it == p.iterations / 2) {
-      const std::optional<BiasModel> bias = fit_bias(bias_samples, lattice, preop, p.bias_degree, p.robust_scale);
+      const std::optional<BiasModel> bias =
+          it == 0 ? fit_intensity_model(bias_samples, lattice, preop, p.bias_degree, p.robust_scale,
+                                        p.min_explained_variance)
+          : data.transfer.identity ? fit_bias(bias_samples, lattice, preop, p.bias_degree, p.robust_scale)
+                                   : fit_transfer_model(bias_samples, lattice, preop, p.bias_degree, p.robust_scale);
       if (it == 0) {
         report->explained_variance = bias ? bias->explained : 0.0;
         report->skipped_reason = untrusted_image(bias, p.min_explained_variance);
@@ -199,6 +211,7 @@ int optimise(Lattice& lattice, std::vector<Sample>& motion, const std::vector<Sa
       if (bias) {
         update_bias(motion, *bias);
         data.offset = bias->offset;
+        data.transfer = bias->transfer;
         report->bias_model = describe(*bias);
         report->explained_variance = bias->explained;
       }
