@@ -43,7 +43,13 @@ struct ThresholdSegmenterSpec {
   double opening_mm = 3.0;
   double closing_mm = 2.0;
   double ventricle_margin_mm = 3.0;
+  // The brain may move outward past its preop outline by swelling (2-4 mm in
+  // the suites) and a rigid pre-registration's error (about a millimetre):
+  // 5 mm keeps it, and keeps out the neck and orbits, a centimetre away.
   double roi_margin_mm = 5.0;
+  // The ventricles move with the deep part of the sinking (2-5 mm) or a
+  // midline shift (up to 6 mm); growth farther than 8 mm from where they
+  // were is a leak into other CSF (third ventricle, cisterns).
   double ventricle_roi_margin_mm = 8.0;
   double seed_search_mm = 12.0;
   std::uint16_t brain_label = 1;      // the label table's values

@@ -50,7 +50,7 @@ std::vector<HospitalCaseSpec> selected(const std::vector<std::string>& cases, co
 
 // Every selected case without a record is marked unfinished, with its
 // subject's warm-up status.
-int summarise(const std::string& path, const std::vector<HospitalCaseSpec>& suite) {
+int summarise(const std::string& path, const std::vector<HospitalCaseSpec>& suite, const std::vector<std::string>& modes) {
   std::ifstream in(path);
   if (!in) {
     std::fprintf(stderr, "cannot read %s\n", path.c_str());
@@ -75,7 +75,7 @@ int summarise(const std::string& path, const std::vector<HospitalCaseSpec>& suit
     if (subject_notes.count(s.subject)) why += ": " + subject_notes[s.subject];
     records.push_back(evaluation::unfinished_case_record(s, why));
   }
-  std::printf("%s\n", evaluation::summarise_records(records).dump(1).c_str());
+  std::printf("%s\n", evaluation::summarise_records(records, modes).dump(1).c_str());
   return 0;
 }
 
@@ -140,7 +140,7 @@ int main(int argc, char** argv) {
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
   const std::vector<HospitalCaseSpec> suite = selected(cases, subjects);
-  if (!summarise_path.empty()) return summarise(summarise_path, suite);
+  if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {
     std::set<std::string> seen;
     for (const auto& s : suite)

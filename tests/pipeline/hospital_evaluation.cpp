@@ -99,7 +99,7 @@ nlohmann::json unfinished_case_record(const HospitalCaseSpec& spec, const std::s
           {"unfinished", why}, {"modes", nlohmann::json::object()}};
 }
 
-nlohmann::json summarise_records(const std::vector<nlohmann::json>& records) {
+nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, const std::vector<std::string>& modes) {
   struct Pool {
     int registrations = 0, nonrigid = 0, skipped = 0;
     double mean_sum = 0, worst = 0;
@@ -107,7 +107,7 @@ nlohmann::json summarise_records(const std::vector<nlohmann::json>& records) {
     std::vector<double> errors;
   };
   std::map<std::string, Pool> pools;
-  std::vector<std::string> all_modes;
+  std::vector<std::string> all_modes = modes;
   nlohmann::json cases = nlohmann::json::array(), preops = nlohmann::json::array();
   for (const auto& r : records)
     if (r.value("record", "") == "case")

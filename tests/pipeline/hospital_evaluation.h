@@ -45,9 +45,10 @@ nlohmann::json case_record(const HospitalCaseSpec& spec, const HospitalCase& c, 
 nlohmann::json unfinished_case_record(const HospitalCaseSpec& spec, const std::string& why);
 
 // The suite's document from the records (case records, preop records): per
-// mode the non-rigid fraction (unfinished and skipped runs count against it
-// except skipped image-only runs, which are left out), mean TRE over cases,
-// pooled p95, worst landmark; the landmark errors dropped from the cases.
-nlohmann::json summarise_records(const std::vector<nlohmann::json>& records);
+// mode asked for (and any other mode found in the records) the non-rigid
+// fraction (an unfinished case or an error counts against it, a skipped run
+// is left out), mean TRE over cases, pooled p95, worst landmark; the
+// landmark errors dropped from the cases.
+nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, const std::vector<std::string>& modes);
 
 }  // namespace brainshift::evaluation
