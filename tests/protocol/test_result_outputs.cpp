@@ -43,16 +43,24 @@ TEST_P(OutputRow, DeferredPresenceAndRepairColumnsAgree) {
     EXPECT_FALSE(bp::result_output(*row.remade_from).deferred);
     EXPECT_TRUE(bp::part_expected(*row.remade_from, {}));
   }
-  const bp::ScanFacts labels_only{false}, with_image{true};
-  EXPECT_TRUE(bp::part_expected(row.part, with_image));
-  EXPECT_TRUE(bp::why_not_expected(row.part, with_image).empty());
+  const bp::ScanFacts labels_only{false, true}, with_image{true, true}, image_only{true, false};
+  // An image-only scan has every part: the engine made its segmentation.
+  EXPECT_TRUE(bp::part_expected(row.part, image_only));
+  EXPECT_TRUE(bp::why_not_expected(row.part, image_only).empty());
   switch (row.presence) {
     case bp::PartPresence::kEveryScan:
       EXPECT_TRUE(bp::part_expected(row.part, labels_only));
+      EXPECT_TRUE(bp::part_expected(row.part, with_image));
       break;
     case bp::PartPresence::kWithIntraopImage:
+      EXPECT_TRUE(bp::part_expected(row.part, with_image));
       EXPECT_FALSE(bp::part_expected(row.part, labels_only));
       EXPECT_EQ(bp::why_not_expected(row.part, labels_only), "no intraop image was pushed");
+      break;
+    case bp::PartPresence::kWithoutIntraopLabels:
+      EXPECT_FALSE(bp::part_expected(row.part, with_image));
+      EXPECT_FALSE(bp::part_expected(row.part, labels_only));
+      EXPECT_FALSE(bp::why_not_expected(row.part, with_image).empty());
       break;
   }
 }
