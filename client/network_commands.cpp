@@ -418,11 +418,11 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
   // What the scene shows must be in the folder.
   if (a.scene)
     for (ResultPart p : kScenePartsFromTheDaemon) parts.emplace_back(result_output(p).cli);
+  else if (!a.preop_image.empty() || !a.intraop_image.empty() || !a.scene_labels.empty())
+    throw CommandError(kExitUsage, "--preop-image, --intraop-image and --scene-labels go with --scene");
   if (a.scene && a.format == "nrrd") parts.emplace_back(result_output(ResultPart::kDisplacement).cli);
   if (a.format == "nrrd" && !o.nrrd_outputs)
     throw CommandError(kExitUsage, "--format nrrd needs brainshift-offline (NRRD is written there)");
-  else if (!a.preop_image.empty() || !a.intraop_image.empty() || !a.scene_labels.empty())
-    throw CommandError(kExitUsage, "--preop-image, --intraop-image and --scene-labels go with --scene");
   for (const auto& name : parts) {
     const auto p = result_part_from_cli(name);
     if (!p) throw CommandError(kExitUsage, "unknown part \"" + name + "\"");
