@@ -35,6 +35,12 @@ struct LabelImageCheckParameters {
   // the surface some 100 ml; physiological brain shift moves no tissue out of
   // the image's brain).
   double max_disagreement_fraction = 0.02;
+  // The check classifies on a grid of about this spacing (never finer than
+  // the image's own): distances beyond the band are counted in whole voxels,
+  // and at 2 mm the first depth counted beyond band_mm (4 mm) is the same
+  // as at 1 mm, while the classification costs a quarter to an eighth
+  // (docs/DESIGN.md "The labels-vs-image check's grid"). 0: the image's grid.
+  double grid_spacing_mm = 2.0;
 };
 
 struct Disagreement {
@@ -51,7 +57,8 @@ struct LabelImageCheck {
   nlohmann::json metrics;
 };
 
-// labels in the table's values on the image's grid.
+// labels in the table's values on the image's grid. The volumes, depths and
+// centroid are measured on the check's grid (grid_spacing_mm).
 LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage& labels, std::uint16_t brain_label,
                                            const std::vector<std::uint16_t>& ventricle_labels,
                                            const LabelImageCheckParameters& params);
