@@ -50,6 +50,7 @@ LabelImageCheck check_labels_against_image(const ImageF& full_image, const Label
   const LabelImage labels = coarse ? resample_nearest(full_labels, grid) : full_labels;
   SegmentationParameters sp = params.classifier;
   sp.prior_width_mm = params.prior_width_mm;
+  sp.em.fit_samples = params.fit_samples;
   // Only the outline is compared: how well the image shows the ventricles
   // does not matter here.
   sp.min_fluid_contrast_sd = 0;

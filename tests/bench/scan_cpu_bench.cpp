@@ -74,13 +74,16 @@ void register_once(EngineSession& session, const ScanInput& scan, StageSamples& 
 int main(int argc, char** argv) {
   std::string config_path, atlas_cache = "brainshift-atlas", case_name = "vertex_sinking_20mm";
   int repeat = 5;
-  bool no_check = false;
+  bool no_check = false, check_only = false;
+  std::size_t check_fit_samples = 0;
   CLI::App app("brainshift scan CPU benchmark: wall and CPU seconds per intraop stage");
   app.add_option("--config", config_path);
   app.add_option("--atlas-cache", atlas_cache);
   app.add_option("--case", case_name, "standard phantom suite case");
   app.add_option("--repeat", repeat, "registrations per mode")->check(CLI::Range(1, 100));
   app.add_flag("--no-check", no_check, "given labels are not checked against the image (to see the check's share)");
+  app.add_flag("--check-only", check_only, "time the labels-vs-image check alone (no preop, no registration)");
+  app.add_option("--check-fit-samples", check_fit_samples, "the check's EM subsample (default: its parameters')");
   CLI11_PARSE(app, argc, argv);
 
   PetscSession petsc;
@@ -97,12 +100,12 @@ int main(int argc, char** argv) {
     return 2;
   }
   const PhantomCase c = make_phantom(atlas.t1, atlas.labels, *spec);
-  EngineSession session(MPI_COMM_WORLD, params);
-  session.load_preop(PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, nullptr);
-
   nlohmann::json out = {{"case", case_name}, {"repeat", repeat},
                         {"grid", {c.intraop_t1.grid.dims[0], c.intraop_t1.grid.dims[1], c.intraop_t1.grid.dims[2]}}};
+  EngineSession session(MPI_COMM_WORLD, params);
+  if (!check_only) session.load_preop(PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, nullptr);
   for (const bool with_image : {true, false}) {
+    if (check_only) break;
     ScanInput scan;
     scan.labels = c.intraop_labels;
     if (with_image) scan.image = c.intraop_t1;
@@ -118,6 +121,7 @@ int main(int argc, char** argv) {
   for (int r = 0; r < repeat; ++r) {
     segmentation::LabelImageCheckParameters p = params.auto_segmentation.label_image_check;
     p.classifier.max_filled_hole_ml = params.min_resection_cavity_ml;
+    if (check_fit_samples > 0) p.fit_samples = check_fit_samples;
     Stopwatch wall;
     const double cpu0 = cpu_seconds(CLOCK_THREAD_CPUTIME_ID);
     const auto check = segmentation::check_labels_against_image(c.intraop_t1, c.intraop_labels,
