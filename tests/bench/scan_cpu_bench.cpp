@@ -6,7 +6,8 @@
 // else the machine runs, wall seconds do. "field" CPU includes its nested
 // "refine". The labels-vs-image check is also timed on its own (thread CPU).
 // JSON on stdout.
-//   brainshift_scan_cpu_bench [--atlas-cache DIR] [--case NAME] [--repeat N] [--no-check]
+//   brainshift_scan_cpu_bench [--atlas-cache DIR] [--case NAME] [--repeat N] [--no-check] [--check-only]
+//                             [--check-grid-mm MM] [--check-fit-samples N]
 #include <mpi.h>
 #include <sys/resource.h>
 
@@ -76,6 +77,7 @@ int main(int argc, char** argv) {
   int repeat = 5;
   bool no_check = false, check_only = false;
   std::size_t check_fit_samples = 0;
+  double check_grid_mm = -1;
   CLI::App app("brainshift scan CPU benchmark: wall and CPU seconds per intraop stage");
   app.add_option("--config", config_path);
   app.add_option("--atlas-cache", atlas_cache);
@@ -84,12 +86,16 @@ int main(int argc, char** argv) {
   app.add_flag("--no-check", no_check, "given labels are not checked against the image (to see the check's share)");
   app.add_flag("--check-only", check_only, "time the labels-vs-image check alone (no preop, no registration)");
   app.add_option("--check-fit-samples", check_fit_samples, "the check's EM subsample (default: its parameters')");
+  app.add_option("--check-grid-mm", check_grid_mm, "the check's grid spacing (0: the image's; default: its parameters')");
   CLI11_PARSE(app, argc, argv);
 
   PetscSession petsc;
   if (!bench::drive_from_this_rank()) return 0;
   PipelineParameters params = bench::parameters(config_path);
   if (no_check) params.auto_segmentation.check_given_labels = false;
+  // Both for the registrations and for the check timed alone.
+  if (check_fit_samples > 0) params.auto_segmentation.label_image_check.fit_samples = check_fit_samples;
+  if (check_grid_mm >= 0) params.auto_segmentation.label_image_check.grid_spacing_mm = check_grid_mm;
   DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache);
   const PhantomSpec* spec = nullptr;
   const auto suite = standard_phantom_suite();
@@ -121,7 +127,6 @@ int main(int argc, char** argv) {
   for (int r = 0; r < repeat; ++r) {
     segmentation::LabelImageCheckParameters p = params.auto_segmentation.label_image_check;
     p.classifier.max_filled_hole_ml = params.min_resection_cavity_ml;
-    if (check_fit_samples > 0) p.fit_samples = check_fit_samples;
     Stopwatch wall;
     const double cpu0 = cpu_seconds(CLOCK_THREAD_CPUTIME_ID);
     const auto check = segmentation::check_labels_against_image(c.intraop_t1, c.intraop_labels,
