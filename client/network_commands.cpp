@@ -382,16 +382,13 @@ std::vector<ResultPart> write_pulled(const ScanResultReply& r, const fs::path& o
 // The daemon's label table, which names and colours the scene (labels.get):
 // asked before anything is pulled, so a daemon that cannot say fails first.
 std::vector<SceneLabel> daemon_scene_labels(Connection& c) {
-  LabelsReply reply;
-  try {
-    reply = parse_labels_reply(c.call(make_labels_request(c.next_request_id())));
-  } catch (const ProtocolError& e) {
-    if (e.code() != ErrorCode::kUnknownType) throw;
+  const Message reply = c.call_raw(make_labels_request(c.next_request_id()));
+  if (reply.type() == MessageType::kError && parse_error_reply(reply).code == ErrorCode::kUnknownType)
     throw CommandError(kExitError, "pull --scene: this daemon does not serve its label table (labels.get, "
                                    "protocol revision 3; PROTOCOL.md 10); pull without --scene");
-  }
   std::vector<SceneLabel> out;
-  for (const LabelInfo& l : reply.labels) out.push_back({l.value, l.name, l.colour, l.role == kLabelRoleNames[0]});
+  for (const LabelInfo& l : parse_labels_reply(reply).labels)
+    out.push_back({l.value, l.name, l.colour, l.role == kLabelRoleNames[0]});
   return out;
 }
 
