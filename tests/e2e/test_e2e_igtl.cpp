@@ -17,7 +17,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "config_file.h"
+#include "label_table_file.h"
 #include "daemon_harness.h"
 #include "igtl_receiver.h"
 #include "image/nifti_io.h"

@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <functional>
 
+#include "coarse_parameters.h"  // tests/support
 #include "config_file.h"
 #include "core/errors.h"
 #include "image/resample.h"
@@ -41,13 +42,7 @@ PreopInput asymmetric_head() {
   return {std::move(h.t1), std::move(h.labels)};
 }
 
-PipelineParameters coarse_parameters() {
-  auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
-  p.meshing.cell_size_mm = 7;
-  p.meshing.facet_size_mm = 4;
-  p.meshing.facet_distance_mm = 1.5;
-  return p;
-}
+using test::coarse_parameters;  // tests/support
 
 PhantomSpec spec() {
   PhantomSpec s;
