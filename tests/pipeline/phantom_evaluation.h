@@ -23,6 +23,9 @@ struct CaseResult {
   std::vector<double> nonrigid_errors_mm;  // per landmark
   // The uncertainty map's 95 % band at each landmark (empty without the map).
   std::vector<double> predicted_band_mm;
+  // Per landmark, with the map: what the error might depend on (for the
+  // calibration study; landmark_records()).
+  nlohmann::json landmark_records = nlohmann::json::array();
   nlohmann::json timings, metrics;
 };
 
