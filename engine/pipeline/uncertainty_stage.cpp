@@ -19,9 +19,9 @@ std::vector<std::uint16_t> tissue_labels(const LabelTable& table) {
   return out;
 }
 
-// Per fixed node: the RMS error of its matched position, from its distance to
-// the intraop tissue boundary (what the match could not follow) and the
-// boundary's own quantisation (a uniform error over the thickest voxel).
+// Per fixed node: the RMS error of its matched position beyond the
+// segmentation's quantisation (which the band adds everywhere): its distance
+// to the intraop tissue boundary, what the match could not follow.
 std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& input,
                                      const std::vector<std::uint16_t>& tissue, const ScanResult& result) {
   Mask mask(input.labels.grid);
@@ -29,7 +29,6 @@ std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& 
     mask.voxels[v] = std::find(tissue.begin(), tissue.end(), input.labels.voxels[v]) != tissue.end();
   const ImageF sdf = signed_distance_mm(mask);
   const LinearSampler boundary(sdf);
-  const double quantisation_mm = input.labels.grid.spacing_mm().maxCoeff() / std::sqrt(12.0);
   const auto& fixed = warm.fem.fixed_nodes();
   const auto& nodes = warm.fem.mesh().nodes_mm;
   std::vector<double> sigma(fixed.size());
@@ -41,7 +40,7 @@ std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& 
     // Outside the grid (field of view cut) the node has no data: its error is
     // as large as the grid's coarsest distance scale allows, 10 voxels.
     if (!boundary.sample(q, &d, nullptr)) d = 10 * input.labels.grid.spacing_mm().maxCoeff();
-    sigma[i] = std::sqrt(d * d + quantisation_mm * quantisation_mm);
+    sigma[i] = std::abs(d);
   }
   return sigma;
 }
@@ -69,7 +68,8 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   summary["surface_noise_rms_mm"] = {{"mean", mean_sigma}, {"max", sigma.empty() ? 0.0 : *std::max_element(sigma.begin(), sigma.end())}};
   summary["samples"] = params.uncertainty.samples;
   result.uncertainty_mm = uncertainty_band_mm(
-      {warm.fem.mesh(), node_rms, result.pullback_field_mm, result.intraop_from_preop, input.labels, tissue},
+      {warm.fem.mesh(), node_rms, result.pullback_field_mm, result.intraop_from_preop, input.labels,
+       result.metrics.contains("refine") && result.metrics["refine"].value("applied", false)},
       params.uncertainty, &summary);
   summary["meaning"] = "radius (mm) of the 95 % band around each voxel's matched preop point";
   const double seconds = watch.seconds();
