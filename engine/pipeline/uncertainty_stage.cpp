@@ -52,20 +52,24 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   if (!params.uncertainty.enabled) return;
   if (progress) progress(std::string(protocol::stages::kUncertainty), 0.0, 0.0);
   Stopwatch watch;
-  const auto tissue = tissue_labels(params.label_table);
-  const std::vector<double> sigma = surface_noise_mm(warm, input, tissue, result);
-  std::vector<Eigen::Vector3d> fixed_preop;
-  for (int n : warm.fem.fixed_nodes()) fixed_preop.push_back(warm.fem.mesh().nodes_mm[n]);
-  const LinearSolve solve = [&warm](const std::vector<Eigen::Vector3d>& values) {
-    std::vector<Eigen::Vector3d> out;
-    warm.fem.drive_solve(values, out);
-    return out;
-  };
-  const std::vector<double> node_rms = propagate_surface_noise(fixed_preop, sigma, solve, params.uncertainty);
+  std::vector<double> sigma, node_rms(warm.fem.mesh().node_count(), 0.0);
+  if (params.uncertainty.samples > 0) {
+    sigma = surface_noise_mm(warm, input, tissue_labels(params.label_table), result);
+    std::vector<Eigen::Vector3d> fixed_preop;
+    for (int n : warm.fem.fixed_nodes()) fixed_preop.push_back(warm.fem.mesh().nodes_mm[n]);
+    const LinearSolve solve = [&warm](const std::vector<Eigen::Vector3d>& values) {
+      std::vector<Eigen::Vector3d> out;
+      warm.fem.drive_solve(values, out);
+      return out;
+    };
+    node_rms = propagate_surface_noise(fixed_preop, sigma, solve, params.uncertainty);
+  }
   nlohmann::json summary;
-  double mean_sigma = 0;
-  for (double s : sigma) mean_sigma += s / static_cast<double>(std::max<std::size_t>(1, sigma.size()));
-  summary["surface_noise_rms_mm"] = {{"mean", mean_sigma}, {"max", sigma.empty() ? 0.0 : *std::max_element(sigma.begin(), sigma.end())}};
+  if (!sigma.empty()) {
+    double mean_sigma = 0;
+    for (double s : sigma) mean_sigma += s / static_cast<double>(sigma.size());
+    summary["surface_noise_rms_mm"] = {{"mean", mean_sigma}, {"max", *std::max_element(sigma.begin(), sigma.end())}};
+  }
   summary["samples"] = params.uncertainty.samples;
   result.uncertainty_mm = uncertainty_band_mm(
       {warm.fem.mesh(), node_rms, result.pullback_field_mm, result.intraop_from_preop, input.labels,

@@ -184,9 +184,13 @@ Calibration calibrate(const std::vector<CaseResult>& cases) {
     band.insert(band.end(), c.predicted_band_mm.begin(), c.predicted_band_mm.end());
     error.insert(error.end(), c.nonrigid_errors_mm.begin(), c.nonrigid_errors_mm.end());
   }
+  return calibrate(band, error);
+}
+
+Calibration calibrate(const std::vector<double>& band, const std::vector<double>& error) {
   Calibration out;
   out.landmarks = band.size();
-  if (band.empty()) return out;
+  if (band.empty() || band.size() != error.size()) return out;
   std::size_t inside = 0;
   for (std::size_t i = 0; i < band.size(); ++i) {
     inside += error[i] <= band[i];

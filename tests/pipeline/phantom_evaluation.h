@@ -56,6 +56,8 @@ struct Calibration {
   double mean_band_mm = 0, mean_error_mm = 0;
 };
 Calibration calibrate(const std::vector<CaseResult>& cases);
+// The same from pooled per-landmark bands and errors (equal sizes).
+Calibration calibrate(const std::vector<double>& band, const std::vector<double>& error);
 nlohmann::json to_json(const Calibration& c);
 
 // Spearman rank correlation (ties take their mean rank); 0 when either is constant.
