@@ -52,8 +52,10 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   if (!params.uncertainty.enabled) return;
   if (progress) progress(std::string(protocol::stages::kUncertainty), 0.0, 0.0);
   Stopwatch watch;
+  UncertaintyParameters up = params.uncertainty;
+  if (result.kind != ResultKind::nonrigid) up.samples = up.fallback_samples;
   std::vector<double> sigma, node_rms(warm.fem.mesh().node_count(), 0.0);
-  if (params.uncertainty.samples > 0) {
+  if (up.samples > 0) {
     sigma = surface_noise_mm(warm, input, tissue_labels(params.label_table), result);
     std::vector<Eigen::Vector3d> fixed_preop;
     for (int n : warm.fem.fixed_nodes()) fixed_preop.push_back(warm.fem.mesh().nodes_mm[n]);
@@ -62,7 +64,7 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
       warm.fem.drive_solve(values, out);
       return out;
     };
-    node_rms = propagate_surface_noise(fixed_preop, sigma, solve, params.uncertainty);
+    node_rms = propagate_surface_noise(fixed_preop, sigma, solve, up);
   }
   nlohmann::json summary;
   if (!sigma.empty()) {
@@ -70,11 +72,11 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
     for (double s : sigma) mean_sigma += s / static_cast<double>(sigma.size());
     summary["surface_noise_rms_mm"] = {{"mean", mean_sigma}, {"max", *std::max_element(sigma.begin(), sigma.end())}};
   }
-  summary["samples"] = params.uncertainty.samples;
+  summary["samples"] = up.samples;
   result.uncertainty_mm = uncertainty_band_mm(
       {warm.fem.mesh(), node_rms, result.pullback_field_mm, result.intraop_from_preop, input.labels,
        result.metrics.contains("refine") && result.metrics["refine"].value("applied", false)},
-      params.uncertainty, &summary);
+      up, &summary);
   summary["meaning"] = "radius (mm) of the 95 % band around each voxel's matched preop point";
   const double seconds = watch.seconds();
   summary["seconds"] = seconds;

@@ -45,6 +45,10 @@ struct UncertaintyParameters {
   // where the error is (Spearman -0.09 with T1, -0.17 without) and added
   // outliers of up to 20 mm at badly matched nodes (DESIGN.md).
   int samples = 0;
+  // The same for an affine-only answer (a refused non-rigid step): there the
+  // residual is the shift the answer leaves uncorrected, the very error to
+  // bound, and no model term exists (no non-rigid displacement).
+  int fallback_samples = 12;
   double noise_correlation_mm = 10;   // correlation length of the surface noise
   // The length over which the field is resolved (the intensity refinement's
   // control lattice, 8 mm): the model's error scale per unit of strain.
