@@ -3,7 +3,7 @@
 #include <filesystem>
 #include <iostream>
 
-#include "config_file.h"
+#include "label_table_file.h"
 #include "image/dicom_series.h"
 #include "image/nifti_io.h"
 #include "image/nrrd_io.h"

@@ -12,17 +12,16 @@
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
 #include "offline_commands.h"
 #include "format_conversion.h"
-#include "scene_labels.h"
 #else
 #include "offline_forwarding.h"
 #endif
 
 int main(int argc, char** argv) {
 #ifndef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
-  // The Slicer scene needs the label-table reader (the configuration, which
-  // links the engine): that pull runs in brainshift-offline.
-  // So does a push of a DICOM series (DCMTK) or of NRRD files.
-  if (brainshift::cli::is_scene_pull(argc, argv) || brainshift::cli::is_converting_push(argc, argv))
+  // NRRD output (pull --format nrrd) and a push of a DICOM series (DCMTK) or
+  // of NRRD files need the engine's image readers and writers: those run in
+  // brainshift-offline.
+  if (brainshift::cli::is_nrrd_pull(argc, argv) || brainshift::cli::is_converting_push(argc, argv))
     return brainshift::cli::exec_offline(argc, argv);
 #endif
   CLI::App app{"brainshift: client of the brainshiftd registration daemon"};
@@ -40,7 +39,6 @@ int main(int argc, char** argv) {
   app.add_option("--server-key", options.server_key_file, "CURVE: the server's public key file")
       ->envname("BRAINSHIFT_SERVER_KEY");
 #ifdef BRAINSHIFT_HAVE_OFFLINE_COMMANDS
-  options.scene_labels = brainshift::cli::scene_labels_from_toml;
   options.dicom_nifti = brainshift::cli::dicom_series_nifti;
   options.nrrd_nifti = brainshift::cli::nrrd_nifti;
   options.nrrd_outputs = brainshift::cli::write_nrrd_outputs;

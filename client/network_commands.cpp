@@ -16,6 +16,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "connection.h"
 #include "offline_forwarding.h"
 #include "pulled_files.h"
@@ -41,11 +42,11 @@ std::chrono::milliseconds as_ms(double seconds) {
 }
 
 std::string read_file(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw CommandError(kExitUsage, path + ": cannot open");
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
+  try {
+    return read_whole_file(path);
+  } catch (const InputError& e) {
+    throw CommandError(kExitUsage, e.what());
+  }
 }
 
 // Atomic per file: a reader never sees half a field.
@@ -342,7 +343,7 @@ struct PullArgs {
   std::string scan, out;
   std::vector<std::string> parts;
   bool scene = false;
-  std::string scene_labels, preop_image, intraop_image;
+  std::string preop_image, intraop_image;
   std::string format = "nifti";  // "nrrd": also NRRD copies, and the scene uses them
 };
 
@@ -378,10 +379,17 @@ std::vector<ResultPart> write_pulled(const ScanResultReply& r, const fs::path& o
   return pending;
 }
 
-// The label table the scene names and colours with (NetworkOptions::scene_labels).
-std::vector<SceneLabel> scene_labels(const NetworkOptions& o, const std::string& toml_file) {
-  if (!o.scene_labels) throw CommandError(kExitUsage, "pull --scene: this build cannot read label tables");
-  return o.scene_labels(toml_file);
+// The daemon's label table, which names and colours the scene (labels.get):
+// asked before anything is pulled, so a daemon that cannot say fails first.
+std::vector<SceneLabel> daemon_scene_labels(Connection& c) {
+  const Message reply = c.call_raw(make_labels_request(c.next_request_id()));
+  if (reply.type() == MessageType::kError && parse_error_reply(reply).code == ErrorCode::kUnknownType)
+    throw CommandError(kExitError, "pull --scene: this daemon does not serve its label table (labels.get, "
+                                   "protocol revision 3; PROTOCOL.md 10); pull without --scene");
+  std::vector<SceneLabel> out;
+  for (const LabelInfo& l : parse_labels_reply(reply).labels)
+    out.push_back({l.value, l.name, l.colour, l.role == kLabelRoleNames[0]});
+  return out;
 }
 
 // A local image copied into the result folder (the scene refers to it there,
@@ -396,10 +404,10 @@ std::string copy_into(const fs::path& out, const std::string& file, const std::s
   return name;
 }
 
-void write_scene(const NetworkOptions& o, const PullArgs& a) {
+void write_scene(const PullArgs& a, std::vector<SceneLabel> labels) {
   const fs::path out = a.out;
   SceneContents contents;
-  contents.labels = scene_labels(o, a.scene_labels);
+  contents.labels = std::move(labels);
   if (!a.preop_image.empty()) contents.preop_image = copy_into(out, a.preop_image, "preop_image");
   if (!a.intraop_image.empty()) contents.intraop_image = copy_into(out, a.intraop_image, "intraop_image");
   contents.nrrd = a.format == "nrrd";
@@ -418,8 +426,8 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
   // What the scene shows must be in the folder.
   if (a.scene)
     for (ResultPart p : kScenePartsFromTheDaemon) parts.emplace_back(result_output(p).cli);
-  else if (!a.preop_image.empty() || !a.intraop_image.empty() || !a.scene_labels.empty())
-    throw CommandError(kExitUsage, "--preop-image, --intraop-image and --scene-labels go with --scene");
+  else if (!a.preop_image.empty() || !a.intraop_image.empty())
+    throw CommandError(kExitUsage, "--preop-image and --intraop-image go with --scene");
   if (a.scene && a.format == "nrrd") parts.emplace_back(result_output(ResultPart::kDisplacement).cli);
   if (a.format == "nrrd" && !o.nrrd_outputs)
     throw CommandError(kExitUsage, "--format nrrd needs brainshift-offline (NRRD is written there)");
@@ -429,9 +437,9 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
     if (std::find(req.parts.begin(), req.parts.end(), *p) == req.parts.end()) req.parts.push_back(*p);
   }
   if (req.parts.empty()) return kExitOk;
-  if (a.scene) scene_labels(o, a.scene_labels);  // a bad table fails before anything is pulled
   const double timeout_s = std::max(o.timeout_s, 30.0);  // a field is tens of MB
   Connection c(o.server, as_ms(timeout_s), curve_keys(o));
+  const std::vector<SceneLabel> labels = a.scene ? daemon_scene_labels(c) : std::vector<SceneLabel>{};
   req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
   // report.png follows event.scan.done by a moment: ask again for what is
   // pending (only that) until it comes or the timeout ends.
@@ -450,7 +458,7 @@ int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
       throw CommandError(kExitError, std::string("writing NRRD: ") + e.what());
     }
   }
-  if (a.scene) write_scene(o, a);
+  if (a.scene) write_scene(a, labels);
   return kExitOk;
 }
 
@@ -582,9 +590,7 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
       ->check(CLI::IsMember({"nifti", "nrrd"}));
   pull->add_flag("--scene", pl->scene,
                  "also write scene.mrml, a 3D Slicer scene of the result (pulls field_h5, warped_image, "
-                 "warped_labels and models)");
-  pull->add_option("--scene-labels", pl->scene_labels,
-                   "labels.toml naming and colouring the scene (the daemon's; default: the shipped one)");
+                 "warped_labels and models; named and coloured by the daemon's label table)");
   pull->add_option("--preop-image", pl->preop_image,
                    "preop T1 to copy into the scene, shown under the field (the daemon does not send it)");
   pull->add_option("--intraop-image", pl->intraop_image, "intraop T1 to copy into the scene");

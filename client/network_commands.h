@@ -8,7 +8,6 @@
 #include <vector>
 
 #include "connection.h"
-#include "slicer_scene.h"
 
 namespace brainshift::cli {
 
@@ -19,11 +18,6 @@ struct NetworkOptions {
   // CURVE (PROTOCOL.md section 13): both or neither.
   std::string key_prefix;       // this client's PREFIX.key / PREFIX.key_secret
   std::string server_key_file;  // the server's public key file
-  // Reads the label table `pull --scene` names and colours with (a
-  // labels.toml, or the shipped one for ""). Set by brainshift-offline, which
-  // links the configuration reader; the engine-free brainshift hands
-  // `pull --scene` to brainshift-offline instead (offline_forwarding.h).
-  std::function<std::vector<SceneLabel>(const std::string& labels_toml)> scene_labels;
   // `push --dicom DIR [--series UID]`: the series as NIfTI bytes (the wire
   // stays NIfTI). Set by brainshift-offline (DCMTK is linked there); the
   // engine-free brainshift hands such a push to it.

@@ -37,12 +37,12 @@ int exec_offline(int argc, char** argv) {
   return kExitUsage;
 }
 
-bool is_scene_pull(int argc, char** argv) {
+bool is_nrrd_pull(int argc, char** argv) {
   bool pull = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "pull") pull = true;
-    else if (pull && (a == "--scene" || a == "--format" || a.rfind("--format=", 0) == 0)) return true;
+    else if (pull && (a == "--format" || a.rfind("--format=", 0) == 0)) return true;
   }
   return false;
 }

@@ -3,10 +3,10 @@
 // start-up is a few ms instead of ~0.05-0.15 s (the engine's ~100 shared
 // libraries and their initialisers, measured in docs/PERFORMANCE.md section
 // 4). The offline commands (register, phantom) run the engine in-process, so
-// `brainshift register ...`, `brainshift phantom ...` and `brainshift pull
-// --scene ...` (the scene reads a label table with the configuration reader)
-// execute the full CLI, brainshift-offline, installed beside it, with the
-// same arguments.
+// `brainshift register ...`, `brainshift phantom ...`, `brainshift pull
+// --format nrrd ...` and the converting pushes execute the full CLI,
+// brainshift-offline, installed beside it, with the same arguments. (`pull
+// --scene` does not: the daemon serves the label table that names the scene.)
 #include <CLI/CLI.hpp>
 
 #include <string>
@@ -25,9 +25,8 @@ void add_offline_forwarding(CLI::App& app, int argc, char** argv, int* exit_code
 // returns kExitUsage (with a message) only when that fails.
 int exec_offline(int argc, char** argv);
 
-// `pull ... --scene` (the scene's label table is read by brainshift-offline)
-// or `pull ... --format` (NRRD is written there).
-bool is_scene_pull(int argc, char** argv);
+// `pull ... --format` (NRRD is written by brainshift-offline).
+bool is_nrrd_pull(int argc, char** argv);
 // `push ... --dicom`, or a push of .nrrd/.nhdr files: brainshift-offline
 // reads them (input_conversion.h) and sends NIfTI.
 bool is_converting_push(int argc, char** argv);

@@ -19,8 +19,4 @@ struct PulledFile {
 // through unchanged. Throws std::runtime_error if zlib fails.
 PulledFile pulled_file_for(const protocol::Frame& frame);
 
-// A gzip member (RFC 1952) of bytes, readable by zlib's gzread/niftilib.
-// level 1 (fastest): the viewer waits for it, the size matters less.
-std::string gzip_bytes(std::string_view bytes, int level = 1);
-
 }  // namespace brainshift::cli

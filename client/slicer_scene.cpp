@@ -126,7 +126,7 @@ class SceneWriter {
 // Slicer's colour table text format: "value name r g b a", 0..255.
 std::string colour_table_text(const std::vector<SceneLabel>& labels) {
   std::ostringstream out;
-  out << "# brainshift label table (config/labels.toml): value name r g b a\n0 background 0 0 0 0\n";
+  out << "# brainshift label table (the daemon's): value name r g b a\n0 background 0 0 0 0\n";
   for (const auto& l : labels)
     out << l.value << ' ' << l.name << ' ' << int(l.colour[0]) << ' ' << int(l.colour[1]) << ' ' << int(l.colour[2])
         << " 255\n";

@@ -2,6 +2,7 @@
 
 #include "config/toml_reader.h"
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "embedded_defaults.h"
 
 namespace brainshift::config {
@@ -156,44 +157,14 @@ void read_rest(TomlSection& root, PipelineParameters& p) {
   limits.reject_unknown_keys();
 }
 
-LabelTable label_table_from(TomlSection& root) {
-  std::vector<TomlSection> entries = root.tables("label");
-  if (entries.empty()) root.fail("label", "at least one [[label]] entry is required");
-  LabelTable table;
-  for (TomlSection& s : entries) {
-    LabelEntry e;
-    const std::int64_t value = s.integer("value", -1, 1, 65535);
-    if (value < 0) s.fail("value", "required, in [1, 65535]");
-    s.read("name", e.name);
-    s.read("short_name", e.short_name);
-    const std::string role = s.string("role", "structure");
-    s.read("youngs_modulus_pa", e.youngs_modulus_pa);
-    s.read("poisson_ratio", e.poisson_ratio);
-    s.read("model", e.make_model);
-    s.read("resectable", e.resectable);
-    const std::string colour = s.string("colour", "");
-    s.reject_unknown_keys();
-    e.value = static_cast<std::uint16_t>(value);
-    try {
-      e.colour = colour.empty() ? default_label_colour(e.value) : label_colour_from_hex(colour);
-    } catch (const InputError& err) {
-      s.fail("colour", e.name + ": " + err.what());
-    }
-    e.role = label_role_from_string(role);
-    table.entries.push_back(e);
-  }
-  table.validate();
-  return table;
-}
-
 // label_table = "labels.toml": the table in a file of its own, relative to
 // the configuration file (or the built-in one when read from text).
 LabelTable label_table_file(TomlSection& root, const std::string& path, const std::filesystem::path* base_dir) {
   if (base_dir) {
     const auto full = std::filesystem::path(path).is_absolute() ? std::filesystem::path(path) : *base_dir / path;
-    return label_table_from_text(read_text_file(full), full.string());
+    return label_table_from_text(read_whole_file(full, "label table"), full.string());
   }
-  if (path == "labels.toml") return label_table_from_text(embedded_labels_toml(), "built-in labels.toml");
+  if (path == "labels.toml") return default_label_table();
   root.fail("label_table", "\"" + path + "\" cannot be resolved without a file location");
 }
 
@@ -203,7 +174,7 @@ PipelineParameters parameters_from(const toml::table& document, const std::strin
   root.allow({"server", "security", "openigtlink", "dicom_node"});  // brainshiftd's (server/server_settings.cpp) and brainshift-dicom-node's (server/dicom_node.cpp)
   PipelineParameters p;
   const std::string label_table = root.string("label_table", "");
-  if (root.node("label")) p.label_table = label_table_from(root);
+  if (root.node("label")) p.label_table = label_table_from_document(root);
   else if (!label_table.empty()) p.label_table = label_table_file(root, label_table, base_dir);
   else p.label_table = default_label_table();
   read_mesh(root, p.meshing);
@@ -223,22 +194,11 @@ const std::string& default_config_text() { return embedded_brainshiftd_toml(); }
 PipelineParameters pipeline_parameters_from_file(const std::filesystem::path& path) {
   const std::string src = path.string();
   const auto base = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
-  return parameters_from(parse_toml(read_text_file(path), src), src, &base);
+  return parameters_from(parse_toml(read_whole_file(path, "configuration file"), src), src, &base);
 }
 
 PipelineParameters pipeline_parameters_from_text(const std::string& toml_text, const std::string& source_name) {
   return parameters_from(parse_toml(toml_text, source_name), source_name, nullptr);
-}
-
-LabelTable label_table_from_text(const std::string& toml_text, const std::string& source_name) {
-  const toml::table document = parse_toml(toml_text, source_name);
-  TomlSection root(&document, source_name, "");
-  return label_table_from(root);
-}
-
-const LabelTable& default_label_table() {
-  static const LabelTable table = label_table_from_text(embedded_labels_toml(), "built-in labels.toml");
-  return table;
 }
 
 }  // namespace brainshift::config

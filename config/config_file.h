@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <string>
 
+#include "label_table_file.h"
 #include "pipeline/pipeline_parameters.h"
 
 namespace toml { inline namespace v3 { class table; } }
@@ -21,10 +22,7 @@ const std::string& default_config_text();
 PipelineParameters pipeline_parameters_from_file(const std::filesystem::path& path);
 PipelineParameters pipeline_parameters_from_text(const std::string& toml_text,
                                                  const std::string& source_name);
-// A label table alone, e.g. config/labels.toml or one sent with preop.load.
-LabelTable label_table_from_text(const std::string& toml_text, const std::string& source_name);
-// config/labels.toml as shipped (compiled in): the one copy of the default
-// labels (1 brain, 2 ventricles, 3 corticospinal tract, 4 tumor).
-const LabelTable& default_label_table();
+// The label table alone (label_table_from_text, default_label_table) is
+// label_table_file.h, which needs no pipeline.
 
 }  // namespace brainshift::config

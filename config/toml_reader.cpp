@@ -27,14 +27,6 @@ toml::table parse_toml(const std::string& text, const std::string& source) {
   }
 }
 
-std::string read_text_file(const std::filesystem::path& path, const std::string& what) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw InputError(path.string() + ": cannot open the " + what);
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
 bool Interval::contains(double v) const {
   return (lo_open ? v > lo : v >= lo) && (hi_open ? v < hi : v <= hi);
 }

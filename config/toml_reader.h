@@ -21,8 +21,7 @@ namespace brainshift::config {
 
 // Throws InputError "source: TOML parse error at line N: ..." on a syntax error.
 toml::table parse_toml(const std::string& text, const std::string& source);
-// The whole file; InputError "path: cannot open the <what>" if it cannot be read.
-std::string read_text_file(const std::filesystem::path& path, const std::string& what = "configuration file");
+// (A whole file is read with read_whole_file, core/file_bytes.h.)
 
 // An interval of real values: bounds may be open, closed or infinite.
 struct Interval {

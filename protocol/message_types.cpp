@@ -8,18 +8,20 @@
 namespace brainshift::protocol {
 namespace {
 
-constexpr std::array<std::pair<MessageType, std::string_view>, 21> kNames{{
+constexpr std::array<std::pair<MessageType, std::string_view>, 23> kNames{{
     {MessageType::kStatus, "status"},
     {MessageType::kPreopLoad, "preop.load"},
     {MessageType::kScanPush, "scan.push"},
     {MessageType::kScanResult, "scan.result"},
     {MessageType::kScanList, "scan.list"},
+    {MessageType::kLabelsGet, "labels.get"},
     {MessageType::kShutdown, "shutdown"},
     {MessageType::kStatusReply, "status.reply"},
     {MessageType::kPreopLoadReply, "preop.load.reply"},
     {MessageType::kScanPushReply, "scan.push.reply"},
     {MessageType::kScanResultReply, "scan.result.reply"},
     {MessageType::kScanListReply, "scan.list.reply"},
+    {MessageType::kLabelsGetReply, "labels.get.reply"},
     {MessageType::kShutdownReply, "shutdown.reply"},
     {MessageType::kError, "error"},
     {MessageType::kEventPreopProgress, "event.preop.progress"},
@@ -60,6 +62,7 @@ MessageType reply_type_for(MessageType request) {
     case MessageType::kScanPush: return MessageType::kScanPushReply;
     case MessageType::kScanResult: return MessageType::kScanResultReply;
     case MessageType::kScanList: return MessageType::kScanListReply;
+    case MessageType::kLabelsGet: return MessageType::kLabelsGetReply;
     case MessageType::kShutdown: return MessageType::kShutdownReply;
     default:
       throw std::invalid_argument("reply_type_for: " + std::string(to_string(request)) +

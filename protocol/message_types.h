@@ -13,6 +13,7 @@ enum class MessageType {
   kScanPush,
   kScanResult,
   kScanList,
+  kLabelsGet,
   kShutdown,
   // Replies (ROUTER -> client), one per request, echoing its request_id.
   kStatusReply,
@@ -20,6 +21,7 @@ enum class MessageType {
   kScanPushReply,
   kScanResultReply,
   kScanListReply,
+  kLabelsGetReply,
   kShutdownReply,
   kError,
   // Events (PUB), no reply.

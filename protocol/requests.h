@@ -4,6 +4,7 @@
 // decoded Message, checks its type, fields and frames, and throws
 // ProtocolError(kInvalidRequest) naming what is wrong. The server parses
 // requests and builds replies; the client does the opposite.
+#include <array>
 #include <cstdint>
 #include <map>
 #include <optional>
@@ -182,6 +183,37 @@ struct ScanListReply {
 };
 Message make_scan_list_reply(const std::string& request_id, const ScanListReply& r);
 ScanListReply parse_scan_list_reply(const Message& m);
+
+// ---- labels.get: the daemon's label table --------------------------------
+
+// How the daemon's label table names, colours and models its labels, as
+// labels.get.reply serves it (PROTOCOL.md 5.6), so that a viewer (the Slicer
+// scene of `brainshift pull --scene`) needs no copy of the daemon's
+// labels.toml. The engine's type is brainshift::LabelTable
+// (engine/core/label_table.h); its role names and "#rrggbb" colours are
+// spelled here, once, for both.
+inline constexpr std::array<std::string_view, 3> kLabelRoleNames{"parenchyma", "cavity", "structure"};
+using Rgb = std::array<std::uint8_t, 3>;
+std::string colour_to_hex(const Rgb& colour);                    // "#rrggbb", lower case
+std::optional<Rgb> colour_from_hex(std::string_view text);  // nullopt unless "#rrggbb"
+
+struct LabelInfo {
+  std::uint16_t value = 0;  // 1..65535, the label value in warped_labels
+  std::string name{};       // structure name (model.<name>, models/<name>.vtp)
+  std::string short_name{}; // at most 11 characters (OpenIGTLink device names)
+  std::string role{};       // one of kLabelRoleNames; exactly one "parenchyma"
+  Rgb colour{};
+  bool model = true;        // the daemon makes a surface model of it
+  bool operator==(const LabelInfo&) const = default;
+};
+struct LabelsReply {
+  std::vector<LabelInfo> labels{};  // 1..kMaxStructures, values and names unique
+  bool operator==(const LabelsReply&) const = default;
+};
+Message make_labels_request(const std::string& request_id);
+void parse_labels_request(const Message& m);
+Message make_labels_reply(const std::string& request_id, const LabelsReply& r);
+LabelsReply parse_labels_reply(const Message& m);
 
 // ---- shutdown --------------------------------------------------------------
 

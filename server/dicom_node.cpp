@@ -15,6 +15,7 @@
 
 #include "config/toml_reader.h"
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "image/dicom_series.h"
 
 namespace brainshift::server {
@@ -225,7 +226,7 @@ DicomNodeSettings dicom_node_settings_from_text(const std::string& toml_text, co
 }
 
 DicomNodeSettings dicom_node_settings_from_file(const fs::path& path) {
-  return dicom_node_settings_from_text(config::read_text_file(path), path.string(), path.parent_path());
+  return dicom_node_settings_from_text(read_whole_file(path, "configuration file"), path.string(), path.parent_path());
 }
 
 // Series folders left by an earlier run (stopped or crashed mid-series) may be

@@ -7,6 +7,7 @@
 #include "field/itk_transform_io.h"
 #include "image/nifti_io.h"
 #include "pipeline/scan_outputs.h"
+#include "pipeline/scan_report.h"
 #include "protocol/result_outputs.h"
 #include "protocol/stage_names.h"
 #include "server/hdf5_file.h"
@@ -70,14 +71,18 @@ void EngineAdapter::render_deferred(const std::string& scan_id, const DeferredOu
   options.label_table = &session_.parameters().label_table;
   options.scan_id = scan_id;
   options.hdf5_mutex = &h5::hdf5_mutex();
+  options.report = false;  // drawn last, with the uncertainty map's row
   encode_deferred_outputs(r, d->input.t1 ? &*d->input.t1 : nullptr, options,
                           [&](const std::string& name, const std::string& bytes) { add(name, bytes); });
-  // The uncertainty map last (seconds of Monte Carlo solves): metrics.json,
-  // field.h5 and report.png do not wait for it, so the daemon's metrics.json
-  // lacks its summary (register's has it).
+  // The uncertainty map next (seconds of solves): metrics.json and field.h5
+  // do not wait for it, so the daemon's metrics.json lacks its summary
+  // (register's has it). report.png waits for it, to show the band.
   session_.add_uncertainty(d->input, r, nullptr);
   add(std::string(protocol::result_output(protocol::ResultPart::kUncertainty).stored),
       scalar_image_to_bytes(r.uncertainty_mm, VoxelType::float32, false));
+  if (d->input.t1)
+    add(std::string(protocol::result_output(protocol::ResultPart::kReport).file),
+        scan_report_png(r, *d->input.t1, *options.label_table, scan_id));
 }
 
 }  // namespace brainshift::server

@@ -4,8 +4,8 @@
 
 #include <spdlog/spdlog.h>
 
-#include "config/toml_reader.h"
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "image/nifti_io.h"
 #include "protocol/events.h"
 #include "protocol/result_outputs.h"
@@ -62,7 +62,7 @@ void ServerCore::run_preop_job(PreopJob job) {
       } else {
         PreopImages images{read_scalar_image(settings_.preop.t1), read_label_image(settings_.preop.labels)};
         if (!settings_.preop.label_table.empty()) {
-          job.label_table_json = config::read_text_file(settings_.preop.label_table, "label map");
+          job.label_table_json = read_whole_file(settings_.preop.label_table, "label map");
           job.label_map = std::make_shared<const protocol::LabelMap>(parse_label_map_json(job.label_table_json));
         }
         if (!images.t1.grid.same_geometry(images.labels.grid))

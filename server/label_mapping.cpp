@@ -60,4 +60,11 @@ void map_label_values(LabelImage& labels, const protocol::LabelMap* map, const L
                      " after mapping)");
 }
 
+protocol::LabelsReply served_labels(const LabelTable& table) {
+  protocol::LabelsReply reply;
+  for (const LabelEntry& e : table.entries)
+    reply.labels.push_back({e.value, e.name, short_name_of(e), to_string(e.role), e.colour, e.make_model});
+  return reply;
+}
+
 }  // namespace brainshift::server

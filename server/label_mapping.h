@@ -1,7 +1,8 @@
 #pragma once
 // Label values as the engine's label table has them, whatever values the
 // sender's atlas uses: the preop labels of preop.load, and the intraop labels
-// of every scan pushed against that preop (PROTOCOL.md: the same values).
+// of every scan pushed against that preop (PROTOCOL.md: the same values);
+// and the table itself as labels.get serves it.
 #include <string>
 
 #include "core/image.h"
@@ -16,5 +17,8 @@ namespace brainshift::server {
 // the values must already be the table's. InputError naming the first
 // offending structure or value, and when no voxel is the parenchyma label.
 void map_label_values(LabelImage& labels, const protocol::LabelMap* map, const LabelTable& table);
+
+// The table as labels.get.reply serves it (names, roles, colours, models).
+protocol::LabelsReply served_labels(const LabelTable& table);
 
 }  // namespace brainshift::server

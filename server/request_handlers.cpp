@@ -104,6 +104,9 @@ Message ServerCore::handle(const Message& m, const Peer& peer) {
       case MessageType::kScanPush: return on_scan_push(m);
       case MessageType::kScanResult: return on_scan_result(m);
       case MessageType::kScanList: return on_scan_list(m);
+      case MessageType::kLabelsGet:
+        parse_labels_request(m);
+        return make_labels_reply(m.request_id(), served_labels(engine_.label_table()));
       case MessageType::kShutdown: return on_shutdown(m);
       default:
         return make_error_reply(rid, ErrorCode::kUnknownType,

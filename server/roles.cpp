@@ -39,6 +39,7 @@ bool role_may_send(Role role, MessageType type) {
   switch (type) {
     case MessageType::kStatus:
     case MessageType::kScanList:
+    case MessageType::kLabelsGet:
     case MessageType::kScanResult: return true;
     case MessageType::kScanPush: return role == Role::scanner || role == Role::admin;
     case MessageType::kPreopLoad:

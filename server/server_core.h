@@ -9,7 +9,9 @@
 //
 // Threads: handle_*() run on the socket thread and never wait for the engine
 // (they read a snapshot under a short mutex). start()/step() run on the engine
-// thread, the only one that calls the EnginePort (MPI_THREAD_FUNNELED).
+// thread, the only one that runs the engine through the EnginePort
+// (MPI_THREAD_FUNNELED); the socket thread reads only what the port fixed at
+// construction (label_table(), max_image_bytes(); engine_port.h).
 #include <atomic>
 #include <chrono>
 #include <functional>

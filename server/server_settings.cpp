@@ -4,6 +4,7 @@
 
 #include "config/toml_reader.h"
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "protocol/curve_keys.h"
 
 namespace brainshift::server {
@@ -125,7 +126,7 @@ std::vector<AllowedClient> allowed_clients_from_text(const std::string& toml_tex
 }
 
 std::vector<AllowedClient> allowed_clients_from_file(const fs::path& path) {
-  return allowed_clients_from_text(config::read_text_file(path, "client allow-list"), path.string());
+  return allowed_clients_from_text(read_whole_file(path, "client allow-list"), path.string());
 }
 
 std::filesystem::path ServerSettings::timing_log_path() const {
@@ -149,7 +150,7 @@ ServerSettings server_settings_from_text(const std::string& toml_text, const std
 }
 
 ServerSettings server_settings_from_file(const std::filesystem::path& path) {
-  return server_settings_from_text(config::read_text_file(path), path.string(), path.parent_path());
+  return server_settings_from_text(read_whole_file(path, "configuration file"), path.string(), path.parent_path());
 }
 
 bool is_loopback_ipv4(const std::string& address) {

@@ -3,6 +3,7 @@
 #include <set>
 
 #include "core/errors.h"
+#include "protocol/requests.h"
 #include "protocol/result_outputs.h"
 #include "core/label_colour.h"
 
@@ -48,6 +49,9 @@ void LabelTable::validate() const {
   std::set<std::uint16_t> values;
   std::set<std::string> names, short_names;
   if (entries.empty()) throw InputError("label table: no entries (the shipped one is config/labels.toml)");
+  if (entries.size() > protocol::kMaxStructures)
+    throw InputError("label table: " + std::to_string(entries.size()) + " labels; at most " +
+                     std::to_string(protocol::kMaxStructures) + " (a label map and labels.get name at most that many)");
   int parenchyma = 0;
   for (const auto& e : entries) {
     const std::string where = "label table entry " + std::to_string(e.value) + " (\"" + e.name + "\")";
@@ -76,41 +80,16 @@ void LabelTable::validate() const {
 }
 
 std::string to_string(LabelRole role) {
-  switch (role) {
-    case LabelRole::parenchyma: return "parenchyma";
-    case LabelRole::cavity: return "cavity";
-    case LabelRole::structure: return "structure";
-  }
-  return "structure";
+  return std::string(protocol::kLabelRoleNames.at(static_cast<std::size_t>(role)));
 }
 
 LabelColour label_colour_from_hex(const std::string& text) {
-  auto hex = [](char c) -> int {
-    if (c >= '0' && c <= '9') return c - '0';
-    if (c >= 'a' && c <= 'f') return c - 'a' + 10;
-    if (c >= 'A' && c <= 'F') return c - 'A' + 10;
-    return -1;
-  };
-  LabelColour out{};
-  bool ok = text.size() == 7 && text[0] == '#';
-  for (int c = 0; ok && c < 3; ++c) {
-    const int hi = hex(text[1 + 2 * c]), lo = hex(text[2 + 2 * c]);
-    ok = hi >= 0 && lo >= 0;
-    out[c] = static_cast<std::uint8_t>(16 * hi + lo);
-  }
-  if (!ok) throw InputError("colour \"" + text + "\" is not of the form \"#rrggbb\"");
-  return out;
+  const auto colour = protocol::colour_from_hex(text);
+  if (!colour) throw InputError("colour \"" + text + "\" is not of the form \"#rrggbb\"");
+  return *colour;
 }
 
-std::string to_hex(const LabelColour& colour) {
-  static const char digits[] = "0123456789abcdef";
-  std::string out = "#";
-  for (std::uint8_t c : colour) {
-    out.push_back(digits[c >> 4]);
-    out.push_back(digits[c & 15]);
-  }
-  return out;
-}
+std::string to_hex(const LabelColour& colour) { return protocol::colour_to_hex(colour); }
 
 LabelColour default_label_colour(std::uint16_t value) {
   // Distinct, saturated hues that read on a grey MR slice and differ from the
@@ -121,9 +100,8 @@ LabelColour default_label_colour(std::uint16_t value) {
 }
 
 LabelRole label_role_from_string(const std::string& text) {
-  if (text == "parenchyma") return LabelRole::parenchyma;
-  if (text == "cavity") return LabelRole::cavity;
-  if (text == "structure") return LabelRole::structure;
+  for (std::size_t i = 0; i < protocol::kLabelRoleNames.size(); ++i)
+    if (protocol::kLabelRoleNames[i] == text) return static_cast<LabelRole>(i);
   throw InputError("unknown label role \"" + text + "\" (expected parenchyma, cavity or structure)");
 }
 

@@ -10,6 +10,7 @@
 
 namespace brainshift {
 
+// In the order of their names, protocol::kLabelRoleNames (protocol/requests.h).
 enum class LabelRole {
   parenchyma,  // meshed tissue (the brain label)
   cavity,      // meshed as a hole whose wall is matched (lateral ventricles)
@@ -50,7 +51,8 @@ struct LabelTable {
   // Throws InputError: duplicate values, names or short names, value 0, a
   // name that is not [a-z][a-z0-9_]{0,63} (it becomes file and frame names),
   // a short name over 11 characters, no or several parenchyma labels, nu
-  // outside (0, 0.5), E <= 0.
+  // outside (0, 0.5), E <= 0, more labels than the protocol can name
+  // (protocol::kMaxStructures, 64).
   void validate() const;
 };
 

@@ -94,20 +94,4 @@ void ByteStream::refill() {
   consumed_ += zs_.avail_in;
 }
 
-std::string gzip_bytes(const std::string& raw) {
-  z_stream zs{};
-  if (deflateInit2(&zs, 1, Z_DEFLATED, 15 + 16, 8, Z_DEFAULT_STRATEGY) != Z_OK)
-    throw ComputeError("zlib deflateInit2 failed");
-  std::string out(deflateBound(&zs, raw.size()), '\0');
-  zs.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(raw.data()));
-  zs.avail_in = static_cast<uInt>(raw.size());
-  zs.next_out = reinterpret_cast<Bytef*>(out.data());
-  zs.avail_out = static_cast<uInt>(out.size());
-  const int rc = deflate(&zs, Z_FINISH);
-  out.resize(zs.total_out);
-  deflateEnd(&zs);
-  if (rc != Z_STREAM_END) throw ComputeError("zlib deflate failed");
-  return out;
-}
-
 }  // namespace brainshift::nifti_detail

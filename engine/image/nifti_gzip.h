@@ -46,8 +46,6 @@ class ByteStream {
   z_stream zs_{};
 };
 
-// One gzip member of raw (level 1: the daemon sends fields within a latency
-// budget; size matters less).
-std::string gzip_bytes(const std::string& raw);
+// Writing gzip is core/gzip.h (gzip_bytes), shared with the client.
 
 }  // namespace brainshift::nifti_detail

@@ -10,11 +10,10 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <fstream>
 #include <limits>
-#include <sstream>
 
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "image/nifti_gzip.h"
 #include "image/nifti_header.h"
 #include "image/nifti_io.h"
@@ -222,32 +221,21 @@ VectorImage3 to_vectors(const RawNifti& raw, std::string_view name) {
   return field;
 }
 
-std::string read_file_bytes(const std::filesystem::path& path) {
-  std::error_code ec;
-  if (!std::filesystem::is_regular_file(path, ec)) fail(path.string(), "file not found (or not a regular file)");
-  std::ifstream in(path, std::ios::binary);
-  if (!in) fail(path.string(), "cannot open file");
-  std::ostringstream ss;
-  ss << in.rdbuf();
-  if (in.bad()) fail(path.string(), "read error");
-  return std::move(ss).str();
-}
-
 constexpr std::size_t kNoLimit = std::numeric_limits<std::size_t>::max();
 
 }  // namespace
 
 ImageF read_scalar_image(const std::filesystem::path& path, std::size_t max_bytes) {
   const std::string name = path.string();
-  return to_scalar(decode(read_file_bytes(path), name, max_bytes), name);
+  return to_scalar(decode(read_whole_file(path, "NIfTI file"), name, max_bytes), name);
 }
 LabelImage read_label_image(const std::filesystem::path& path, std::size_t max_bytes) {
   const std::string name = path.string();
-  return to_labels(decode(read_file_bytes(path), name, max_bytes), name);
+  return to_labels(decode(read_whole_file(path, "NIfTI file"), name, max_bytes), name);
 }
 VectorImage3 read_vector_image(const std::filesystem::path& path) {
   const std::string name = path.string();
-  return to_vectors(decode(read_file_bytes(path), name, kNoLimit), name);
+  return to_vectors(decode(read_whole_file(path, "NIfTI file"), name, kNoLimit), name);
 }
 
 ImageF scalar_image_from_bytes(std::string_view bytes, std::string_view name, std::size_t max_bytes) {

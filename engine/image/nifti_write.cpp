@@ -11,6 +11,7 @@
 #include <limits>
 
 #include "core/errors.h"
+#include "core/gzip.h"
 #include "image/nifti_gzip.h"
 #include "image/nifti_header.h"
 #include "image/nifti_io.h"
@@ -90,7 +91,7 @@ std::string assemble(const nifti_1_header& h, const std::string& data, bool gzip
   std::string raw(kDataOffset, '\0');
   std::memcpy(raw.data(), &h, sizeof h);
   raw += data;
-  return gzip ? nifti_detail::gzip_bytes(raw) : raw;
+  return gzip ? gzip_bytes(raw) : raw;
 }
 
 template <class T>

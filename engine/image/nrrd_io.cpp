@@ -11,6 +11,8 @@
 #include <vector>
 
 #include "core/errors.h"
+#include "core/gzip.h"
+#include "core/file_bytes.h"
 #include "field/lps.h"
 #include "image/nifti_gzip.h"
 
@@ -44,14 +46,6 @@ std::string trim(std::string s) {
 }
 
 [[noreturn]] void fail(const fs::path& p, const std::string& why) { throw InputError("NRRD " + p.string() + ": " + why); }
-
-std::string read_all(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  if (!in) fail(p, "cannot open");
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
 
 Scalar scalar_of(const fs::path& p, const std::string& t, std::size_t* bytes) {
   static const std::map<std::string, std::pair<Scalar, std::size_t>> types = {
@@ -97,7 +91,7 @@ std::vector<Eigen::Vector3d> vectors_of(const fs::path& p, const std::string& te
 Nrrd parse(const fs::path& path) {
   Nrrd n;
   n.path = path;
-  const std::string file = read_all(path);
+  const std::string file = read_whole_file(path, "NRRD file");
   if (file.rfind("NRRD000", 0) != 0) fail(path, "not a NRRD file (no NRRD000x magic)");
   std::size_t at = file.find('\n');
   std::string data_file;
@@ -160,7 +154,7 @@ Nrrd parse(const fs::path& path) {
   if (data_file.empty()) n.data = file.substr(at == std::string::npos ? file.size() : at + 1);
   else if (data_file.rfind("LIST", 0) == 0 || data_file.find('%') != std::string::npos)
     fail(path, "multi-file data (\"" + data_file + "\") is not read");
-  else n.data = read_all(path.parent_path() / data_file);
+  else n.data = read_whole_file(path.parent_path() / data_file, "NRRD data file");
   return n;
 }
 
@@ -258,7 +252,7 @@ void write(const fs::path& path, const std::string& head, const std::string& raw
   static_assert(std::endian::native == std::endian::little, "NRRD is written little endian");
   if (path.has_parent_path()) fs::create_directories(path.parent_path());
   std::ofstream out(path, std::ios::binary);
-  out << head << '\n' << nifti_detail::gzip_bytes(raw);
+  out << head << '\n' << gzip_bytes(raw);
   if (!out) throw std::runtime_error("cannot write " + path.string());
 }
 

@@ -10,6 +10,7 @@
 #include <string_view>
 
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "field/lps.h"
 
 namespace brainshift {
@@ -295,11 +296,7 @@ std::vector<Eigen::Vector3d> read_vtp_normals(std::string_view xml, std::string_
 }
 
 TriSurface read_vtp(const std::filesystem::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw InputError("cannot open " + path.string());
-  std::ostringstream buffer;
-  buffer << in.rdbuf();
-  return read_vtp_bytes(buffer.str(), path.string());
+  return read_vtp_bytes(read_whole_file(path, "VTK file"), path.string());
 }
 
 }  // namespace brainshift

@@ -44,10 +44,7 @@ double percentile_in(const ImageF& t1, const LabelImage& labels, const std::arra
         const std::uint16_t l = same ? labels.voxels[idx] : ls.nearest(labels.voxels, t1.grid.world_mm(i, j, k), 0);
         if (in[l]) values.push_back(t1.voxels[idx]);
       }
-  if (values.empty()) return 0;
-  const std::size_t n = std::min(values.size() - 1, static_cast<std::size_t>(q * (values.size() - 1)));
-  std::nth_element(values.begin(), values.begin() + n, values.end());
-  return values[n];
+  return quantile(std::move(values), q);  // the same order statistic as every phantom quantile
 }
 
 // Signed distance (mm, negative inside) of the preop voxels with these labels.

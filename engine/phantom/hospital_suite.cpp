@@ -61,41 +61,23 @@ void retractor(PhantomSpec& p, double depth_mm, double angle_deg) {
 }
 
 // The scanners (field strength as resolution, SNR and bias).
-ScannerSpec scanner_1p5t() {
+ScannerSpec scanner(const std::string& name, const Eigen::Vector3d& spacing_mm, const Eigen::Vector3d& fov_mm,
+                    double snr, double bias_amplitude) {
   ScannerSpec s;
-  s.name = "1.5T_1mm_iso";
-  s.spacing_mm = {1, 1, 1};
-  s.fov_mm = {180, 216, 160};
-  s.snr = 25;
-  s.bias_amplitude = 0.1;
+  s.name = name;
+  s.spacing_mm = spacing_mm;
+  s.fov_mm = fov_mm;
+  s.snr = snr;
+  s.bias_amplitude = bias_amplitude;
   return s;
 }
-ScannerSpec scanner_0p5t() {
-  ScannerSpec s;
-  s.name = "0.5T_1.2x1.2x2mm";
-  s.spacing_mm = {1.2, 1.2, 2.0};
-  s.fov_mm = {190, 220, 170};
-  s.snr = 12;
-  s.bias_amplitude = 0.2;
-  return s;
-}
-ScannerSpec scanner_0p15t() {
-  ScannerSpec s;
-  s.name = "0.15T_1.7x1.7x2.4mm";
-  s.spacing_mm = {1.7, 1.7, 2.4};
-  s.fov_mm = {200, 230, 175};
-  s.snr = 7;
-  s.bias_amplitude = 0.4;
-  return s;
-}
+ScannerSpec scanner_1p5t() { return scanner("1.5T_1mm_iso", {1, 1, 1}, {180, 216, 160}, 25, 0.1); }
+ScannerSpec scanner_0p5t() { return scanner("0.5T_1.2x1.2x2mm", {1.2, 1.2, 2.0}, {190, 220, 170}, 12, 0.2); }
+ScannerSpec scanner_0p15t() { return scanner("0.15T_1.7x1.7x2.4mm", {1.7, 1.7, 2.4}, {200, 230, 175}, 7, 0.4); }
 ScannerSpec sagittal_3mm() {
-  ScannerSpec s;
-  s.name = "sagittal_1x1x3mm";
-  s.spacing_mm = {1, 1, 3};
-  s.fov_mm = {170, 220, 180};  // S-I, A-P, then R-L across slices
+  // fov: S-I, A-P, then R-L across slices.
+  ScannerSpec s = scanner("sagittal_1x1x3mm", {1, 1, 3}, {170, 220, 180}, 18, 0.15);
   s.orientation_deg = sagittal_deg();
-  s.snr = 18;
-  s.bias_amplitude = 0.15;
   return s;
 }
 ScannerSpec oblique(ScannerSpec s, const Eigen::Vector3d& deg) {

@@ -74,7 +74,7 @@ void encode_deferred_outputs(const ScanResult& r, const ImageF* intraop_t1, cons
         itk_displacement_transform_bytes(r.pullback_field_mm, itk));
   }
   // The picture needs an intraop image to draw on; without one there is none.
-  if (!intraop_t1) return;
+  if (!intraop_t1 || !options.report) return;
   if (!options.label_table) throw std::invalid_argument("encode_deferred_outputs: the report needs a label table");
   add(std::string(protocol::result_output(ResultPart::kReport).file),
       scan_report_png(r, *intraop_t1, *options.label_table, options.scan_id));

@@ -37,6 +37,9 @@ struct DeferredOutputOptions {
   std::mutex* hdf5_mutex = nullptr;
   // uncertainty.nii: plain for the daemon's store, gzipped by register.
   ImageEncoding images = ImageEncoding::plain;
+  // false: leave report.png out, for a caller that draws it later (the
+  // daemon draws it after the uncertainty map, so that it shows the map).
+  bool report = true;
 };
 
 // The deferred parts (made off the latency path, in this order):

@@ -63,6 +63,7 @@ std::string scan_report_png(const ScanResult& r, const ImageF& intraop_t1, const
   in.outer_label = table.brain_label();
   in.summary = report_summary(r, scan_id);
   if (r.intraop_labels) in.segmentation = &*r.intraop_labels;
+  if (!r.uncertainty_mm.voxels.empty()) in.uncertainty_mm = &r.uncertainty_mm;
   ReportOptions options;
   if (const auto resectable = table.resectable_labels(); !resectable.empty()) options.centre_label = resectable.front();
   return report_png_bytes(in, options);

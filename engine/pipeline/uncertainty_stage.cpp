@@ -19,9 +19,9 @@ std::vector<std::uint16_t> tissue_labels(const LabelTable& table) {
   return out;
 }
 
-// Per fixed node: the RMS error of its matched position, from its distance to
-// the intraop tissue boundary (what the match could not follow) and the
-// boundary's own quantisation (a uniform error over the thickest voxel).
+// Per fixed node: the RMS error of its matched position beyond the
+// segmentation's quantisation (which the band adds everywhere): its distance
+// to the intraop tissue boundary, what the match could not follow.
 std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& input,
                                      const std::vector<std::uint16_t>& tissue, const ScanResult& result) {
   Mask mask(input.labels.grid);
@@ -29,7 +29,6 @@ std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& 
     mask.voxels[v] = std::find(tissue.begin(), tissue.end(), input.labels.voxels[v]) != tissue.end();
   const ImageF sdf = signed_distance_mm(mask);
   const LinearSampler boundary(sdf);
-  const double quantisation_mm = input.labels.grid.spacing_mm().maxCoeff() / std::sqrt(12.0);
   const auto& fixed = warm.fem.fixed_nodes();
   const auto& nodes = warm.fem.mesh().nodes_mm;
   std::vector<double> sigma(fixed.size());
@@ -41,7 +40,7 @@ std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& 
     // Outside the grid (field of view cut) the node has no data: its error is
     // as large as the grid's coarsest distance scale allows, 10 voxels.
     if (!boundary.sample(q, &d, nullptr)) d = 10 * input.labels.grid.spacing_mm().maxCoeff();
-    sigma[i] = std::sqrt(d * d + quantisation_mm * quantisation_mm);
+    sigma[i] = std::abs(d);
   }
   return sigma;
 }
@@ -53,24 +52,31 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   if (!params.uncertainty.enabled) return;
   if (progress) progress(std::string(protocol::stages::kUncertainty), 0.0, 0.0);
   Stopwatch watch;
-  const auto tissue = tissue_labels(params.label_table);
-  const std::vector<double> sigma = surface_noise_mm(warm, input, tissue, result);
-  std::vector<Eigen::Vector3d> fixed_preop;
-  for (int n : warm.fem.fixed_nodes()) fixed_preop.push_back(warm.fem.mesh().nodes_mm[n]);
-  const LinearSolve solve = [&warm](const std::vector<Eigen::Vector3d>& values) {
-    std::vector<Eigen::Vector3d> out;
-    warm.fem.drive_solve(values, out);
-    return out;
-  };
-  const std::vector<double> node_rms = propagate_surface_noise(fixed_preop, sigma, solve, params.uncertainty);
+  UncertaintyParameters up = params.uncertainty;
+  if (result.kind != ResultKind::nonrigid) up.samples = up.fallback_samples;
+  std::vector<double> sigma, node_rms(warm.fem.mesh().node_count(), 0.0);
+  if (up.samples > 0) {
+    sigma = surface_noise_mm(warm, input, tissue_labels(params.label_table), result);
+    std::vector<Eigen::Vector3d> fixed_preop;
+    for (int n : warm.fem.fixed_nodes()) fixed_preop.push_back(warm.fem.mesh().nodes_mm[n]);
+    const LinearSolve solve = [&warm](const std::vector<Eigen::Vector3d>& values) {
+      std::vector<Eigen::Vector3d> out;
+      warm.fem.drive_solve(values, out);
+      return out;
+    };
+    node_rms = propagate_surface_noise(fixed_preop, sigma, solve, up);
+  }
   nlohmann::json summary;
-  double mean_sigma = 0;
-  for (double s : sigma) mean_sigma += s / static_cast<double>(std::max<std::size_t>(1, sigma.size()));
-  summary["surface_noise_rms_mm"] = {{"mean", mean_sigma}, {"max", sigma.empty() ? 0.0 : *std::max_element(sigma.begin(), sigma.end())}};
-  summary["samples"] = params.uncertainty.samples;
+  if (!sigma.empty()) {
+    double mean_sigma = 0;
+    for (double s : sigma) mean_sigma += s / static_cast<double>(sigma.size());
+    summary["surface_noise_rms_mm"] = {{"mean", mean_sigma}, {"max", *std::max_element(sigma.begin(), sigma.end())}};
+  }
+  summary["samples"] = up.samples;
   result.uncertainty_mm = uncertainty_band_mm(
-      {warm.fem.mesh(), node_rms, result.pullback_field_mm, result.intraop_from_preop, input.labels, tissue},
-      params.uncertainty, &summary);
+      {warm.fem.mesh(), node_rms, result.pullback_field_mm, result.intraop_from_preop, input.labels,
+       result.metrics.contains("refine") && result.metrics["refine"].value("applied", false)},
+      up, &summary);
   summary["meaning"] = "radius (mm) of the 95 % band around each voxel's matched preop point";
   const double seconds = watch.seconds();
   summary["seconds"] = seconds;

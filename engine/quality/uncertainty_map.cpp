@@ -61,7 +61,30 @@ Grid3 coarse_grid(const Grid3& fine, double spacing_mm) {
   return g;
 }
 
+// Frobenius norm of the non-rigid part of the pull-back's Jacobian at fine
+// voxel f: central differences over the neighbouring voxels, less the
+// affine's own (A^-1 - I), which the surface data fixes globally.
+double nonrigid_gradient(const VectorImage3& field, std::size_t f, const Eigen::Matrix3d& affine_gradient) {
+  const Grid3& g = field.grid;
+  const std::size_t nx = g.dims[0], ny = g.dims[1];
+  const std::array<std::size_t, 3> ijk{f % nx, (f / nx) % ny, f / (nx * ny)};
+  const std::array<std::size_t, 3> stride{1, nx, nx * ny};
+  Eigen::Matrix3d d_voxel = Eigen::Matrix3d::Zero();  // column a: du / d(voxel index a)
+  for (int a = 0; a < 3; ++a) {
+    const std::size_t lo = ijk[a] > 0 ? f - stride[a] : f;
+    const std::size_t hi = ijk[a] + 1 < static_cast<std::size_t>(g.dims[a]) ? f + stride[a] : f;
+    if (lo == hi) continue;
+    d_voxel.col(a) = (field.vectors[hi] - field.vectors[lo]).cast<double>() / static_cast<double>((hi - lo) / stride[a]);
+  }
+  const Eigen::Matrix3d voxel_from_world = g.voxel_from_world().topLeftCorner<3, 3>();
+  return (d_voxel * voxel_from_world - affine_gradient).norm();
+}
+
 }  // namespace
+
+double model_error_rms_mm(double nonrigid_mm, double nonrigid_gradient, const UncertaintyParameters& params) {
+  return std::sqrt(std::max(0.0, nonrigid_mm * params.resolution_mm * nonrigid_gradient));
+}
 
 std::vector<double> propagate_surface_noise(const std::vector<Eigen::Vector3d>& fixed_preop_mm,
                                             const std::vector<double>& sigma_mm, const LinearSolve& solve,
@@ -89,16 +112,6 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
   const GridSampler on_fine(fine);
   const Eigen::Matrix4d preop_from_intraop = in.intraop_from_preop.inverse();
 
-  // Tissue on the coarse grid; boundary data is wherever tissue ends.
-  const LabelImage coarse_labels = resample_nearest(in.intraop_labels, coarse);
-  Mask tissue(coarse), not_tissue(coarse);
-  for (std::size_t v = 0; v < coarse.voxel_count(); ++v) {
-    const std::uint16_t l = coarse_labels.voxels[v];
-    const bool t = std::find(in.tissue_labels.begin(), in.tissue_labels.end(), l) != in.tissue_labels.end();
-    tissue.voxels[v] = t;
-    not_tissue.voxels[v] = !t;
-  }
-  const ImageF depth_mm = distance_to_mask_mm(not_tissue);
   // Where an answer is claimed: the brain with its cavities (ventricles, an
   // enclosed resection), and one voxel beyond its outline, which is itself
   // only known to a voxel (a landmark just outside a segmentation is still
@@ -118,10 +131,12 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
   const ImageF outside_mm = distance_to_mask_mm(coarse_region);
   const double reach_mm = 1.5 * coarse.spacing_mm().norm();
 
-  // Preop point of each coarse tissue voxel, and its non-rigid displacement.
+  // Preop point of each coarse tissue voxel, its non-rigid displacement and
+  // that displacement's gradient.
+  const Eigen::Matrix3d affine_gradient = preop_from_intraop.topLeftCorner<3, 3>() - Eigen::Matrix3d::Identity();
   TriSurface points;
   std::vector<std::size_t> where;
-  std::vector<double> nonrigid_mm;
+  std::vector<double> nonrigid_mm, gradient;
   for (std::size_t v = 0; v < coarse.voxel_count(); ++v) {
     if (!(outside_mm.voxels[v] <= reach_mm)) continue;
     const Eigen::Vector3d x = voxel_centre(coarse, v);
@@ -131,7 +146,11 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
     points.vertices_mm.push_back(p);
     where.push_back(v);
     nonrigid_mm.push_back((p - (preop_from_intraop * x.homogeneous()).head<3>()).norm());
+    gradient.push_back(nonrigid_gradient(in.pullback_field_mm, f, affine_gradient));
   }
+  // The segmentation's quantisation: uniform over a voxel of this size.
+  const double quantisation_mm = std::cbrt(fine.spacing_mm().prod()) / std::sqrt(12.0);
+  const double model_scale = in.image_refined ? params.image_residual_fraction : 1.0;
   ImageF band_coarse(coarse, 0.f);
   if (!points.vertices_mm.empty()) {
     const ModelBinding b = bind_to_mesh(points, in.preop_mesh);
@@ -141,9 +160,9 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
         const double s = in.node_noise_rms_mm[b.nodes[i][q]];
         noise2 += b.weights[i][q] * s * s;
       }
-      const double depth = depth_mm.voxels[where[i]];
-      const double model = params.model_error_fraction * nonrigid_mm[i] * (1.0 - std::exp(-depth / params.depth_scale_mm));
-      band_coarse.voxels[where[i]] = static_cast<float>(kBand95PerRms * std::sqrt(noise2 + model * model));
+      const double model = model_scale * model_error_rms_mm(nonrigid_mm[i], gradient[i], params);
+      band_coarse.voxels[where[i]] =
+          static_cast<float>(kBand95PerRms * std::sqrt(quantisation_mm * quantisation_mm + noise2 + model * model));
     }
   }
   // To the intraop grid, kept to the region.
@@ -157,6 +176,10 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
     std::sort(inside.begin(), inside.end());
     double mean = 0;
     for (double d : inside) mean += d / inside.size();
+    (*summary)["quantisation_rms_mm"] = quantisation_mm;
+    (*summary)["model_error"] = {{"resolution_mm", params.resolution_mm},
+                                 {"image_refined", in.image_refined},
+                                 {"fraction_kept", model_scale}};
     (*summary)["band95_mm"] = {{"mean", mean},
                                {"median", inside[inside.size() / 2]},
                                {"p95", inside[inside.size() * 95 / 100]},

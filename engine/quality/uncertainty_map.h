@@ -5,22 +5,25 @@
 // voxel beyond the segmented outline (which is only known to a voxel); 0
 // farther out, where no answer is claimed.
 //
-// Two independent sources, added in quadrature (DESIGN.md, "Uncertainty map"):
-//  1. The surface data's noise, propagated through the elastic model by Monte
-//     Carlo. Each matched surface node's displacement is uncertain by its own
-//     measured residual (distance of the matched node to the intraop boundary)
-//     and the segmentation's voxel quantisation (spacing / sqrt 12 across the
-//     thickest voxel); the noise is spatially correlated like a segmenter's
-//     (random Fourier features of a Gaussian process, correlation length
-//     noise_correlation_mm). The model is linear, so a sample's effect on the
-//     field is the solve of the noise alone: one warm pair of triangular
-//     solves each. The node variance is carried to the voxels through the
-//     mesh (barycentric, at the preop point of each voxel).
-//  2. The model's own error where no data reaches: a fraction of the local
-//     non-rigid displacement (a linear elastic model with generic material
-//     recovers 75-85 % of measured shift in the published validations), grown
-//     with the distance from the nearest boundary data (outline, ventricle
-//     wall, cavity) over depth_scale_mm.
+// Two independent sources, added in quadrature (DESIGN.md, "Uncertainty map";
+// measured on the robustness suite, PERFORMANCE.md section 11):
+//  1. The data's noise. The segmentation's quantisation, a uniform error over
+//     a voxel: (voxel volume)^(1/3) / sqrt 12 RMS everywhere the answer is
+//     claimed. And the match residual of each surface node (its distance to
+//     the intraop boundary: what the match could not follow), optionally
+//     (samples > 0; off by default, see UncertaintyParameters) propagated
+//     through the elastic model by Monte Carlo: the noise is spatially
+//     correlated like a segmenter's (random Fourier features of a Gaussian
+//     process, correlation length noise_correlation_mm); the model is linear,
+//     so a sample's effect on the field is the solve of the noise alone (one
+//     warm pair of triangular solves). The node variance is carried to the
+//     voxels through the mesh (barycentric, at the preop point of each voxel).
+//  2. The model's own error: sqrt(|r| * resolution_mm * |grad r|), the
+//     geometric mean of the local non-rigid displacement |r| and of its change
+//     over the field's resolution (the image refinement's lattice). Large only
+//     where both are: a large but uniform motion is pinned by the surface data
+//     next to it, a steep but small variation moves little. With an image
+//     that refined the field, image_residual_fraction of it remains.
 // The band radius is the 95 % quantile of a 3-D isotropic Gaussian error of
 // that RMS: 2.80 / sqrt(3) = 1.61 times it.
 #include <cstdint>
@@ -37,10 +40,23 @@ namespace brainshift {
 
 struct UncertaintyParameters {
   bool enabled = true;
-  int samples = 12;                   // Monte Carlo right-hand sides
+  // Monte Carlo right-hand sides for the match residual's propagation; 0 =
+  // not propagated. Off by default: on the robustness suite its part was not
+  // where the error is (Spearman -0.09 with T1, -0.17 without) and added
+  // outliers of up to 20 mm at badly matched nodes (DESIGN.md).
+  int samples = 0;
+  // The same for an affine-only answer (a refused non-rigid step): there the
+  // residual is the shift the answer leaves uncorrected, the very error to
+  // bound, and no model term exists (no non-rigid displacement).
+  int fallback_samples = 12;
   double noise_correlation_mm = 10;   // correlation length of the surface noise
-  double model_error_fraction = 0.25; // of the local non-rigid displacement, far from data
-  double depth_scale_mm = 10;         // distance over which that error reaches its full size
+  // The length over which the field is resolved (the intensity refinement's
+  // control lattice, 8 mm): the model's error scale per unit of strain.
+  double resolution_mm = 8;
+  // Of the model's error, the fraction an image refinement leaves: the ratio
+  // of the robustness suite's mean TRE with and without the intraop T1
+  // (0.43 / 0.81 mm, PERFORMANCE.md section 7).
+  double image_residual_fraction = 0.53;
   double grid_spacing_mm = 3;         // the map is computed this coarse, then interpolated
   std::uint64_t seed = 19;
 };
@@ -60,13 +76,17 @@ struct UncertaintyInput {
   const VectorImage3& pullback_field_mm;         // the served field
   Eigen::Matrix4d intraop_from_preop;
   const LabelImage& intraop_labels;
-  std::vector<std::uint16_t> tissue_labels;      // labels that are tissue (not cavity, not 0)
+  bool image_refined = false;                    // the intraop T1 refined the field's interior
 };
 
 // The 95 % band radius (mm) on the intraop grid; summary (optional) gets its
 // statistics over the brain.
 ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParameters& params,
                            nlohmann::json* summary = nullptr);
+
+// The model-error RMS (mm) at a point: sqrt(|r| * resolution * |grad r|_F),
+// r the non-rigid displacement (mm), grad r its Jacobian (dimensionless).
+double model_error_rms_mm(double nonrigid_mm, double nonrigid_gradient, const UncertaintyParameters& params);
 
 // 2.80 / sqrt(3): the 95 % radius of an isotropic 3-D Gaussian per unit of its RMS length.
 inline constexpr double kBand95PerRms = 1.6140;

@@ -230,7 +230,20 @@ class Page {
         }
       }
     }
-    return y + 3 * n + 2 * kGap;
+    if (panels_.uncertainty[0].size == 0) return y + 3 * n + 2 * kGap;
+    const int ry = y + 3 * (n + kGap);
+    font(cr, 13, true);
+    text(cr, kMargin, ry + 20, "Uncertainty", kText);
+    font(cr, 13, false);
+    text(cr, kMargin, ry + 38, "95 % band radius", kText);
+    text(cr, kMargin, ry + 56, "colour bar below, mm", kDim);
+    for (int v = 0; v < 3; ++v) {
+      const ReportRect p{x0 + v * (n + kGap), ry, n, n};
+      L.uncertainty_panels[v] = p;
+      paint_raster(cr, panels_.uncertainty[v], p.x, p.y);
+      orientation_markers(cr, v, p);
+    }
+    return ry + n;
   }
 
   int legend(cairo_t* cr, ReportLayout& L, int y) {
@@ -286,11 +299,11 @@ class Page {
       ty += row_h;
     }
     L.numbers = {kMargin, y, c2 + 130 - kMargin, ty - y};
-    return std::max(ty, notes(cr, kMargin + 520, y, L.width - kMargin - (kMargin + 520)));
+    return std::max(ty, notes(cr, L, kMargin + 520, y, L.width - kMargin - (kMargin + 520)));
   }
 
   // The display convention and how to read the difference rows.
-  int notes(cairo_t* cr, int x, int y, int width) {
+  int notes(cairo_t* cr, ReportLayout& L, int x, int y, int width) {
     font(cr, 12, false);
     const std::vector<std::string> lines{
         "Display: neurological convention, the patient's right on",
@@ -314,6 +327,25 @@ class Page {
     cairo_pattern_destroy(g);
     text(cr, x, bar_y + 24, "0", kDim);
     const std::string hi = number(window_, "%.2f");
+    text(cr, x + bar_w - text_width(cr, hi), bar_y + 24, hi, kDim);
+    if (panels_.uncertainty[0].size == 0) return bar_y + 28;
+    return uncertainty_bar(cr, L, x, bar_y + 40, bar_w);
+  }
+
+  // Row 4's colour scale: 0 mm to uncertainty_max_mm, in steps of pixels.
+  int uncertainty_bar(cairo_t* cr, ReportLayout& L, int x, int y, int bar_w) {
+    text(cr, x, y + 12, "Row 4: radius (mm) of the 95 % band around each point.", kDim);
+    const int bar_y = y + 18;
+    for (int i = 0; i < bar_w; ++i) {
+      const LabelColour c = report_detail::uncertainty_colour((i + 0.5) / bar_w);
+      cairo_set_source_rgb(cr, c[0] / 255.0, c[1] / 255.0, c[2] / 255.0);
+      cairo_rectangle(cr, x + i, bar_y, 1, 10);
+      cairo_fill(cr);
+    }
+    L.uncertainty_bar = {x, bar_y, bar_w, 10};
+    L.uncertainty_max_mm = panels_.uncertainty_max_mm;
+    text(cr, x, bar_y + 24, "0 mm", kDim);
+    const std::string hi = number(panels_.uncertainty_max_mm, "%.1f mm");
     text(cr, x + bar_w - text_width(cr, hi), bar_y + 24, hi, kDim);
     return bar_y + 28;
   }

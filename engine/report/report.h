@@ -9,6 +9,8 @@
 //            structures in their label-table colours;
 //   row 2:   |intraop - warped preop| after the affine stage only;
 //   row 3:   |intraop - warped preop| after the non-rigid correction;
+//   row 4:   (when the uncertainty map is given) its 95 % band radius in
+//            colour over the intraop image, with a colour bar in mm;
 //   footer:  the colour legend (label table), the key numbers (Dice and mean
 //            surface distance affine-only and final, min Jacobian determinant,
 //            worst surface residual), the difference scale and the display
@@ -79,6 +81,9 @@ struct ReportInputs {
   // row 1 as a dotted white contour over the preop's, so the surgeon sees
   // what the registration was matched to.
   const LabelImage* segmentation = nullptr;
+  // Optional: the uncertainty map (95 % band radius, mm, intraop grid): a
+  // fourth row, colour from 0 to its 99th percentile over the brain.
+  const ImageF* uncertainty_mm = nullptr;
 };
 
 struct ReportOptions {
@@ -106,6 +111,9 @@ struct ReportLayout {
   std::vector<ReportRect> legend_swatches;            // one per legend entry, filled with its colour
   ReportRect numbers;                                 // the key-numbers table
   ReportRect scale_bar;                               // the 1 cm bar of the first panel
+  std::array<ReportRect, 3> uncertainty_panels{};     // row 4; empty without the map
+  ReportRect uncertainty_bar;                         // its colour bar; empty without the map
+  double uncertainty_max_mm = 0;                      // the colour bar's top
 };
 
 // PNG file contents (RGB, 8 bit). InputError on missing inputs or bad options.

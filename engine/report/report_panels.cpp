@@ -49,6 +49,18 @@ double brain_p99(const ImageF& image, const LabelImage& labels) {
   return values[n] > 0 ? values[n] : 1.0;
 }
 
+// 99th percentile of the map where it claims an answer (> 0), rounded up to
+// 0.5 mm so the colour bar reads in round numbers.
+double band_scale_mm(const ImageF& band) {
+  std::vector<float> values;
+  for (float v : band.voxels)
+    if (v > 0) values.push_back(v);
+  if (values.empty()) return 1.0;
+  const std::size_t n = static_cast<std::size_t>(0.99 * (values.size() - 1));
+  std::nth_element(values.begin(), values.begin() + n, values.end());
+  return std::max(0.5, std::ceil(2.0 * values[n]) / 2.0);
+}
+
 std::uint8_t grey(double v) { return static_cast<std::uint8_t>(std::clamp(v, 0.0, 1.0) * 255.0 + 0.5); }
 
 class PanelPainter {
@@ -80,6 +92,10 @@ class PanelPainter {
       out_.rows[0][v] = anatomy(v);
       out_.rows[1][v] = difference(v, *in_.warped_preop_affine, scale_affine_);
       out_.rows[2][v] = difference(v, *in_.warped_preop_nonrigid, scale_nonrigid_);
+    }
+    if (in_.uncertainty_mm && !in_.uncertainty_mm->voxels.empty()) {
+      out_.uncertainty_max_mm = band_scale_mm(*in_.uncertainty_mm);
+      for (int v = 0; v < 3; ++v) out_.uncertainty[v] = uncertainty(v);
     }
     return std::move(out_);
   }
@@ -178,6 +194,28 @@ class PanelPainter {
     return r;
   }
 
+  // The band in colour (60 % over the intraop grey) where the map claims an
+  // answer; the grey image alone elsewhere.
+  Raster uncertainty(int v) const {
+    Raster r = blank();
+    for (int y = 0; y < r.size; ++y)
+      for (int x = 0; x < r.size; ++x) {
+        const Eigen::Vector3d w = world(v, x, y);
+        const double g = grey(sample_linear(*in_.intraop, w, 0.f) / scale_intraop_);
+        const float band = sample_linear(*in_.uncertainty_mm, w, 0.f);
+        if (band <= 0) {
+          const auto gg = static_cast<std::uint8_t>(g);
+          set(r, x, y, {gg, gg, gg});
+          continue;
+        }
+        const LabelColour c = uncertainty_colour(band / out_.uncertainty_max_mm);
+        LabelColour mixed;
+        for (int k = 0; k < 3; ++k) mixed[k] = static_cast<std::uint8_t>(std::lround(0.4 * g + 0.6 * c[k]));
+        set(r, x, y, mixed);
+      }
+    return r;
+  }
+
   const ReportInputs& in_;
   const ReportOptions& opt_;
   Panels out_;
@@ -186,6 +224,13 @@ class PanelPainter {
 };
 
 }  // namespace
+
+LabelColour uncertainty_colour(double t) {
+  t = std::clamp(t, 0.0, 1.0);
+  const auto mix = [](double a, double b, double f) { return static_cast<std::uint8_t>(std::lround(a + (b - a) * f)); };
+  if (t < 0.5) return {mix(40, 250, 2 * t), mix(70, 220, 2 * t), mix(220, 40, 2 * t)};
+  return {mix(250, 220, 2 * t - 1), mix(220, 30, 2 * t - 1), mix(40, 30, 2 * t - 1)};
+}
 
 const std::array<View, 3>& views() {
   // Neurological convention: RAS +x (patient's right) to the screen's right.

@@ -19,7 +19,12 @@ struct Panels {
   int size = 0;
   Eigen::Vector3d centre_mm = Eigen::Vector3d::Zero();  // the point all slices pass through
   std::array<std::array<Raster, 3>, 3> rows;            // [row][axial, coronal, sagittal]
+  std::array<Raster, 3> uncertainty;                    // row 4, when the map is given
+  double uncertainty_max_mm = 0;                        // its colour scale's top
 };
+
+// The uncertainty colour scale at t in [0, 1]: blue, yellow, red.
+LabelColour uncertainty_colour(double t);
 
 // The in-plane world axes (screen right, screen up) of each view.
 struct View {

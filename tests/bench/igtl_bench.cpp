@@ -15,7 +15,7 @@
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
-#include "config_file.h"
+#include "label_table_file.h"
 #include "image/nifti_io.h"
 #include "mesh/vtk_io.h"
 #include "server/case_store.h"

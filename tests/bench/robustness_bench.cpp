@@ -58,12 +58,13 @@ nlohmann::json brief(const evaluation::CaseResult& r) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string config_path, atlas_cache = "brainshift-atlas";
+  std::string config_path, atlas_cache = "brainshift-atlas", records_path;
   std::vector<std::string> only;
   CLI::App app("brainshift robustness benchmark: TRE with and without the intraop T1 on the robustness suite");
   app.add_option("--config", config_path);
   app.add_option("--atlas-cache", atlas_cache);
   app.add_option("--cases", only, "case names (default: all)")->delimiter(',');
+  app.add_option("--landmark-records", records_path, "write per-landmark calibration records (NDJSON) here");
   double check_grid_mm = -1;
   app.add_option("--check-grid-mm", check_grid_mm, "the labels-vs-image check's grid (0: the image's; default: its parameters')");
   CLI11_PARSE(app, argc, argv);
@@ -86,6 +87,7 @@ int main(int argc, char** argv) {
   std::string warm_key;
   nlohmann::json cases = nlohmann::json::array(), preops = nlohmann::json::object();
   std::vector<evaluation::CaseResult> with_image, labels_only;
+  std::FILE* records = records_path.empty() ? nullptr : std::fopen(records_path.c_str(), "w");
   for (const auto& spec : suite) {
     evaluation::CaseAnatomy anatomy = evaluation::case_anatomy(inputs, spec);
     if (!session || anatomy.preop_key != warm_key) {
@@ -105,9 +107,13 @@ int main(int argc, char** argv) {
                  run.with_image.nonrigid_p95_mm, run.with_image.fallback ? " FALLBACK" : "", cal_i.mean_band_mm,
                  cal_i.coverage, cal_i.spearman, run.labels_only.nonrigid_mean_mm, run.labels_only.nonrigid_p95_mm,
                  run.labels_only.fallback ? " FALLBACK" : "", cal_l.mean_band_mm, cal_l.coverage, cal_l.spearman);
+    for (const auto& [mode, r] : {std::pair{"labels+image", &run.with_image}, std::pair{"labels", &run.labels_only}})
+      for (const auto& l : r->landmark_records)
+        if (records) std::fprintf(records, "%s\n", nlohmann::json({{"case", spec.phantom.name}, {"mode", mode}, {"fallback", r->fallback}, {"landmark", l}}).dump().c_str());
     with_image.push_back(run.with_image);
     labels_only.push_back(run.labels_only);
   }
+  if (records) std::fclose(records);
   const nlohmann::json out = {{"ranks", session ? session->ranks() : 0},
                               {"preops", preops},
                               {"with_image", summary(with_image)},

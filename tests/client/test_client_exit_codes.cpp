@@ -15,6 +15,8 @@
 #include "image/nrrd_io.h"
 #include "synthetic_head.h"
 #include "image/nifti_io.h"
+#include "protocol/requests.h"
+#include "protocol/transport.h"
 #include "server/daemon.h"
 #include "tests/e2e/process.h"
 #include "test_support.h"
@@ -163,6 +165,39 @@ TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
                 labels_file.string()});
   EXPECT_EQ(r.code, cli::kExitUsage);
   EXPECT_NE(r.err.find("not both"), std::string::npos) << r.err;
+}
+
+// A server of an earlier revision (PROTOCOL.md 10) does not know labels.get
+// and answers unknown_type: `pull --scene` says so and stops before it pulls
+// anything (the client has no label table of its own).
+TEST(ClientExitCodes, PullSceneFromAServerWithoutLabelsGetStopsFirst) {
+  zmq::context_t context;
+  zmq::socket_t router(context, zmq::socket_type::router);
+  router.bind("tcp://127.0.0.1:*");
+  const std::string endpoint = router.get(zmq::sockopt::last_endpoint);
+  std::atomic<bool> stop{false};
+  std::vector<std::string> types;
+  std::thread server([&] {
+    for (int i = 0; i < 600 && !stop; ++i) {  // at most 60 s
+      const auto r = protocol::transport::receive_request(router, 100ms);
+      if (!r || r->wire.empty()) continue;
+      const auto header = nlohmann::json::parse(r->wire.front());
+      types.push_back(header.value("type", ""));
+      protocol::transport::send_reply(router, r->envelope,
+                           protocol::make_error_reply(header.value("request_id", ""), protocol::ErrorCode::kUnknownType,
+                                                      "\"" + types.back() + "\" is not a message type"));
+    }
+  });
+  test::TempDir dir("old-server");
+  const e2e::RunResult r = e2e::run({BRAINSHIFT_BIN, "--server", endpoint, "--timeout", "10", "pull", "--scan", "s-1",
+                                     "--out", (dir.path() / "pulled").string(), "--scene"},
+                                    dir.path(), 60);
+  stop = true;
+  server.join();
+  EXPECT_EQ(r.code, cli::kExitError) << r.err;
+  EXPECT_NE(r.err.find("does not serve its label table"), std::string::npos) << r.err;
+  EXPECT_EQ(types, std::vector<std::string>{"labels.get"});  // nothing was asked for after it
+  EXPECT_FALSE(fs::exists(dir.path() / "pulled" / "scene.mrml"));
 }
 
 }  // namespace

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "core/gzip.h"
 #include "image/nifti_io.h"
 #include "protocol/media.h"
 #include "pulled_files.h"
@@ -54,7 +55,7 @@ TEST(PulledFiles, GzippedAndOtherFramesPassThroughUnchanged) {
 TEST(PulledFiles, GzipRoundTripsThroughZlib) {
   std::string data(1 << 20, '\0');
   for (std::size_t i = 0; i < data.size(); ++i) data[i] = static_cast<char>((i * 2654435761u) >> 13);
-  const std::string gz = cli::gzip_bytes(data);
+  const std::string gz = gzip_bytes(data);
   z_stream z{};
   ASSERT_EQ(inflateInit2(&z, 15 + 16), Z_OK);
   std::string out(data.size() + 16, '\0');
@@ -66,5 +67,5 @@ TEST(PulledFiles, GzipRoundTripsThroughZlib) {
   out.resize(z.total_out);
   inflateEnd(&z);
   EXPECT_EQ(out, data);
-  EXPECT_EQ(cli::gzip_bytes("").substr(0, 2), "\x1f\x8b");
+  EXPECT_EQ(gzip_bytes("").substr(0, 2), "\x1f\x8b");
 }

@@ -99,6 +99,17 @@ TEST(Config, LabelNamesAreSafeAndShortNamesFitOpenIgtlink) {
     EXPECT_THROW(config::label_table_from_text(table(bad), "t"), InputError) << bad;
 }
 
+// labels.get serves at most 64 labels (PROTOCOL.md 5.6), as a label map names
+// at most 64 structures: a larger table is refused when it is read.
+TEST(Config, LabelTableHoldsAtMostWhatTheProtocolCanName) {
+  std::string text = "[[label]]\nvalue = 1\nname = \"brain\"\nrole = \"parenchyma\"\n";
+  for (int v = 2; v <= 64; ++v)
+    text += "[[label]]\nvalue = " + std::to_string(v) + "\nname = \"s" + std::to_string(v) + "\"\n";
+  EXPECT_EQ(config::label_table_from_text(text, "t").entries.size(), 64u);
+  text += "[[label]]\nvalue = 65\nname = \"s65\"\n";
+  EXPECT_THROW(config::label_table_from_text(text, "t"), InputError);
+}
+
 // Colours drawn in report.png and the Slicer scene: labels.toml's; a missing
 // colour gets the palette's; a malformed one names the file and the label.
 TEST(Config, LabelColoursParseDefaultAndFailClearly) {

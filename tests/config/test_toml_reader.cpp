@@ -9,6 +9,7 @@
 
 #include "config/toml_reader.h"
 #include "core/errors.h"
+#include "core/file_bytes.h"
 #include "temp_dir.h"
 
 namespace brainshift::config {
@@ -40,10 +41,11 @@ TEST(TomlReader, SyntaxErrorNamesTheSourceAndLine) {
 
 TEST(TomlReader, MissingFileIsNamed) {
   test::TempDir dir("toml");
-  const std::string why = error_of([&] { read_text_file(dir / "absent.toml", "client allow-list"); });
+  const std::string why = error_of([&] { read_whole_file(dir / "absent.toml", "client allow-list"); });
   EXPECT_NE(why.find("absent.toml: cannot open the client allow-list"), std::string::npos) << why;
+  EXPECT_NE(error_of([&] { read_whole_file(dir.path(), "label map"); }).find("not a regular file"), std::string::npos);
   std::ofstream(dir / "present.toml") << "a = 1\n";
-  EXPECT_EQ(read_text_file(dir / "present.toml"), "a = 1\n");
+  EXPECT_EQ(read_whole_file(dir / "present.toml"), "a = 1\n");
 }
 
 TEST(TomlReader, TypedValuesAndFallbacks) {

@@ -11,13 +11,14 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
 
 #include <nlohmann/json.hpp>
 
-#include "config_file.h"
+#include "label_table_file.h"
 #include "daemon_harness.h"
 #include "igtl_receiver.h"
 #include "image/nifti_io.h"
@@ -101,11 +102,15 @@ TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient
   EXPECT_EQ(st.at("reason").get<std::string>().empty(), kind == "nonrigid");
   EXPECT_EQ(result.back().status()->GetSubCode(), kind == "nonrigid" ? 0 : 1);
   EXPECT_FALSE(st.contains("problems")) << st.dump();
+  // The uncertainty map follows its result once stored (a deferred part).
+  const auto uncertainty = slicer.next();
+  ASSERT_TRUE(uncertainty.has_value()) << "no bs.uncertainty after the result";
+  EXPECT_EQ(uncertainty->device, "bs.uncertainty");
 
   // Against the files the daemon serves for the same scan.
   const auto files = pull_complete(c, scan1,
                                    {ResultPart::kDisplacement, ResultPart::kWarpedImage, ResultPart::kWarpedLabels,
-                                    ResultPart::kModels});
+                                    ResultPart::kModels, ResultPart::kUncertainty});
   const VectorImage3 field = vector_image_from_bytes(files.at("displacement"), "displacement", std::size_t{1} << 31);
   // The intraop grid is the oblique LAS one: i points to the patient's left.
   EXPECT_LT(field.grid.world_from_voxel(0, 0), 0.0);
@@ -118,6 +123,11 @@ TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient
   const LabelImage labels = label_image_from_bytes(files.at("warped_labels"), "warped_labels", std::size_t{1} << 31);
   expect_same_image(*by_device(result, "bs.warped_labels").image(), labels.grid, labels.voxels.data(),
                     labels.voxels.size() * 2, igtl::ImageMessage::TYPE_UINT16, 1, "warped_labels");
+  const ImageF band = scalar_image_from_bytes(files.at("uncertainty"), "uncertainty", std::size_t{1} << 31);
+  ASSERT_NE(uncertainty->image(), nullptr);
+  expect_same_image(*uncertainty->image(), band.grid, band.voxels.data(), band.voxels.size() * 4,
+                    igtl::ImageMessage::TYPE_FLOAT32, 1, "uncertainty");
+  EXPECT_GT(*std::max_element(band.voxels.begin(), band.voxels.end()), 0.f) << "the map claims a band in the brain";
   std::size_t models = 0;
   for (const LabelEntry& e : brainshift::config::default_label_table().entries) {
     const auto it = files.find(model_frame_name(e.name));

@@ -2,7 +2,8 @@
 // daemon configured with a fifth structure (an arcuate fasciculus) in its
 // labels.toml, a preop whose atlas numbers its labels its own way (sent with
 // a label map), intraop labels in the same numbering, and the structure's
-// model carried, pulled, named in the 3D Slicer scene and written by
+// model carried, pulled, named in the 3D Slicer scene (from the table the
+// daemon serves, labels.get: no local labels.toml) and written by
 // `brainshift register` from the same table and the same encoder.
 #include <gtest/gtest.h>
 
@@ -119,8 +120,8 @@ class LabelTableE2E : public ::testing::Test {
     r = cli(d, {"push", "--labels", scan_labels.string(), "--image", (dir / "scan_t1.nii.gz").string(), "--wait"});
     if (r.code != 0) return r;
     const std::string scan_id = r.out.substr(0, r.out.find('\n'));
-    return cli(d, {"pull", "--scan", scan_id, "--out", (dir / "pulled").string(), "--scene", "--scene-labels",
-                   (dir / "labels5.toml").string()});
+    // No label table given: the scene is named and coloured by the daemon's (labels.get).
+    return cli(d, {"pull", "--scan", scan_id, "--out", (dir / "pulled").string(), "--scene"});
   }
   void TearDown() override {
     if (HasFailure()) tmp.keep();
@@ -192,6 +193,9 @@ TEST_F(LabelTableE2E, ARenamedParenchymaNamesTheWholeBrainModelEverywhere) {
   const std::string from = "name = \"brain\"";
   ASSERT_NE(table.find(from), std::string::npos);
   table.replace(table.find(from), from.size(), "name = \"cerebrum\"");
+  const std::string colour = "colour = \"#28dc3c\"";  // the shipped brain's, just below its name
+  ASSERT_EQ(table.find(colour), table.find("name = \"cerebrum\"") + std::string("name = \"cerebrum\"\n").size());
+  table.replace(table.find(colour), colour.size(), "colour = \"#c08040\"");
   std::ofstream(dir / "labels5.toml") << table;  // the name config_text() gives
   std::ofstream(dir / "test.toml") << config_text();
   write_synthetic_preop(dir);
@@ -206,6 +210,10 @@ TEST_F(LabelTableE2E, ARenamedParenchymaNamesTheWholeBrainModelEverywhere) {
   EXPECT_FALSE(fs::exists(dir / "pulled" / "models" / "brain.vtp"));
   EXPECT_GT(read_vtp_bytes(read_file(dir / "pulled" / "models" / "cerebrum.vtp")).vertices_mm.size(), 100u);
   EXPECT_NE(read_file(dir / "pulled" / "scene.mrml").find("models/cerebrum.vtp"), std::string::npos);
+  // The scene's names and colours are the daemon's table's, with no local labels.toml given.
+  const std::string ctbl = read_file(dir / "pulled" / "labels.ctbl");
+  EXPECT_NE(ctbl.find("1 cerebrum 192 128 64"), std::string::npos) << ctbl;
+  EXPECT_EQ(ctbl.find("\n1 brain "), std::string::npos) << ctbl;
   EXPECT_EQ(cli(daemon, {"shutdown", "--reason", "test"}).code, 0);
   daemon.process().wait(60);
 }

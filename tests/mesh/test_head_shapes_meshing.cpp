@@ -11,7 +11,7 @@
 #include <map>
 
 #include "atlas/default_atlas.h"
-#include "config_file.h"
+#include "label_table_file.h"
 #include "core/errors.h"
 #include "head_shapes.h"
 #include "image/morphology.h"

@@ -44,8 +44,12 @@ ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) 
   if (mode != InputMode::image_only) input.labels = c.phantom.intraop_labels;
   if (mode != InputMode::labels_only) input.t1 = c.phantom.intraop_t1;
   try {
-    run.result = evaluate_result(c.phantom.description["name"].get<std::string>(), c.phantom,
-                                 session.register_scan(input, nullptr));
+    ScanResult r = session.register_scan(input, nullptr);
+    // The uncertainty map, after the answer as the daemon makes it.
+    const IntraopInput prepared{input.labels.voxels.empty() && r.intraop_labels ? *r.intraop_labels : input.labels,
+                                input.t1};
+    session.add_uncertainty(prepared, r, nullptr);
+    run.result = evaluate_result(c.phantom.description["name"].get<std::string>(), c.phantom, r);
   } catch (const InputError& e) {
     run.status = mode == InputMode::image_only ? ModeRun::Status::skipped : ModeRun::Status::error;
     run.note = mode == InputMode::image_only ? std::string("the engine does not take an image alone: ") + e.what()
@@ -71,7 +75,8 @@ nlohmann::json mode_json(const ModeRun& r) {
           {"tre_affine_mm", {{"mean", c.affine_mean_mm}, {"p95", c.affine_p95_mm}}},
           {"intraop_total_seconds", c.intraop_total_seconds},
           {"min_jacobian", c.metrics.contains("jacobian") ? c.metrics["jacobian"].value("min", 0.0) : 0.0},
-          {"errors_mm", c.nonrigid_errors_mm}};
+          {"errors_mm", c.nonrigid_errors_mm},
+          {"uncertainty_band_mm", c.predicted_band_mm}};
 }
 
 nlohmann::json brief(const nlohmann::json& d) {
@@ -104,7 +109,7 @@ nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, con
     int registrations = 0, nonrigid = 0, skipped = 0;
     double mean_sum = 0, worst = 0;
     int measured = 0;
-    std::vector<double> errors;
+    std::vector<double> errors, calibrated_errors, bands;  // bands: where the map was made
   };
   std::map<std::string, Pool> pools;
   std::vector<std::string> all_modes = modes;
@@ -140,7 +145,14 @@ nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, con
       p.worst = std::max(p.worst, m["tre_mm"]["max"].get<double>());
       ++p.measured;
       for (const auto& e : m["errors_mm"]) p.errors.push_back(e.get<double>());
+      if (m.contains("uncertainty_band_mm") && m["uncertainty_band_mm"].size() == m["errors_mm"].size()) {
+        for (const auto& e : m["errors_mm"]) p.calibrated_errors.push_back(e.get<double>());
+        for (const auto& b : m["uncertainty_band_mm"]) p.bands.push_back(b.get<double>());
+        m["uncertainty_calibration"] = to_json(calibrate(m["uncertainty_band_mm"].get<std::vector<double>>(),
+                                                         m["errors_mm"].get<std::vector<double>>()));
+      }
       m.erase("errors_mm");
+      m.erase("uncertainty_band_mm");
     }
     cases.push_back(r);
   }
@@ -152,7 +164,8 @@ nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, con
                      {"tre_mean_over_cases_mm", p.measured ? p.mean_sum / p.measured : 0.0},
                      {"tre_pooled_p95_mm", p.errors.empty() ? 0.0 : percentile(p.errors, 95.0)},
                      {"tre_worst_landmark_mm", p.worst},
-                     {"cases_measured", p.measured}};
+                     {"cases_measured", p.measured},
+                     {"uncertainty_calibration", to_json(calibrate(p.bands, p.calibrated_errors))}};
   return {{"summary", summary}, {"preops", preops}, {"cases", cases}};
 }
 

@@ -3,7 +3,10 @@
 #include <algorithm>
 #include <cmath>
 
+#include "atlas/default_atlas.h"
 #include "core/timer.h"
+#include "field/vector_sampling.h"
+#include "image/distance_map.h"
 #include "field/metrics.h"
 #include "image/resample.h"
 
@@ -36,6 +39,42 @@ double mean(const std::vector<double>& v) {
   return v.empty() ? 0 : s / static_cast<double>(v.size());
 }
 
+// Per landmark: its error and predicted band, and the local quantities the
+// error might depend on (distance from the boundary data, displacement, its
+// gradient), for the calibration study.
+nlohmann::json landmark_records(const PhantomCase& c, const ScanResult& r, const std::vector<double>& errors,
+                                const std::vector<double>& band) {
+  const LabelImage& labels = c.intraop_labels;
+  Mask outside(labels.grid), ventricles(labels.grid);
+  for (std::size_t v = 0; v < labels.voxels.size(); ++v) {
+    outside.voxels[v] = labels.voxels[v] == 0;
+    ventricles.voxels[v] = labels.voxels[v] == atlas_labels::ventricles;
+  }
+  const ImageF depth = distance_to_mask_mm(outside), to_ventricles = distance_to_mask_mm(ventricles);
+  const GridSampler at(labels.grid);
+  const Eigen::Matrix4d preop_from_intraop = r.intraop_from_preop.inverse();
+  nlohmann::json out = nlohmann::json::array();
+  std::size_t i = 0;
+  for (const auto& [x, p] : c.landmarks_intraop_preop_mm) {
+    const auto u = sample_vector_linear(r.pullback_field_mm, x);
+    const Eigen::Vector3d affine = (preop_from_intraop * x.homogeneous()).head<3>();
+    double grad = 0;
+    for (int a = 0; a < 3; ++a) {
+      Eigen::Vector3d h = Eigen::Vector3d::Zero();
+      h[a] = 1.5;
+      const auto up = sample_vector_linear(r.pullback_field_mm, x + h), um = sample_vector_linear(r.pullback_field_mm, x - h);
+      if (up && um) grad += ((*up - *um) / 3.0).squaredNorm();
+    }
+    const Eigen::Vector3d q = u ? Eigen::Vector3d(x + *u) : affine;
+    out.push_back({{"error", errors[i]}, {"band", i < band.size() ? band[i] : 0.0},
+                   {"depth", at.linear(depth.voxels, x, 0.f)}, {"ventricle", at.linear(to_ventricles.voxels, x, 0.f)},
+                   {"pred_nonrigid", (q - affine).norm()}, {"true_nonrigid", (p - affine).norm()},
+                   {"grad_u", std::sqrt(grad)}, {"pred", {q[0], q[1], q[2]}}, {"x", {x[0], x[1], x[2]}}});
+    ++i;
+  }
+  return out;
+}
+
 }  // namespace
 
 CaseResult evaluate_case(EngineSession& session, const PhantomSpec& spec) {
@@ -64,6 +103,7 @@ CaseResult evaluate_result(const std::string& name, const PhantomCase& c, const 
     const GridSampler map(r.uncertainty_mm.grid);
     for (const auto& [x, p] : c.landmarks_intraop_preop_mm)
       out.predicted_band_mm.push_back(map.linear(r.uncertainty_mm.voxels, x, 0.f));
+    out.landmark_records = landmark_records(c, r, e.nonrigid, out.predicted_band_mm);
   }
   out.timings = r.timings;
   out.metrics = r.metrics;
@@ -144,9 +184,13 @@ Calibration calibrate(const std::vector<CaseResult>& cases) {
     band.insert(band.end(), c.predicted_band_mm.begin(), c.predicted_band_mm.end());
     error.insert(error.end(), c.nonrigid_errors_mm.begin(), c.nonrigid_errors_mm.end());
   }
+  return calibrate(band, error);
+}
+
+Calibration calibrate(const std::vector<double>& band, const std::vector<double>& error) {
   Calibration out;
   out.landmarks = band.size();
-  if (band.empty()) return out;
+  if (band.empty() || band.size() != error.size()) return out;
   std::size_t inside = 0;
   for (std::size_t i = 0; i < band.size(); ++i) {
     inside += error[i] <= band[i];

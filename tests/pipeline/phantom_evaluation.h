@@ -23,6 +23,9 @@ struct CaseResult {
   std::vector<double> nonrigid_errors_mm;  // per landmark
   // The uncertainty map's 95 % band at each landmark (empty without the map).
   std::vector<double> predicted_band_mm;
+  // Per landmark, with the map: what the error might depend on (for the
+  // calibration study; landmark_records()).
+  nlohmann::json landmark_records = nlohmann::json::array();
   nlohmann::json timings, metrics;
 };
 
@@ -53,6 +56,8 @@ struct Calibration {
   double mean_band_mm = 0, mean_error_mm = 0;
 };
 Calibration calibrate(const std::vector<CaseResult>& cases);
+// The same from pooled per-landmark bands and errors (equal sizes).
+Calibration calibrate(const std::vector<double>& band, const std::vector<double>& error);
 nlohmann::json to_json(const Calibration& c);
 
 // Spearman rank correlation (ties take their mean rank); 0 when either is constant.

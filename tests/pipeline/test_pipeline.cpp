@@ -12,6 +12,7 @@
 #include <fstream>
 #include <functional>
 
+#include "coarse_parameters.h"  // tests/support
 #include "config_file.h"
 #include "core/errors.h"
 #include "field/metrics.h"
@@ -43,13 +44,7 @@ PreopInput synthetic_head() {
   return PreopInput{std::move(h.t1), std::move(h.labels)};
 }
 
-PipelineParameters coarse_parameters() {
-  auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
-  p.meshing.cell_size_mm = 7;
-  p.meshing.facet_size_mm = 4;
-  p.meshing.facet_distance_mm = 1.5;
-  return p;
-}
+using test::coarse_parameters;  // tests/support
 
 // The intraop labels: preop labels (brain 1 = everything but the ventricles)
 // on an anisotropic iMRI-like grid, moved by a rigid translation.

@@ -2,6 +2,8 @@
 // the typed parsers refuse missing, extra or ill-typed fields and frames.
 #include <gtest/gtest.h>
 
+#include <functional>
+
 #include "protocol/media.h"
 #include "protocol/requests.h"
 #include "test_util.h"
@@ -307,6 +309,68 @@ TEST(ScanList, RoundTrip) {
   auto unknown_kind = bp::make_scan_list_reply("l", r);
   unknown_kind.header["scans"][2]["kind"] = "elastic";
   EXPECT_EQ(error_of([&] { bp::parse_scan_list_reply(unknown_kind); }), ErrorCode::kInvalidRequest);
+}
+
+bp::LabelsReply shipped_like_labels() {
+  bp::LabelsReply r;
+  r.labels.push_back({1, "cerebrum", "cerebrum", "parenchyma", {40, 220, 60}, true});
+  r.labels.push_back({2, "ventricles", "ventricles", "cavity", {0, 200, 255}, true});
+  r.labels.push_back({5, "arcuate_fasciculus", "af", "structure", {255, 140, 0}, false});
+  return r;
+}
+
+TEST(LabelsGet, RequestAndReplyRoundTrip) {
+  const bp::Message request = wire_trip(bp::make_labels_request("l1"));
+  EXPECT_EQ(request.type(), bp::MessageType::kLabelsGet);
+  EXPECT_EQ(bp::kind_of(request.type()), bp::MessageKind::kRequest);
+  EXPECT_EQ(bp::reply_type_for(request.type()), bp::MessageType::kLabelsGetReply);
+  EXPECT_NO_THROW(bp::parse_labels_request(request));
+  const bp::Message reply = wire_trip(bp::make_labels_reply("l1", shipped_like_labels()));
+  EXPECT_EQ(reply.header["labels"][0]["colour"], "#28dc3c");
+  EXPECT_EQ(bp::parse_labels_reply(reply), shipped_like_labels());
+}
+
+TEST(LabelsGet, ColoursAreHashAndSixHexDigits) {
+  EXPECT_EQ(bp::colour_to_hex({255, 140, 0}), "#ff8c00");
+  EXPECT_EQ(bp::colour_from_hex("#FF8c00"), (bp::Rgb{255, 140, 0}));
+  for (const char* bad : {"", "ff8c00", "#ff8c0", "#ff8c000", "#gg8c00", "#ff c00"})
+    EXPECT_FALSE(bp::colour_from_hex(bad)) << bad;
+}
+
+TEST(LabelsGet, RefusesAFrameAndABadTable) {
+  bp::Message with_frame = bp::make_labels_request("l");
+  with_frame.frames.push_back(bp::media::json_frame("labels", "{}"));
+  EXPECT_EQ(error_of([&] { bp::parse_labels_request(with_frame); }), ErrorCode::kInvalidRequest);
+
+  auto refused = [&](const std::function<void(json&)>& spoil) {
+    bp::Message m = bp::make_labels_reply("l", shipped_like_labels());
+    spoil(m.header["labels"]);
+    return error_of([&] { bp::parse_labels_reply(wire_trip(m)); }) == ErrorCode::kInvalidRequest;
+  };
+  EXPECT_TRUE(refused([](json& l) { l = json::array(); }));                      // no label
+  EXPECT_TRUE(refused([](json& l) { l = json::object(); }));                     // not an array
+  EXPECT_TRUE(refused([](json& l) { l[1]["value"] = 0; }));                      // background
+  EXPECT_TRUE(refused([](json& l) { l[1]["value"] = 65536; }));                  // beyond uint16
+  EXPECT_TRUE(refused([](json& l) { l[1]["value"] = "2"; }));                    // not a number
+  EXPECT_TRUE(refused([](json& l) { l[1]["value"] = 1; }));                      // a value twice
+  EXPECT_TRUE(refused([](json& l) { l[1]["name"] = "cerebrum"; }));              // a name twice
+  EXPECT_TRUE(refused([](json& l) { l[1]["name"] = "../etc"; }));                // not a structure name
+  EXPECT_TRUE(refused([](json& l) { l[2].erase("name"); }));                     // missing name
+  EXPECT_TRUE(refused([](json& l) { l[2]["short_name"] = "arcuate_fasc"; }));    // 12 characters
+  EXPECT_TRUE(refused([](json& l) { l[2]["role"] = "organ"; }));                 // unknown role
+  EXPECT_TRUE(refused([](json& l) { l[1]["role"] = "parenchyma"; }));            // two parenchymas
+  EXPECT_TRUE(refused([](json& l) { l[0]["role"] = "structure"; }));             // none
+  EXPECT_TRUE(refused([](json& l) { l[0]["colour"] = "green"; }));               // not #rrggbb
+  EXPECT_TRUE(refused([](json& l) { l[0]["model"] = "yes"; }));                  // not a boolean
+  EXPECT_TRUE(refused([&](json& l) {                                             // over 64 labels
+    for (int v = 10; v < 10 + static_cast<int>(bp::kMaxStructures); ++v)
+      l.push_back({{"value", v}, {"name", "s" + std::to_string(v)}, {"short_name", "s" + std::to_string(v)},
+                   {"role", "structure"}, {"colour", "#000000"}});
+  }));
+  // "model" may be absent (default true); nothing else was spoiled above.
+  bp::Message no_model = bp::make_labels_reply("l", shipped_like_labels());
+  no_model.header["labels"][2].erase("model");
+  EXPECT_TRUE(bp::parse_labels_reply(wire_trip(no_model)).labels[2].model);
 }
 
 TEST(Shutdown, RoundTrip) {

@@ -11,12 +11,14 @@
 #include <cstdio>
 #include <functional>
 
+#include "coarse_parameters.h"  // tests/support
 #include "config_file.h"
 #include "core/errors.h"
 #include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
 #include "phantom_evaluation.h"  // tests/pipeline
 #include "pipeline/engine_session.h"
+#include "quality/uncertainty_map.h"
 #include "synthetic_head.h"  // tests/support
 
 using namespace brainshift;
@@ -41,13 +43,7 @@ PreopInput asymmetric_head() {
   return {std::move(h.t1), std::move(h.labels)};
 }
 
-PipelineParameters coarse_parameters() {
-  auto p = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
-  p.meshing.cell_size_mm = 7;
-  p.meshing.facet_size_mm = 4;
-  p.meshing.facet_distance_mm = 1.5;
-  return p;
-}
+using test::coarse_parameters;  // tests/support
 
 PhantomSpec spec() {
   PhantomSpec s;
@@ -194,6 +190,22 @@ TEST_F(DamagedInputs, AnOutlineLeakingFourVoxelsIn3DIsRefused) {
   const LabelImage leak = leaked(case_->intraop_labels, 4);
   expect_refused("leak 4 voxels 3D", both(leak, case_->intraop_t1), {"volume", "affine_stretch"});
   expect_refused("leak 4 voxels 3D", labels_only(leak), {"volume", "affine_stretch"});
+}
+
+// A refused scan's answer is the affine alone: its uncertainty map carries
+// the surface residual the affine leaves through the model, not the
+// non-rigid floor. (It cannot see an error of the affine itself: the leak
+// stretched the affine, 6.3 mm off, while the residual gives a 1.5 mm band.
+// The fallback is marked; the map does not make it trustworthy.)
+TEST_F(DamagedInputs, ARefusedScansMapCarriesTheResidualTheAffineLeaves) {
+  const IntraopInput scan = labels_only(leaked(case_->intraop_labels, 4));
+  ScanResult r = session_->register_scan(scan, nullptr);
+  ASSERT_NE(r.kind, ResultKind::nonrigid);
+  session_->add_uncertainty(scan, r, nullptr);
+  const nlohmann::json& u = r.metrics["uncertainty"];
+  EXPECT_GT(u["samples"].get<int>(), 0);
+  const double floor_mm = kBand95PerRms * u["quantisation_rms_mm"].get<double>();
+  EXPECT_GT(u["band95_mm"]["median"].get<double>(), 2 * floor_mm) << u.dump();
 }
 
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {

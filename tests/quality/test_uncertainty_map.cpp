@@ -54,37 +54,62 @@ struct Case {
 
 }  // namespace
 
-TEST(UncertaintyBand, NoNoiseAndNoShiftIsZeroConstantNoiseIsItsBand) {
+TEST(UncertaintyBand, WithoutShiftOrResidualItIsTheQuantisationAndNoiseAddsInQuadrature) {
   Case c;
+  const double q = std::cbrt(2.0 * 2.0 * 4.0) / std::sqrt(12.0);  // the 2 x 2 x 4 mm voxel
   const std::vector<double> none(c.box.mesh.node_count(), 0.0);
   nlohmann::json summary;
-  const ImageF zero = uncertainty_band_mm({c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, {1}}, {}, &summary);
-  for (float v : zero.voxels) ASSERT_EQ(v, 0.f);
+  const ImageF floor = uncertainty_band_mm({c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, false}, {}, &summary);
   const std::vector<double> one(c.box.mesh.node_count(), 1.0);
-  const ImageF band = uncertainty_band_mm({c.box.mesh, one, c.field, Eigen::Matrix4d::Identity(), c.labels, {1}}, {}, &summary);
+  const ImageF band = uncertainty_band_mm({c.box.mesh, one, c.field, Eigen::Matrix4d::Identity(), c.labels, false}, {});
   const Grid3& g = c.labels.grid;
   for (std::size_t v = 0; v < band.voxels.size(); ++v) {
     const double r = g.world_mm(v % 40, (v / 40) % 40, v / 1600).norm();
     // One voxel (4 mm) beyond the outline is still the brain's.
-    if (r > 30 + 4 * std::sqrt(3.0) + 0.1) ASSERT_EQ(band.voxels[v], 0.f) << "outside the brain no band is claimed";
-    if (c.labels.voxels[v] != 0) ASSERT_NEAR(band.voxels[v], kBand95PerRms, 1e-3);
+    if (r > 30 + 4 * std::sqrt(3.0) + 0.1) {
+      ASSERT_EQ(band.voxels[v], 0.f) << "outside the brain no band is claimed";
+    }
+    if (c.labels.voxels[v] == 0) continue;
+    ASSERT_NEAR(floor.voxels[v], kBand95PerRms * q, 1e-3);
+    ASSERT_NEAR(band.voxels[v], kBand95PerRms * std::sqrt(1 + q * q), 1e-3);
   }
-  EXPECT_NEAR(summary["band95_mm"]["mean"].get<double>(), kBand95PerRms, 1e-3);
+  EXPECT_NEAR(summary["band95_mm"]["mean"].get<double>(), kBand95PerRms * q, 1e-3);
 }
 
-TEST(UncertaintyBand, ModelErrorGrowsWithDepthAndWithTheShift) {
+TEST(UncertaintyBand, AUniformShiftAddsNothingAShearGrowsWithDisplacementAndStrain) {
   Case c;
-  // A uniform 4 mm non-rigid shift (pull-back), no surface noise.
-  for (auto& v : c.field.vectors) v = Eigen::Vector3f(0, 0, 4);
   const std::vector<double> none(c.box.mesh.node_count(), 0.0);
   UncertaintyParameters p;
-  const ImageF band = uncertainty_band_mm({c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, {1}}, p);
-  const auto at = [&](const Eigen::Vector3d& x) {
+  const double q = std::cbrt(2.0 * 2.0 * 4.0) / std::sqrt(12.0);
+  const auto band_at = [&](const ImageF& band, const Eigen::Vector3d& x) {
     const Eigen::Vector3d v = (c.labels.grid.voxel_from_world() * x.homogeneous()).head<3>();
     return band.at(static_cast<int>(std::lround(v.x())), static_cast<int>(std::lround(v.y())), static_cast<int>(std::lround(v.z())));
   };
-  const float centre = at({1, 1, 2}), near_surface = at({27, 1, 2});
-  EXPECT_GT(centre, near_surface);
-  // Deep inside (29 mm from the outline): the full fraction of the shift.
-  EXPECT_NEAR(centre, kBand95PerRms * p.model_error_fraction * 4 * (1 - std::exp(-28.0 / p.depth_scale_mm)), 0.25);
+  // A uniform 4 mm non-rigid shift: pinned by the data next to it, no model error.
+  for (auto& v : c.field.vectors) v = Eigen::Vector3f(0, 0, 4);
+  const ImageF uniform = uncertainty_band_mm({c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, false}, p);
+  EXPECT_NEAR(band_at(uniform, {1, 1, 2}), kBand95PerRms * q, 1e-3);
+  // A shear r = (0, 0, eps x): |r| = eps |x|, |grad r| = eps, so the model's
+  // RMS is eps sqrt(|x| resolution).
+  const double eps = 0.1;
+  const Grid3& g = c.field.grid;
+  for (std::size_t v = 0; v < c.field.vectors.size(); ++v)
+    c.field.vectors[v] = Eigen::Vector3f(0, 0, static_cast<float>(eps * g.world_mm(v % 40, (v / 40) % 40, v / 1600).x()));
+  const ImageF shear = uncertainty_band_mm({c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, false}, p);
+  const ImageF refined = uncertainty_band_mm({c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, true}, p);
+  for (double x : {5.0, 13.0, 21.0}) {
+    const double model = eps * std::sqrt(x * p.resolution_mm);
+    // The map is made on a 3 mm grid and interpolated: |x| is known to about 1.5 mm there.
+    EXPECT_NEAR(band_at(shear, {x, 1, 2}), kBand95PerRms * std::hypot(q, model), 0.12) << x;
+    EXPECT_NEAR(band_at(refined, {x, 1, 2}), kBand95PerRms * std::hypot(q, p.image_residual_fraction * model), 0.12) << x;
+  }
+  EXPECT_GT(band_at(shear, {21, 1, 2}), band_at(shear, {5, 1, 2}));
+}
+
+TEST(UncertaintyBand, ModelErrorIsTheGeometricMeanOfDisplacementAndItsChangeOverTheResolution) {
+  UncertaintyParameters p;
+  p.resolution_mm = 8;
+  EXPECT_DOUBLE_EQ(model_error_rms_mm(2.0, 0.25, p), 2.0);  // sqrt(2 * 8 * 0.25)
+  EXPECT_DOUBLE_EQ(model_error_rms_mm(5.0, 0.0, p), 0.0);
+  EXPECT_DOUBLE_EQ(model_error_rms_mm(0.0, 0.3, p), 0.0);
 }

@@ -224,6 +224,43 @@ TEST(Report, LegendFollowsTheLabelTable) {
   EXPECT_GT(purple, 20);
 }
 
+// The uncertainty map adds a fourth row: its band in colour where it claims
+// an answer, low (blue) in one half of the brain and high (red) in the other,
+// and a colour bar in mm whose ends are those colours.
+TEST(Report, UncertaintyRowShowsTheBandWithItsColourBar) {
+  const Scene s = make_scene();
+  ReportLayout without;
+  report_png_bytes(inputs(s), {}, &without);
+  EXPECT_EQ(without.uncertainty_panels[0].width, 0);
+  EXPECT_EQ(without.uncertainty_bar.width, 0);
+
+  ImageF band(s.labels.grid, 0.f);
+  for (std::size_t v = 0; v < band.voxels.size(); ++v)
+    if (s.labels.voxels[v] != 0) band.voxels[v] = s.labels.grid.world_mm(v % 80, (v / 80) % 80, v / 6400).x() < 0 ? 0.5f : 3.8f;
+  ReportInputs in = inputs(s);
+  in.uncertainty_mm = &band;
+  ReportOptions opt;
+  opt.centre_mm = Eigen::Vector3d(0, 0, 0);
+  ReportLayout L;
+  const Decoded d = decode(report_png_bytes(in, opt, &L));
+  ASSERT_EQ(d.height, L.height);
+  EXPECT_GT(L.height, without.height);
+  EXPECT_DOUBLE_EQ(L.uncertainty_max_mm, 4.0);  // 3.8 rounded up to 0.5 mm
+  const ReportRect axial = L.uncertainty_panels[0];
+  ASSERT_EQ(axial.width, L.panels[2][0].width);
+  EXPECT_GT(axial.y, L.panels[2][0].y);
+  // 20 mm left and right of the centre on the axial slice (R to the right).
+  const int cy = axial.y + axial.height / 2, offset = static_cast<int>(20 / L.pixel_mm);
+  const Rgb low = d.at(axial.x + axial.width / 2 - offset, cy), high = d.at(axial.x + axial.width / 2 + offset, cy);
+  EXPECT_GT(low[2], low[0]) << "a small band is blue";
+  EXPECT_GT(high[0], high[2] + 60) << "a large band is red";
+  const ReportRect bar = L.uncertainty_bar;
+  ASSERT_GT(bar.width, 50);
+  EXPECT_GT(d.at(bar.x + 1, bar.y + 5)[2], d.at(bar.x + 1, bar.y + 5)[0]);
+  EXPECT_GT(d.at(bar.x + bar.width - 2, bar.y + 5)[0], d.at(bar.x + bar.width - 2, bar.y + 5)[2]);
+  EXPECT_GT(inked(d, {bar.x, bar.y + 12, bar.width, 16}), 20) << "its ends are labelled in mm";
+}
+
 TEST(Report, PixelSizeOptionScalesPanelsAndScaleBar) {
   const Scene s = make_scene();
   ReportOptions opt;

@@ -10,7 +10,7 @@
 
 #include "core/errors.h"
 #include "image/nifti_io.h"
-#include "config_file.h"
+#include "label_table_file.h"
 #include "core/label_table.h"
 #include "pipeline/warm_state.h"
 #include "protocol/media.h"

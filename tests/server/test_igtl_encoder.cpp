@@ -9,7 +9,7 @@
 
 #include <igtlMessageHeader.h>
 
-#include "config_file.h"
+#include "label_table_file.h"
 #include "core/errors.h"
 #include "igtl_receiver.h"
 #include "server/igtl_encoder.h"

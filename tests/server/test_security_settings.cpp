@@ -189,7 +189,7 @@ TEST(Roles, TableOfProtocolSection13) {
     T type;
     bool scanner, viewer, admin;
   };
-  for (const Row& r : {Row{T::kStatus, true, true, true}, Row{T::kScanList, true, true, true},
+  for (const Row& r : {Row{T::kStatus, true, true, true}, Row{T::kScanList, true, true, true}, Row{T::kLabelsGet, true, true, true},
                        Row{T::kScanResult, true, true, true}, Row{T::kScanPush, true, false, true},
                        Row{T::kPreopLoad, false, false, true}, Row{T::kShutdown, false, false, true}}) {
     const std::string name(to_string(r.type));

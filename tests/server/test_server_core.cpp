@@ -185,6 +185,33 @@ TEST(ServerCore, LabelMapWithAFifthStructureFlowsToPreopAndScans) {
       << parse_error_reply(failed).message;
 }
 
+// labels.get serves the engine's table as configured (here a renamed,
+// recoloured parenchyma and a fifth structure without a model), before any
+// preop: a viewer names and colours its scene with it.
+TEST(ServerCore, LabelsGetServesTheDaemonsLabelTable) {
+  Harness h;
+  h.engine.table.entries.front().name = "cerebrum";
+  h.engine.table.entries.front().colour = {192, 128, 64};
+  LabelEntry arcuate;
+  arcuate.value = 5;
+  arcuate.name = "arcuate_fasciculus";
+  arcuate.make_model = false;
+  h.engine.table.entries.push_back(arcuate);
+  const LabelsReply r = parse_labels_reply(h.call(make_labels_request("g")));
+  ASSERT_EQ(r.labels.size(), h.engine.table.entries.size());
+  EXPECT_EQ(r.labels.front(), (LabelInfo{1, "cerebrum", "cerebrum", "parenchyma", {192, 128, 64}, true}));
+  EXPECT_EQ(r.labels.back(), (LabelInfo{5, "arcuate_fasciculus", "arcuate_fas", "structure", arcuate.colour, false}));
+  for (std::size_t i = 0; i < r.labels.size(); ++i) {
+    EXPECT_EQ(r.labels[i].value, h.engine.table.entries[i].value);
+    EXPECT_EQ(r.labels[i].role, to_string(h.engine.table.entries[i].role));
+  }
+  // A frame is refused, and the server keeps serving.
+  Message with_frame = make_labels_request("g2");
+  with_frame.frames.push_back(media::json_frame("labels", "{}"));
+  expect_error(h.call(with_frame), ErrorCode::kInvalidRequest, "g2");
+  EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).state, ServerState::kIdle);
+}
+
 TEST(ServerCore, BadPreopIsATypedErrorAndNothingChanges) {
   Harness h;
   PreopLoadRequest r;

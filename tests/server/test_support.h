@@ -9,7 +9,7 @@
 #include <string>
 #include <thread>
 
-#include "config_file.h"
+#include "label_table_file.h"
 #include "core/image.h"
 #include "core/tet_mesh.h"
 #include "server/case_store.h"

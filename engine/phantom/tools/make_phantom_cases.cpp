@@ -10,7 +10,7 @@
 #include <iostream>
 
 #include "atlas/default_atlas.h"
-#include "config_file.h"
+#include "label_table_file.h"
 #include "core/timer.h"
 #include "image/nifti_io.h"
 #include "image/resample.h"

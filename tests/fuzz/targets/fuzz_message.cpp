@@ -71,6 +71,10 @@ void round_trip_request(const Message& m) {
       require(parse_scan_list_request(reencode(make_scan_list_request(id, r))) == r, "scan.list round trip");
       break;
     }
+    case MessageType::kLabelsGet:
+      parse_labels_request(m);
+      parse_labels_request(reencode(make_labels_request(id)));
+      break;
     case MessageType::kShutdown: {
       const ShutdownRequest r = parse_shutdown_request(m);
       require(parse_shutdown_request(reencode(make_shutdown_request(id, r))) == r, "shutdown round trip");
@@ -111,6 +115,11 @@ void round_trip_reply(const Message& m) {
     case MessageType::kScanListReply: {
       const ScanListReply r = parse_scan_list_reply(m);
       require(parse_scan_list_reply(reencode(make_scan_list_reply(id, r))) == r, "scan.list.reply round trip");
+      break;
+    }
+    case MessageType::kLabelsGetReply: {
+      const LabelsReply r = parse_labels_reply(m);
+      require(parse_labels_reply(reencode(make_labels_reply(id, r))) == r, "labels.get.reply round trip");
       break;
     }
     case MessageType::kShutdownReply:
