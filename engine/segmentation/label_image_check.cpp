@@ -2,9 +2,12 @@
 
 #include <cmath>
 
+#include "core/errors.h"
 #include "image/distance_map.h"
 #include "image/image_stats.h"
+#include "image/resample.h"
 #include "registration/boundary_samples.h"
+#include "segmentation/head_mask.h"
 
 namespace brainshift::segmentation {
 namespace {
@@ -33,11 +36,21 @@ nlohmann::json to_json(const Disagreement& d) {
 
 }  // namespace
 
-LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage& labels, std::uint16_t brain_label,
+LabelImageCheck check_labels_against_image(const ImageF& full_image, const LabelImage& full_labels,
+                                           std::uint16_t brain_label,
                                            const std::vector<std::uint16_t>& ventricle_labels,
                                            const LabelImageCheckParameters& params) {
+  if (!full_image.grid.same_geometry(full_labels.grid))
+    throw InputError("label check: the image and the labels are on different grids");
+  // Trilinear resampling: near a spacing ratio of 2 a coarse centre lies
+  // about midway between fine ones and averages their noise down.
+  const bool coarse = params.grid_spacing_mm > 0;
+  const Grid3 grid = coarse ? coarse_grid(full_image.grid, params.grid_spacing_mm) : full_image.grid;
+  const ImageF image = coarse ? resample_linear(full_image, grid) : full_image;
+  const LabelImage labels = coarse ? resample_nearest(full_labels, grid) : full_labels;
   SegmentationParameters sp = params.classifier;
   sp.prior_width_mm = params.prior_width_mm;
+  sp.em.fit_samples = params.fit_samples;
   // Only the outline is compared: how well the image shows the ventricles
   // does not matter here.
   sp.min_fluid_contrast_sd = 0;
@@ -73,6 +86,7 @@ LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage
                    {"brain_ml", check.brain_ml},
                    {"limit_ml", limit_ml},
                    {"band_mm", params.band_mm},
+                   {"grid_spacing_mm", {grid.spacing_mm().x(), grid.spacing_mm().y(), grid.spacing_mm().z()}},
                    {"passed", check.failure.empty()}};
   if (!check.failure.empty()) check.metrics["failure"] = check.failure;
   return check;

@@ -9,6 +9,7 @@
 // lobe (the image shows brain the labels lack), or labels that do not belong
 // to this image (mirrored, shifted, another patient's).
 #include <array>
+#include <cstddef>
 #include <string>
 #include <vector>
 
@@ -20,7 +21,7 @@
 namespace brainshift::segmentation {
 
 struct LabelImageCheckParameters {
-  SegmentationParameters classifier;  // prior_width_mm set by the check
+  SegmentationParameters classifier;  // prior_width_mm and em.fit_samples set by the check
   // Width of the prior around the given outline: wide enough that a
   // several-mm leak is decided by the image, not by the labels.
   double prior_width_mm = 4.0;
@@ -35,6 +36,17 @@ struct LabelImageCheckParameters {
   // the surface some 100 ml; physiological brain shift moves no tissue out of
   // the image's brain).
   double max_disagreement_fraction = 0.02;
+  // The check classifies on a grid of about this spacing (never finer than
+  // the image's own): distances beyond the band are counted in whole voxels,
+  // and at 2 mm the first depth counted beyond band_mm (4 mm) is the same
+  // as at 1 mm, while the classification costs a quarter to an eighth
+  // (docs/DESIGN.md "The labels-vs-image check's grid"). 0: the image's grid.
+  double grid_spacing_mm = 2.0;
+  // The classifier's parameters are fitted on this many voxels (its EM
+  // iterations cost in proportion): 20 000 still give the ventricles, the
+  // smallest tissue in the box (about 0.5 %), some 100 samples, a class mean
+  // to a tenth of its sd, far below what moves an outline by 3 mm.
+  std::size_t fit_samples = 20000;
 };
 
 struct Disagreement {
@@ -51,7 +63,8 @@ struct LabelImageCheck {
   nlohmann::json metrics;
 };
 
-// labels in the table's values on the image's grid.
+// labels in the table's values on the image's grid. The volumes, depths and
+// centroid are measured on the check's grid (grid_spacing_mm).
 LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage& labels, std::uint16_t brain_label,
                                            const std::vector<std::uint16_t>& ventricle_labels,
                                            const LabelImageCheckParameters& params);

@@ -2,7 +2,7 @@
 // two preop label maps of Colin27, noisy independent intraop segmentations,
 // degraded low-field-like intraop T1s, four grid orientations. Each case is
 // registered with its intraop T1 and on segmentations alone. JSON on stdout.
-//   brainshift_robustness_bench [--config FILE] [--atlas-cache DIR] [--cases a,b,...]
+//   brainshift_robustness_bench [--config FILE] [--atlas-cache DIR] [--cases a,b,...] [--check-grid-mm MM]
 #include <mpi.h>
 
 #include <CLI/CLI.hpp>
@@ -65,11 +65,14 @@ int main(int argc, char** argv) {
   app.add_option("--atlas-cache", atlas_cache);
   app.add_option("--cases", only, "case names (default: all)")->delimiter(',');
   app.add_option("--landmark-records", records_path, "write per-landmark calibration records (NDJSON) here");
+  double check_grid_mm = -1;
+  app.add_option("--check-grid-mm", check_grid_mm, "the labels-vs-image check's grid (0: the image's; default: its parameters')");
   CLI11_PARSE(app, argc, argv);
 
   PetscSession petsc;
   if (!bench::drive_from_this_rank()) return 0;
-  const PipelineParameters params = bench::parameters(config_path);
+  PipelineParameters params = bench::parameters(config_path);
+  if (check_grid_mm >= 0) params.auto_segmentation.label_image_check.grid_spacing_mm = check_grid_mm;
   const evaluation::RobustnessInputs inputs = evaluation::load_robustness_inputs(atlas_cache);
   std::vector<RobustnessSpec> suite = robustness_suite();
   if (!only.empty()) {

@@ -46,7 +46,9 @@ RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& ana
   const PhantomCase c = make_robustness_case(anatomy.preop.t1, anatomy.truth_labels, s);
   RobustnessRun run;
   const auto registered = [&](const IntraopInput& input) {
-    ScanResult r = session.register_scan(input, nullptr);
+    // As the daemon registers a scan: given labels with an image are checked
+    // against it (the labels-vs-image check), and the total includes that.
+    ScanResult r = session.register_scan(ScanInput{input.labels, input.t1, input.read_seconds}, nullptr);
     if (with_uncertainty) session.add_uncertainty(input, r, nullptr);
     return evaluate_result(spec.phantom.name, c, r);
   };
