@@ -172,18 +172,21 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["fluid_contrast_sd"] = std::isfinite(class_contrast) ? class_contrast : -1.0;
   const double wall_contrast = ventricle_wall_contrast_sd(image_box, em.bias, ventricle, brain);
   result.report["ventricle_wall_contrast_sd"] = std::isfinite(wall_contrast) ? wall_contrast : -1.0;
-  const double contrast = std::min(class_contrast, wall_contrast);
   result.report["prior_width_mm"] = params.prior_width_mm;
   result.report["ventricle_prior_width_mm"] = params.ventricle_prior_width_mm;
   result.report["ventricle_shift_mm"] = params.ventricle_shift_mm;
   result.report["prior_inward_width_mm"] = widths.inward_mm;
   result.report["brain_ml"] = volume_ml(brain);
   result.report["ventricles_ml"] = volume_ml(ventricle);
-  if (std::isfinite(contrast) && contrast < params.min_fluid_contrast_sd)
+  const bool classes_apart = !std::isfinite(class_contrast) || class_contrast >= params.min_fluid_contrast_sd;
+  const bool wall_apart = !std::isfinite(wall_contrast) || wall_contrast >= params.min_wall_contrast_sd;
+  if (!classes_apart || !wall_apart)
     result.refusal = "the image does not separate ventricular fluid from brain tissue (" +
-                     std::to_string(contrast) + " sd apart, at least " +
-                     std::to_string(params.min_fluid_contrast_sd) + " needed): not an MR contrast the "
-                     "automatic segmentation can use; fitted classes " + result.report["classes"].dump();
+                     std::string(classes_apart ? "at the ventricles' wall " : "fitted classes ") +
+                     std::to_string(classes_apart ? wall_contrast : class_contrast) + " sd apart, at least " +
+                     std::to_string(classes_apart ? params.min_wall_contrast_sd : params.min_fluid_contrast_sd) +
+                     " needed): not an MR contrast the automatic segmentation can use; fitted classes " +
+                     result.report["classes"].dump();
   else if (count_nonzero(brain) == 0)
     result.refusal = "no brain tissue was found in the image";
   return result;

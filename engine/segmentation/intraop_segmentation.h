@@ -47,10 +47,18 @@ struct SegmentationParameters {
   // and filled; larger ones are kept as cavities (the pipeline passes its
   // min_resection_cavity_ml, so what is filled here would be ignored there).
   double max_filled_hole_ml = 0.1;
-  // The ventricular fluid class must stand this many pooled sd's from every
-  // parenchyma class, or the image cannot show the ventricles (a contrast
-  // with no fluid/tissue difference, or noise far beyond any scanner's).
+  // The ventricular fluid class must stand this many pooled sd's from the
+  // farthest major parenchyma class, or the image cannot show the ventricles
+  // (a contrast with no fluid/tissue difference, or noise far beyond any
+  // scanner's): two Gaussians 2 sd apart overlap by about a third.
   double min_fluid_contrast_sd = 2.0;
+  // And the segmented ventricles' median this many robust sd's from the
+  // tissue one to three voxels around them: beyond it the fluid's median lies
+  // outside the middle half of the tissue around (and vice versa), and the
+  // wall is where the intensity crosses between them; below it the crossing
+  // is placed by noise. Lower than the class figure: the tissue around the
+  // wall mixes white matter, the caudate's grey matter and partial volume.
+  double min_wall_contrast_sd = 1.0;
 };
 
 struct IntraopSegmentation {
