@@ -52,9 +52,23 @@ struct AutoSegmentationParameters {
   // (prior_floor), the width only has to cover the deep shift and the head
   // alignment's error.
   double prior_width_affine_mm = 3.0;
+  // Inside the carried outline after the head's alignment alone: the cortex
+  // under a craniotomy sinks by up to about 25 mm, where fluid or air takes
+  // its place; a logistic over 5 mm leaves the outside 1 % (-4.6 nats) at
+  // that depth, so that fluid there is decided by the image.
+  double prior_inward_width_affine_mm = 5.0;
   // After a non-rigid estimate carries the labels: its error (about 1 mm at
   // the landmarks) plus a voxel of partial volume.
   double prior_width_nonrigid_mm = 1.5;
+  // The ventricles after the head's alignment alone (tissue_prior.h): they
+  // may have moved by up to ventricle_shift_affine_mm (deep structures shift
+  // by several mm, up to about 10 under a large craniotomy, farther than the
+  // ventricles' bodies are thick), the image decides within that distance of
+  // the carried ventricles, the prior falls off beyond it over
+  // ventricle_prior_width_mm. After the non-rigid estimate no shift margin,
+  // the width its error at the ventricles (about a voxel).
+  double ventricle_shift_affine_mm = 6.0;
+  double ventricle_prior_width_mm = 1.5;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
   // Gates. Brain volume (the outline, after the affine's volume change is

@@ -22,6 +22,17 @@ struct SegmentationParameters {
   // (tissue_prior.h). The caller sets it per round: wider after the affine
   // alone, narrower once the non-rigid estimate carries the labels.
   double prior_width_mm = 3.0;
+  // Inside the carried outline (tissue_prior.h PriorWidths::inward_mm); 0:
+  // the same as prior_width_mm.
+  double prior_inward_width_mm = 0;
+  // The same for the ventricles (tissue_prior.h). They are a few mm across,
+  // so a width beyond their own misregistration spreads a single fluid class
+  // over white matter; below it, their fluid where they moved to is
+  // classified as tissue. The caller sets it per round.
+  double ventricle_prior_width_mm = 2.0;
+  // How far the ventricles may have moved from the carried ones (mm; 0 when
+  // the carried labels already follow the brain's shift): tissue_prior.h.
+  double ventricle_shift_mm = 0;
   // Every tissue keeps at least this prior probability anywhere: 1e-3 costs
   // log(1e-3) = -6.9 nats, what an intensity about 3.7 class sd's closer to
   // another tissue's mean outweighs, so the image overrules a prior that
@@ -36,10 +47,18 @@ struct SegmentationParameters {
   // and filled; larger ones are kept as cavities (the pipeline passes its
   // min_resection_cavity_ml, so what is filled here would be ignored there).
   double max_filled_hole_ml = 0.1;
-  // The ventricular fluid class must stand this many pooled sd's from every
-  // parenchyma class, or the image cannot show the ventricles (a contrast
-  // with no fluid/tissue difference, or noise far beyond any scanner's).
+  // The ventricular fluid class must stand this many pooled sd's from the
+  // farthest major parenchyma class, or the image cannot show the ventricles
+  // (a contrast with no fluid/tissue difference, or noise far beyond any
+  // scanner's): two Gaussians 2 sd apart overlap by about a third.
   double min_fluid_contrast_sd = 2.0;
+  // And the segmented ventricles' median this many robust sd's from the
+  // tissue one to three voxels around them: beyond it the fluid's median lies
+  // outside the middle half of the tissue around (and vice versa), and the
+  // wall is where the intensity crosses between them; below it the crossing
+  // is placed by noise. Lower than the class figure: the tissue around the
+  // wall mixes white matter, the caudate's grey matter and partial volume.
+  double min_wall_contrast_sd = 1.0;
 };
 
 struct IntraopSegmentation {

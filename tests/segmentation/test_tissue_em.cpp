@@ -213,6 +213,54 @@ TEST(TissueEm, ACavityOfFluidWhereThePriorHasBrainBecomesBackground) {
   EXPECT_GE(outline_dice(seg.labels, head.truth), 0.97) << seg.report.dump();
 }
 
+// Ventricles that moved farther than they are thick (the brain's deep shift
+// after the head's alignment alone): where the carried ventricles were the
+// image shows white matter. Their prior is an even chance within the shift
+// margin, their class starts from the brain's fluid: they are found where
+// they are now, in a T1-like and in a T2-like contrast.
+TEST(TissueEm, VentriclesMovedFartherThanTheirThicknessAreFoundWhereTheyAre) {
+  for (const bool bright_fluid : {false, true}) {
+    Intensities in;
+    if (bright_fluid) {
+      in.wm = 55;
+      in.gm = 75;
+      in.ventricle = in.fluid = 150;
+      in.scalp = 90;
+    }
+    const Synthetic head = make_head(in, 5.0, 0.2);
+    // The prior: the truth's outline, its ventricles 7 mm higher (the
+    // ventricle ellipsoids are 16 mm tall, their walls 6 mm from the midline).
+    LabelImage prior = head.truth;
+    for (auto& v : prior.voxels)
+      if (v == 2) v = 1;
+    const LabelImage moved = misregistered(head.truth, {0, 0, 11}, 1.0);
+    for (std::size_t v = 0; v < prior.voxels.size(); ++v)
+      if (moved.voxels[v] == 2 && prior.voxels[v] != 0) prior.voxels[v] = 2;
+    ASSERT_LT(dice(prior, head.truth, 2), 0.6) << "the prior's ventricles must be mostly wrong";
+    SegmentationParameters p = params_for_test();
+    p.ventricle_shift_mm = 11.0;
+    const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, p);
+    ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+    EXPECT_GE(dice(seg.labels, head.truth, 2), 0.85) << (bright_fluid ? "T2-like " : "T1-like ") << seg.report.dump();
+    EXPECT_GE(outline_dice(seg.labels, head.truth), 0.97) << seg.report.dump();
+  }
+}
+
+// A regular subsample must see the whole image whatever its row length: a
+// grid-order stride sharing a factor with it sees a few planes only.
+TEST(TissueEm, TheFitSeesTheWholeImageWhateverTheGridDimensions) {
+  const Intensities in;
+  // 0.85 mm in plane: 200 voxels a row; the old stride for 60000 samples was
+  // 200 * 223 * 75 / 60000 = 55 (odd, kept), 5 * 11, sharing 5 with 200.
+  const Synthetic head = make_head(in, 5.0, 0.0, 0.0, {0.85, 0.85, 2.0});
+  const IntraopSegmentation seg = segment_intraop(head.image, head.truth, 1, {2}, params_for_test());
+  ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+  const GaussianClass* csf = nearest_class(seg, Tissue::ventricle, in.ventricle);
+  ASSERT_TRUE(csf);
+  EXPECT_NEAR(csf->mean, in.ventricle, 5.0) << seg.report.dump();
+  EXPECT_GE(dice(seg.labels, head.truth, 2), 0.85) << seg.report.dump();
+}
+
 TEST(TissueEm, AnImageThatCannotShowTheVentriclesIsRefusedWithTheReason) {
   Intensities flat;
   flat.ventricle = flat.wm;  // no fluid/tissue contrast at all

@@ -1,0 +1,65 @@
+// The gates of the automatic path (pipeline/prepare_stage.h
+// check_segmentation) on segmentations whose faults are known: a brain far
+// larger or smaller than the preop's, no ventricles, an uncertain outer
+// surface. Each must be refused with its reason; a sound one passes.
+#include <gtest/gtest.h>
+
+#include "config_file.h"
+#include "pipeline/prepare_stage.h"
+
+using namespace brainshift;
+
+namespace {
+
+// A brain ellipsoid (60, 70, 50 mm) with two ventricle ellipsoids, on a 2 mm grid.
+LabelImage head(double brain_scale, bool ventricles) {
+  Grid3 g;
+  g.dims = {90, 100, 80};
+  g.world_from_voxel.diagonal().head<3>() = Eigen::Vector3d(2, 2, 2);
+  g.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-90, -100, -80);
+  LabelImage l(g, 0);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        const double r = (p.array() / (brain_scale * Eigen::Array3d(60, 70, 50))).matrix().norm();
+        const double rv = ((p - Eigen::Vector3d(std::copysign(10.0, p.x()), 0, 8)).array() /
+                           Eigen::Array3d(6, 22, 8)).matrix().norm();
+        if (r < 1) l.at(i, j, k) = ventricles && rv < 1 ? 2 : 1;
+      }
+  return l;
+}
+
+const LabelTable& table() { return config::default_label_table(); }
+
+SegmentationGates gates(const LabelImage& seg, float confidence) {
+  return check_segmentation(seg, ImageF(seg.grid, confidence), head(1.0, true), table(),
+                            AutoSegmentationParameters{});
+}
+
+}  // namespace
+
+TEST(SegmentationGates, ASoundSegmentationPasses) {
+  const auto g = gates(head(1.01, true), 0.95f);
+  EXPECT_TRUE(g.failure.empty()) << g.failure << g.metrics.dump();
+  EXPECT_TRUE(g.metrics["passed"].get<bool>());
+}
+
+TEST(SegmentationGates, ABrainFarFromThePreopsVolumeIsRefused) {
+  // 1.08^3 = +26 %: a leak into the fluid and dura all round.
+  const auto big = gates(head(1.08, true), 0.95f);
+  EXPECT_NE(big.failure.find("volume"), std::string::npos) << big.metrics.dump();
+  // 0.9^3 = -27 %: a lost lobe (the default table's resectable tumour is absent here).
+  const auto small = gates(head(0.9, true), 0.95f);
+  EXPECT_NE(small.failure.find("volume"), std::string::npos) << small.metrics.dump();
+}
+
+TEST(SegmentationGates, NoVentriclesIsRefused) {
+  const auto g = gates(head(1.0, false), 0.95f);
+  EXPECT_NE(g.failure.find("no ventricles"), std::string::npos) << g.failure << g.metrics.dump();
+}
+
+TEST(SegmentationGates, AnUncertainOuterSurfaceIsRefused) {
+  const auto g = gates(head(1.0, true), 0.5f);
+  EXPECT_NE(g.failure.find("uncertain"), std::string::npos) << g.failure << g.metrics.dump();
+}
