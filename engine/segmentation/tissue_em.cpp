@@ -173,18 +173,32 @@ std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<d
   return classes;
 }
 
-double log_gauss(double x, const GaussianClass& g) {
-  const double z = (x - g.mean) / g.sd;
-  return -std::log(g.sd) - 0.5 * z * z;
+// What the likelihood needs of each class, taken once per EM iteration
+// rather than per sample and class: the logarithms dominated the fit's time.
+struct ClassTerms {
+  std::vector<int> tissue;
+  std::vector<double> mean, inv_sd, log_scale;  // log_scale = log(weight / sd)
+};
+
+ClassTerms class_terms(const std::vector<GaussianClass>& classes) {
+  ClassTerms k;
+  for (const auto& g : classes) {
+    k.tissue.push_back(index_of(g.tissue));
+    k.mean.push_back(g.mean);
+    k.inv_sd.push_back(1.0 / g.sd);
+    k.log_scale.push_back(std::log(g.weight) - std::log(g.sd));
+  }
+  return k;
 }
 
 // log sum_c pi_c N(x; mu_c, sd_c) + log prior_t per tissue, and the class
 // responsibilities; returns log sum over everything.
-double responsibilities(double x, const std::array<double, kTissues>& log_prior,
-                        const std::vector<GaussianClass>& classes, std::vector<double>& gamma) {
+double responsibilities(double x, const std::array<double, kTissues>& log_prior, const ClassTerms& k,
+                        std::vector<double>& gamma) {
   double top = -std::numeric_limits<double>::infinity();
-  for (std::size_t c = 0; c < classes.size(); ++c) {
-    gamma[c] = log_prior[index_of(classes[c].tissue)] + std::log(classes[c].weight) + log_gauss(x, classes[c]);
+  for (std::size_t c = 0; c < gamma.size(); ++c) {
+    const double z = (x - k.mean[c]) * k.inv_sd[c];
+    gamma[c] = log_prior[k.tissue[c]] + k.log_scale[c] - 0.5 * z * z;
     top = std::max(top, gamma[c]);
   }
   double sum = 0;
@@ -299,9 +313,10 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     bool bias_moved = false, bias_frozen = params.bias_degree == 0;
     for (int it = 0; it < budget; ++it) {
       double ll = 0;
+      const ClassTerms terms = class_terms(classes);
       for (std::size_t n = 0; n < N; ++n) {
         corrected[n] = s.intensity[n] * std::exp(-log_b[n]);
-        ll += responsibilities(corrected[n], s.log_prior[n], classes, gamma[n]) - log_b[n];
+        ll += responsibilities(corrected[n], s.log_prior[n], terms, gamma[n]) - log_b[n];
       }
       ll /= static_cast<double>(N);
       out.iterations += 1;
@@ -333,18 +348,25 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
   std::array<std::vector<float>, kTissues> evidence;
   for (auto& e : evidence) e.resize(V);
   out.bias.resize(V);
-  std::vector<double> lt(kTissues);
+  // In the linear domain, scaled by the largest class term: one exp per
+  // class and voxel, no logarithm (a voxel far from every class still has
+  // its nearest class's term at 1, so the sum never vanishes).
+  const ClassTerms terms = class_terms(classes);
+  std::vector<double> l(classes.size());
   for (std::size_t v = 0; v < V; ++v) {
     out.bias[v] = std::exp(log_bias[v]);
     const double x = image.voxels[v] / scale / out.bias[v];
-    std::fill(lt.begin(), lt.end(), -std::numeric_limits<double>::infinity());
-    for (const auto& g : classes) {
-      const int t = index_of(g.tissue);
-      const double l = std::log(std::max<double>(prior.p[t][v], 1e-30)) + std::log(g.weight) + log_gauss(x, g);
-      lt[t] = std::max(lt[t], l) + std::log1p(std::exp(-std::abs(lt[t] - l)));  // log-sum-exp
+    double m = -std::numeric_limits<double>::infinity();
+    for (std::size_t c = 0; c < l.size(); ++c) {
+      const double z = (x - terms.mean[c]) * terms.inv_sd[c];
+      l[c] = terms.log_scale[c] - 0.5 * z * z;
+      m = std::max(m, l[c]);
     }
-    const double top = *std::max_element(lt.begin(), lt.end());
-    for (int t = 0; t < kTissues; ++t) evidence[t][v] = static_cast<float>(std::exp(lt[t] - top));
+    std::array<double, kTissues> e{};
+    for (std::size_t c = 0; c < l.size(); ++c) e[terms.tissue[c]] += std::exp(l[c] - m);
+    double top = 0;
+    for (int t = 0; t < kTissues; ++t) top = std::max(top, e[t] *= std::max<double>(prior.p[t][v], 1e-30));
+    for (int t = 0; t < kTissues; ++t) evidence[t][v] = static_cast<float>(e[t] / top);
   }
   out.posterior = potts_mean_field(evidence, image.grid, params.mrf_beta, params.mrf_sweeps);
   for (auto& g : classes) {

@@ -1,15 +1,11 @@
 // Accuracy and robustness on the robustness suite (engine/phantom/robustness_case.h):
 // two preop label maps of Colin27, noisy independent intraop segmentations,
 // degraded low-field-like intraop T1s, four grid orientations. Each case is
-<<<<<<< HEAD
-// registered with its intraop T1 and on segmentations alone. JSON on stdout.
-//   brainshift_robustness_bench [--config FILE] [--atlas-cache DIR] [--cases a,b,...] [--check-grid-mm MM]
-=======
 // registered with its intraop T1 and on segmentations alone, and with
 // --image-only also from its intraop T1 alone (the automatic segmentation,
 // with its Dice against the truth-warped labels). JSON on stdout.
 //   brainshift_robustness_bench [--config FILE] [--atlas-cache DIR] [--cases a,b,...] [--image-only]
->>>>>>> autoseg2
+//                               [--landmark-records FILE] [--check-grid-mm MM]
 #include <mpi.h>
 
 #include <CLI/CLI.hpp>
@@ -71,14 +67,11 @@ int main(int argc, char** argv) {
   app.add_option("--config", config_path);
   app.add_option("--atlas-cache", atlas_cache);
   app.add_option("--cases", only, "case names (default: all)")->delimiter(',');
-<<<<<<< HEAD
   app.add_option("--landmark-records", records_path, "write per-landmark calibration records (NDJSON) here");
   double check_grid_mm = -1;
   app.add_option("--check-grid-mm", check_grid_mm, "the labels-vs-image check's grid (0: the image's; default: its parameters')");
-=======
   bool image_only = false;
   app.add_flag("--image-only", image_only, "also register each case from its intraop image alone");
->>>>>>> autoseg2
   CLI11_PARSE(app, argc, argv);
 
   PetscSession petsc;
@@ -98,13 +91,9 @@ int main(int argc, char** argv) {
   std::unique_ptr<EngineSession> session;
   std::string warm_key;
   nlohmann::json cases = nlohmann::json::array(), preops = nlohmann::json::object();
-<<<<<<< HEAD
-  std::vector<evaluation::CaseResult> with_image, labels_only;
-  std::FILE* records = records_path.empty() ? nullptr : std::fopen(records_path.c_str(), "w");
-=======
   std::vector<evaluation::CaseResult> with_image, labels_only, from_image;
   int refused = 0;
->>>>>>> autoseg2
+  std::FILE* records = records_path.empty() ? nullptr : std::fopen(records_path.c_str(), "w");
   for (const auto& spec : suite) {
     evaluation::CaseAnatomy anatomy = evaluation::case_anatomy(inputs, spec);
     if (!session || anatomy.preop_key != warm_key) {
@@ -145,14 +134,7 @@ int main(int argc, char** argv) {
     with_image.push_back(run.with_image);
     labels_only.push_back(run.labels_only);
   }
-<<<<<<< HEAD
   if (records) std::fclose(records);
-  const nlohmann::json out = {{"ranks", session ? session->ranks() : 0},
-                              {"preops", preops},
-                              {"with_image", summary(with_image)},
-                              {"labels_only", summary(labels_only)},
-                              {"cases", cases}};
-=======
   nlohmann::json out = {{"ranks", session ? session->ranks() : 0},
                         {"preops", preops},
                         {"with_image", summary(with_image)},
@@ -166,7 +148,6 @@ int main(int argc, char** argv) {
         out["image_only"]["nonrigid_fraction"].get<double>() * static_cast<double>(from_image.size()) /
         static_cast<double>(std::max<std::size_t>(1, from_image.size() + static_cast<std::size_t>(refused)));
   }
->>>>>>> autoseg2
   std::printf("%s\n", out.dump().c_str());
   return 0;
 }
