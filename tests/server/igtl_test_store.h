@@ -24,7 +24,7 @@ inline TriSurface triangle_fan(double z) {
 inline std::string store_result(server::CaseStore& store, float value, int n = 12,
                                 protocol::ResultKindInfo result = {}) {
   const LabelImage labels = test::ball_labels(n);
-  const server::ScanInput input{label_image_to_bytes(labels, true), std::nullopt};
+  const server::PushedScan input{label_image_to_bytes(labels, true), std::nullopt};
   const server::ScanRecord rec = store.add_scan(input, std::nullopt, server::content_digest(input), "preop-1");
   VectorImage3 field(labels.grid);
   for (auto& v : field.vectors) v = Eigen::Vector3f(value, -value, 2 * value);

@@ -24,8 +24,8 @@ PreopRecord sample_preop(const std::string& id) {
   return p;
 }
 
-ScanInput sample_input(char fill, bool image) {
-  ScanInput in;
+PushedScan sample_input(char fill, bool image) {
+  PushedScan in;
   in.labels_bytes = std::string(1000, fill);
   in.labels_bytes[10] = '\0';  // binary-safe
   if (image) in.image_bytes = std::string(333, static_cast<char>(fill + 1));
@@ -79,7 +79,7 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
       {"field.nii.gz", std::string("\x1f\x8b\0binary", 9)}, {"models/brain.vtp", "<VTKFile/>"}, {"empty.json", ""}};
   {
     CaseStore store(dir.path());
-    const ScanInput a = sample_input('a', true);
+    const PushedScan a = sample_input('a', true);
     id1 = store.add_scan(a, std::string("client-1"), content_digest(a), "preop-a").scan_id;
     id2 = store.add_scan(sample_input('b', false), std::nullopt, "d2", "preop-a").scan_id;
     EXPECT_NE(id1, id2);
@@ -99,7 +99,7 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
   for (const auto& [name, bytes] : files) EXPECT_EQ(store.read_result_file(id1, name).value(), bytes) << name;
   EXPECT_FALSE(store.read_result_file(id1, "nope"));
   EXPECT_EQ(store.result_file_names(id1).size(), 3u);
-  const ScanInput in = store.load_scan_input(id1);
+  const PushedScan in = store.load_scan_input(id1);
   EXPECT_EQ(in.labels_bytes, sample_input('a', true).labels_bytes);
   EXPECT_EQ(in.image_bytes.value(), sample_input('a', true).image_bytes.value());
   const auto r2 = store.find(id2);
