@@ -105,7 +105,7 @@ void Client::load_preop(const std::string& t1_bytes, const std::string& labels_b
 Message Client::push(const std::string& labels_bytes, const std::string& image_bytes,
                      const std::optional<std::string>& client_scan_id) {
   ScanPushRequest req;
-  req.labels = media::nifti_frame("labels", labels_bytes);
+  if (!labels_bytes.empty()) req.labels = media::nifti_frame("labels", labels_bytes);
   if (!image_bytes.empty()) req.image = media::nifti_frame("image", image_bytes);
   req.client_scan_id = client_scan_id;
   auto r = call(make_scan_push_request(next_id(), req), 60s);

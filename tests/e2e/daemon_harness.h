@@ -63,7 +63,8 @@ class Client {
 
   protocol::StatusReply status();
   void load_preop(const std::string& t1_bytes, const std::string& labels_bytes);
-  // The raw reply (a scan.push reply or an error).
+  // The raw reply (a scan.push reply or an error). An empty labels or image
+  // is not sent (an image alone is a scan).
   protocol::Message push(const std::string& labels_bytes, const std::string& image_bytes,
                          const std::optional<std::string>& client_scan_id);
   protocol::Message result(const std::string& scan_id, const std::vector<protocol::ResultPart>& parts);

@@ -27,7 +27,7 @@ PreopRecord sample_preop(const std::string& id) {
 PushedScan sample_input(char fill, bool image) {
   PushedScan in;
   in.labels_bytes = std::string(1000, fill);
-  in.labels_bytes[10] = '\0';  // binary-safe
+  (*in.labels_bytes)[10] = '\0';  // binary-safe
   if (image) in.image_bytes = std::string(333, static_cast<char>(fill + 1));
   return in;
 }
@@ -117,6 +117,37 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
   const auto queued = store.queued_oldest_first();
   ASSERT_EQ(queued.size(), 1u);
   EXPECT_EQ(queued[0].scan_id, id3);
+}
+
+// An image pushed alone (PROTOCOL.md 5.3, revision 3): stored without
+// labels, read back as such, and its digest apart from any labelled scan's.
+TEST(CaseStore, AnImageAloneIsStoredAndReadBackWithoutLabels) {
+  TempDir dir;
+  PushedScan image_only;
+  image_only.image_bytes = std::string(500, 'i');
+  PushedScan empty_labels = image_only;
+  empty_labels.labels_bytes = std::string();
+  EXPECT_NE(content_digest(image_only), content_digest(empty_labels));
+  EXPECT_EQ(content_digest(image_only).substr(16), "-0-500");
+  std::string id;
+  {
+    CaseStore store(dir.path());
+    id = store.add_scan(image_only, std::string("img"), content_digest(image_only), "preop-a").scan_id;
+    EXPECT_FALSE(store.find(id)->has_labels);
+    EXPECT_THROW(store.add_scan(PushedScan{}, std::nullopt, "d", "preop-a"), std::invalid_argument);
+  }
+  CaseStore store(dir.path());
+  const auto r = store.find(id);
+  ASSERT_TRUE(r);
+  EXPECT_FALSE(r->has_labels);
+  EXPECT_TRUE(r->has_image);
+  EXPECT_EQ(r->digest, content_digest(image_only));
+  const PushedScan back = store.load_scan_input(id);
+  EXPECT_FALSE(back.labels_bytes.has_value());
+  EXPECT_EQ(back.image_bytes.value(), image_only.image_bytes.value());
+  const PushedScan labelled = sample_input('a', true);
+  const std::string labelled_id = store.add_scan(labelled, std::nullopt, content_digest(labelled), "preop-a").scan_id;
+  EXPECT_TRUE(store.find(labelled_id)->has_labels);
 }
 
 TEST(CaseStore, HalfWrittenFilesAreIgnoredAndRemovedOnOpen) {

@@ -137,6 +137,7 @@ server::EngineScanOutput FakeEngine::register_scan(const std::optional<LabelImag
   }
   report_due_ = image.has_value();
   last_scan_image = image;
+  last_scan_had_labels = given.has_value();
   return out;
 }
 

@@ -75,6 +75,7 @@ class FakeEngine : public server::EnginePort {
   std::optional<TetMesh> last_stored_mesh;
   server::PreopImages last_preop;
   std::optional<ImageF> last_scan_image;  // the intraop image of the last register_scan
+  bool last_scan_had_labels = false;      // whether the last register_scan was given labels
   int scans_run = 0;
   bool stopped = false;
 

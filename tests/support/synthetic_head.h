@@ -25,4 +25,9 @@ struct SyntheticHead {
 
 SyntheticHead synthetic_head(const SyntheticHeadSpec& spec = {});
 
+// The synthetic head's image with mild Rician-like noise (sd 3) and a smooth
+// bias (+-7 %), as a scanner would give it: an automatic segmentation is
+// fitted on the noise, a noiseless image has none.
+ImageF scanner_image(const ImageF& clean);
+
 }  // namespace brainshift::test
