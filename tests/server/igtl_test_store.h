@@ -39,6 +39,28 @@ inline std::string store_result(server::CaseStore& store, float value, int n = 1
   return rec.scan_id;
 }
 
+// Stores a done scan pushed as an image alone: its result also holds the
+// engine's segmentation (intraop_labels.nii, the ball's labels) and confidence.
+inline std::string store_image_only_result(server::CaseStore& store, float value, int n = 12) {
+  const LabelImage labels = test::ball_labels(n);
+  server::PushedScan input;
+  input.image_bytes = scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true);
+  const server::ScanRecord rec = store.add_scan(input, std::nullopt, server::content_digest(input), "preop-1");
+  VectorImage3 field(labels.grid);
+  for (auto& v : field.vectors) v = Eigen::Vector3f(value, -value, 2 * value);
+  std::map<std::string, std::string> files;
+  files["field.nii"] = displacement_field_to_bytes(field, false);
+  files["warped_image.nii"] = scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, false);
+  files["warped_labels.nii"] = label_image_to_bytes(labels, false);
+  files["intraop_labels.nii"] = label_image_to_bytes(labels, false);
+  files["segmentation_confidence.nii"] =
+      scalar_image_to_bytes(ImageF(labels.grid, 0.9f), VoxelType::float32, false);
+  files["models/brain.vtp"] = vtp_bytes(triangle_fan(value));
+  files["timings.json"] = "{}";
+  store.save_result(rec.scan_id, files, {});
+  return rec.scan_id;
+}
+
 inline server::OpenIgtlinkSettings any_port(std::size_t queue = 32, std::size_t max_clients = 8) {
   server::OpenIgtlinkSettings s;
   s.enabled = true;
