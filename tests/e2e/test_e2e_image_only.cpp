@@ -153,9 +153,11 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   // daemon's registration of the scan failed), nothing else disturbed.
   r = cli(daemon, {"push", "--image", path("zero_t1.nii.gz"), "--wait"});
   EXPECT_EQ(r.code, 5) << r.err;
-  EXPECT_NE(r.err.find("image"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("failed in stage segment"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("image is empty"), std::string::npos) << r.err;
   r = cli(daemon, {"push", "--image", path("no_fluid_t1.nii.gz"), "--wait"});
   EXPECT_EQ(r.code, 5) << r.err;
+  EXPECT_NE(r.err.find("stage segment"), std::string::npos) << r.err;
   EXPECT_NE(r.err.find("ventricular fluid"), std::string::npos) << r.err;
 
   // A site corrects the segmentation by hand: the labels pushed with the same
