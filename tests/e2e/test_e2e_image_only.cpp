@@ -113,7 +113,7 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   const double push_to_result_s = r.seconds;
   const std::string scan_id = r.out.substr(0, r.out.find('\n'));
   r = cli(daemon, {"pull", "--scan", scan_id, "--out", path("pulled"), "--parts",
-                   "intraop_labels,segmentation_confidence,field,metrics"});
+                   "intraop_labels,segmentation_confidence,field,metrics,timings"});
   ASSERT_EQ(r.code, 0) << r.err;
 
   // The segmentation on the intraop grid, in the table's values, with a
@@ -184,8 +184,11 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
             seg.voxels);
   EXPECT_EQ(cli(again, {"shutdown", "--reason", "test"}).code, 0);
   again.process().wait(60);
+  const auto timings = nlohmann::json::parse(read_file(dir / "pulled" / "timings.json"))["intraop"];
   std::printf("%s\n", nlohmann::json{{"test", "image_only_push"},
                                      {"push_to_result_s_client", push_to_result_s},
+                                     {"daemon_intraop_total_s", timings.value("total", -1.0)},
+                                     {"daemon_segment_s", timings.value("segment", -1.0)},
                                      {"note", "client-measured push --wait, includes process start; CI load varies"}}
                           .dump()
                           .c_str());
