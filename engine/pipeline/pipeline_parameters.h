@@ -55,6 +55,15 @@ struct AutoSegmentationParameters {
   // After a non-rigid estimate carries the labels: its error (about 1 mm at
   // the landmarks) plus a voxel of partial volume.
   double prior_width_nonrigid_mm = 1.5;
+  // The ventricles after the head's alignment alone (tissue_prior.h): they
+  // may have moved by up to ventricle_shift_affine_mm (deep structures shift
+  // by several mm, up to about 10 under a large craniotomy, farther than the
+  // ventricles' bodies are thick), the image decides within that distance of
+  // the carried ventricles, the prior falls off beyond it over
+  // ventricle_prior_width_mm. After the non-rigid estimate no shift margin,
+  // the width its error at the ventricles (about a voxel).
+  double ventricle_shift_affine_mm = 6.0;
+  double ventricle_prior_width_mm = 1.5;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
   // Gates. Brain volume (the outline, after the affine's volume change is

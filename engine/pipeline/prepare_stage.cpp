@@ -176,16 +176,17 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
-  auto segment = [&](const LabelImage& carried, double width_mm) {
+  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm) {
     segmentation::SegmentationParameters sp = ap.classifier;
     sp.prior_width_mm = width_mm;
+    sp.ventricle_prior_width_mm = ap.ventricle_prior_width_mm;
+    sp.ventricle_shift_mm = ventricle_shift_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    auto seg = segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
-    if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
-    return seg;
+    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
   };
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
-  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm);
+  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
+  if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
   SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap);
   segment_seconds += watch.lap();
   if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
@@ -200,12 +201,12 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     earlier_passes_seconds += watch.lap();
     // Re-match: the preop carried by the non-rigid estimate, a narrower prior.
     LabelImage rematched = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
-    auto next = segment(rematched, ap.prior_width_nonrigid_mm);
+    auto next = segment(rematched, ap.prior_width_nonrigid_mm, 0.0);
     SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
     segment_seconds += watch.lap();
-    if (!next_gates.failure.empty()) {  // the first pass stands
+    if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the first pass stands
       rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
-                        {"kept", false}});
+                        {"refusal", next.refusal}, {"kept", false}});
       break;
     }
     seg = std::move(next);

@@ -21,18 +21,55 @@ ImageF crop_image(const ImageF& image, const VoxelBox& box, const Grid3& cropped
   return out;
 }
 
-// The smallest separation, in pooled sd's, between a ventricle class and a
-// parenchyma class holding at least a sixth of the parenchyma (a small class
-// of partial-volume voxels at the ventricle wall says nothing of contrast).
+// The separation, in pooled sd's, between the ventricle class and the
+// parenchyma class farthest from it among those holding at least a sixth of
+// the parenchyma: the ventricles' wall is placed by the strongest edge of
+// tissue around them (white matter in T1 and T2: the corpus callosum, the
+// periventricular white matter), and a lighter or nearer class of grey matter
+// and partial volume (sulcal fluid, the cortex under a craniotomy) does not
+// hide it. Where no major class stands apart, the image cannot show them.
 double fluid_contrast_sd(const std::vector<GaussianClass>& classes) {
-  double worst = std::numeric_limits<double>::infinity();
+  double best = -1;
+  bool any = false;
   for (const auto& v : classes) {
     if (v.tissue != Tissue::ventricle) continue;
     for (const auto& p : classes)
-      if (p.tissue == Tissue::parenchyma && p.weight >= 1.0 / 6)
-        worst = std::min(worst, std::abs(v.mean - p.mean) / std::sqrt(v.sd * v.sd + p.sd * p.sd));
+      if (p.tissue == Tissue::parenchyma && p.weight >= 1.0 / 6) {
+        any = true;
+        best = std::max(best, std::abs(v.mean - p.mean) / std::sqrt(v.sd * v.sd + p.sd * p.sd));
+      }
   }
-  return worst;
+  return any ? best : std::numeric_limits<double>::infinity();
+}
+
+// Median and robust sd (interquartile range / 1.349) of the bias-corrected
+// intensities in a mask.
+std::pair<double, double> robust_stats(const ImageF& image, const std::vector<float>& bias, const Mask& m) {
+  std::vector<double> x;
+  for (std::size_t v = 0; v < m.voxels.size(); ++v)
+    if (m.voxels[v]) x.push_back(image.voxels[v] / bias[v]);
+  if (x.size() < 10) return {0, -1};
+  std::sort(x.begin(), x.end());
+  const auto at = [&](double q) { return x[static_cast<std::size_t>(q * static_cast<double>(x.size() - 1))]; };
+  return {at(0.5), (at(0.75) - at(0.25)) / 1.349};
+}
+
+// The ventricles' wall contrast, in pooled robust sd's: the segmented
+// ventricles against the parenchyma one to three voxels around them (the
+// first voxel is partial volume). Whatever the classes, this is what places
+// the wall: an image whose fluid looks like the tissue around it cannot show
+// the ventricles. Infinite when too few voxels to say.
+double ventricle_wall_contrast_sd(const ImageF& image, const std::vector<float>& bias, const Mask& ventricle,
+                                  const Mask& brain) {
+  const double h = ventricle.grid.spacing_mm().minCoeff();
+  const Mask inner = dilate(ventricle, 1.01 * h), outer = dilate(ventricle, 3.01 * h);
+  Mask shell(ventricle.grid, 0);
+  for (std::size_t v = 0; v < shell.voxels.size(); ++v)
+    shell.voxels[v] = outer.voxels[v] && !inner.voxels[v] && brain.voxels[v];
+  const auto [mv, sv] = robust_stats(image, bias, ventricle);
+  const auto [ms, ss] = robust_stats(image, bias, shell);
+  if (sv < 0 || ss < 0) return std::numeric_limits<double>::infinity();
+  return std::abs(mv - ms) / std::max(std::sqrt(sv * sv + ss * ss), 1e-9);
 }
 
 // Fluid classified as ventricle is ventricle only in components that reach
@@ -95,8 +132,11 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   const Grid3& g = outline_box.grid;
   const ImageF image_box = crop_image(image, box, g);
 
-  const TissuePrior prior = tissue_prior(outline_box, ventricle_box, params.prior_width_mm, params.prior_floor);
-  const EmResult em = fit_tissue_mixture(image_box, prior, params.em);
+  const TissuePrior prior = tissue_prior(outline_box, ventricle_box, params.prior_width_mm, params.ventricle_prior_width_mm,
+                                           params.ventricle_shift_mm, params.prior_floor);
+  EmParameters em_params = params.em;
+  em_params.fixed_ventricle_class = params.ventricle_shift_mm > 0;
+  const EmResult em = fit_tissue_mixture(image_box, prior, em_params);
 
   Mask brain(g, 0), ventricle(g, 0);
   for (std::size_t v = 0; v < g.voxel_count(); ++v) {
@@ -124,9 +164,14 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
       }
   result.classes = em.classes;
   result.report = describe(em);
-  const double contrast = fluid_contrast_sd(em.classes);
-  result.report["fluid_contrast_sd"] = std::isfinite(contrast) ? contrast : -1.0;
+  const double class_contrast = fluid_contrast_sd(em.classes);
+  result.report["fluid_contrast_sd"] = std::isfinite(class_contrast) ? class_contrast : -1.0;
+  const double wall_contrast = ventricle_wall_contrast_sd(image_box, em.bias, ventricle, brain);
+  result.report["ventricle_wall_contrast_sd"] = std::isfinite(wall_contrast) ? wall_contrast : -1.0;
+  const double contrast = std::min(class_contrast, wall_contrast);
   result.report["prior_width_mm"] = params.prior_width_mm;
+  result.report["ventricle_prior_width_mm"] = params.ventricle_prior_width_mm;
+  result.report["ventricle_shift_mm"] = params.ventricle_shift_mm;
   result.report["brain_ml"] = volume_ml(brain);
   result.report["ventricles_ml"] = volume_ml(ventricle);
   if (std::isfinite(contrast) && contrast < params.min_fluid_contrast_sd)

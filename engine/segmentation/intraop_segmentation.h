@@ -22,6 +22,14 @@ struct SegmentationParameters {
   // (tissue_prior.h). The caller sets it per round: wider after the affine
   // alone, narrower once the non-rigid estimate carries the labels.
   double prior_width_mm = 3.0;
+  // The same for the ventricles (tissue_prior.h). They are a few mm across,
+  // so a width beyond their own misregistration spreads a single fluid class
+  // over white matter; below it, their fluid where they moved to is
+  // classified as tissue. The caller sets it per round.
+  double ventricle_prior_width_mm = 2.0;
+  // How far the ventricles may have moved from the carried ones (mm; 0 when
+  // the carried labels already follow the brain's shift): tissue_prior.h.
+  double ventricle_shift_mm = 0;
   // Every tissue keeps at least this prior probability anywhere: 1e-3 costs
   // log(1e-3) = -6.9 nats, what an intensity about 3.7 class sd's closer to
   // another tissue's mean outweighs, so the image overrules a prior that

@@ -20,23 +20,29 @@ struct Samples {
   std::vector<std::array<double, kTissues>> log_prior;
 };
 
-// A regular subsample of about `budget` voxels: every step-th voxel in grid
-// order, the step odd so that it does not alias with a row length.
+// A regular subsample of about `budget` voxels: a lattice of the same
+// spacing in mm along every axis (strides per axis from the voxel spacing),
+// started half a stride in. A stride through the voxels in grid order aliases
+// whenever it shares a factor with a row's length (a stride of 55 on rows of
+// 220 voxels sees 4 sagittal planes and nothing between them).
 Samples draw_samples(const ImageF& image, const TissuePrior& prior, double scale, std::size_t budget) {
   const auto& g = image.grid;
-  std::size_t step = std::max<std::size_t>(1, g.voxel_count() / std::max<std::size_t>(budget, 1));
-  if (step > 1 && step % 2 == 0) ++step;
+  const Eigen::Vector3d spacing = g.spacing_mm();
+  const double volume_mm3 = static_cast<double>(g.voxel_count()) * spacing.prod();
+  const double h_mm = std::cbrt(volume_mm3 / static_cast<double>(std::max<std::size_t>(budget, 1)));
+  std::array<int, 3> stride{};
+  for (int a = 0; a < 3; ++a) stride[a] = std::max(1, static_cast<int>(std::lround(h_mm / spacing[a])));
   Samples s;
-  for (std::size_t v = 0; v < g.voxel_count(); v += step) {
-    const int i = static_cast<int>(v % g.dims[0]);
-    const int j = static_cast<int>((v / g.dims[0]) % g.dims[1]);
-    const int k = static_cast<int>(v / (static_cast<std::size_t>(g.dims[0]) * g.dims[1]));
-    s.voxel.push_back({i, j, k});
-    s.intensity.push_back(image.voxels[v] / scale);
-    std::array<double, kTissues> lp{};
-    for (int t = 0; t < kTissues; ++t) lp[t] = prior.p[t][v] > 0 ? std::log(prior.p[t][v]) : kLogTiny;
-    s.log_prior.push_back(lp);
-  }
+  for (int k = stride[2] / 2; k < g.dims[2]; k += stride[2])
+    for (int j = stride[1] / 2; j < g.dims[1]; j += stride[1])
+      for (int i = stride[0] / 2; i < g.dims[0]; i += stride[0]) {
+        const std::size_t v = g.index(i, j, k);
+        s.voxel.push_back({i, j, k});
+        s.intensity.push_back(image.voxels[v] / scale);
+        std::array<double, kTissues> lp{};
+        for (int t = 0; t < kTissues; ++t) lp[t] = prior.p[t][v] > 0 ? std::log(prior.p[t][v]) : kLogTiny;
+        s.log_prior.push_back(lp);
+      }
   return s;
 }
 
@@ -64,31 +70,82 @@ double quantile(const std::vector<std::pair<double, double>>& sorted, double tot
   return sorted.back().first;
 }
 
-// Each tissue's classes start from the intensities the prior is sure of for
-// it (no ordering of tissues is assumed): one class at their median, several
-// spread evenly over their 2-98 % range, so that a rare bright tissue (fat,
-// a T2's fluid) gets a class even where a dark one (air) fills most voxels.
+// The intensities the prior is sure of for tissue t ("sure" relative to the
+// most the prior says of it anywhere: a small structure never reaches 0.9),
+// as (intensity, weight) pairs.
+std::vector<std::pair<double, double>> sure_intensities(const Samples& s, const std::vector<double>& intensity, int t) {
+  std::vector<std::pair<double, double>> vw;
+  double top = 0;
+  for (const auto& lp : s.log_prior) top = std::max(top, std::exp(lp[t]));
+  for (double sure : {0.9 * top, 0.5 * top, 0.0}) {
+    vw.clear();
+    for (std::size_t n = 0; n < s.intensity.size(); ++n) {
+      const double w = std::exp(s.log_prior[n][t]);
+      if (w >= sure) vw.emplace_back(intensity[n], sure > 0 ? w : 1.0);
+    }
+    if (vw.size() >= 50) break;
+  }
+  return vw;
+}
+
+// The ventricles' fluid, found without trusting where their prior is sure:
+// brain shift moves them by several mm (docs/DESIGN.md "Automatic intraop
+// segmentation"), farther than their bodies are thick, so where the carried
+// ventricles were the image may show white matter. Their neighbourhood (the
+// ventricles' prior at least a quarter: where they may have gone) holds
+// them, deep grey and white matter. In every MR contrast that shows the
+// ventricles at all their fluid lies at one end of these intensities (darkest
+// in T1 and FLAIR, brightest in T2; grey matter lies between), and stands
+// apart from the bulk of the tissue: of the two tails holding as many samples
+// as the ventricles' volume, the fluid's is the one farther from the
+// neighbourhood's median. Returns {median, sd} of that tail; {0, 0} when there
+// are too few samples.
+std::pair<double, double> fluid_class(const Samples& s, const std::vector<double>& intensity, double share) {
+  constexpr double kNeighbourhood = 0.25;
+  const int vent = index_of(Tissue::ventricle), par = index_of(Tissue::parenchyma);
+  std::vector<std::pair<double, double>> near;  // intensity, weight 1
+  std::size_t brain = 0;
+  for (std::size_t n = 0; n < s.intensity.size(); ++n) {
+    const double p_vent = std::exp(s.log_prior[n][vent]);
+    brain += std::exp(s.log_prior[n][par]) + p_vent >= 0.5;
+    if (p_vent >= kNeighbourhood) near.emplace_back(intensity[n], 1.0);
+  }
+  const auto tail = std::min(static_cast<std::size_t>(std::max(share, 0.0) * static_cast<double>(brain)), near.size() / 2);
+  if (tail < 20) return {0, 0};
+  std::sort(near.begin(), near.end());
+  const double median = near[near.size() / 2].first;
+  const std::vector<std::pair<double, double>> low(near.begin(), near.begin() + static_cast<std::ptrdiff_t>(tail));
+  const std::vector<std::pair<double, double>> high(near.end() - static_cast<std::ptrdiff_t>(tail), near.end());
+  const double t = static_cast<double>(tail);
+  const bool dark = median - quantile(low, t, 0.5) >= quantile(high, t, 0.5) - median;
+  const auto& fluid = dark ? low : high;
+  const double sd = (quantile(fluid, t, 0.75) - quantile(fluid, t, 0.25)) / 1.349;
+  return {quantile(fluid, t, 0.5), std::max(sd, 0.01)};
+}
+
+// Each tissue's classes start from its intensities (no ordering of tissues is
+// assumed): one class at their median, several spread evenly over their
+// 2-98 % range, so that a rare bright tissue (fat, a T2's fluid) gets a class
+// even where a dark one (air) fills most voxels. The ventricles start from
+// the brain's fluid (fluid_class), the other tissues, large enough that a shift leaves most of them in place,
+// from where their prior is sure.
 std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<double>& intensity,
-                                           const std::array<int, kTissues>& classes_per_tissue) {
+                                           const std::array<int, kTissues>& classes_per_tissue,
+                                           double ventricle_share) {
   std::vector<GaussianClass> classes;
   for (int t = 0; t < kTissues; ++t) {
-    std::vector<std::pair<double, double>> vw;  // intensity, prior weight
-    // "Sure" relative to the most the prior says of this tissue anywhere: a
-    // small structure (ventricles a few widths across) never reaches 0.9.
-    double top = 0;
-    for (const auto& lp : s.log_prior) top = std::max(top, std::exp(lp[t]));
-    for (double sure : {0.9 * top, 0.5 * top, 0.0}) {
-      vw.clear();
-      for (std::size_t n = 0; n < s.intensity.size(); ++n) {
-        const double w = std::exp(s.log_prior[n][t]);
-        if (w >= sure) vw.emplace_back(intensity[n], sure > 0 ? w : 1.0);
+    const int K = classes_per_tissue[t];
+    if (t == index_of(Tissue::ventricle) && K == 1) {
+      const auto [mean, sd] = fluid_class(s, intensity, ventricle_share);
+      if (sd > 0) {
+        classes.push_back({Tissue::ventricle, mean, sd, 1.0});
+        continue;
       }
-      if (vw.size() >= 50) break;
     }
+    std::vector<std::pair<double, double>> vw = sure_intensities(s, intensity, t);
     std::sort(vw.begin(), vw.end());
     double total = 0;
     for (const auto& p : vw) total += p.second;
-    const int K = classes_per_tissue[t];
     const double lo = quantile(vw, total, 0.02), hi = quantile(vw, total, 0.98);
     const double median = quantile(vw, total, 0.5);
     for (int c = 0; c < K; ++c) {
@@ -134,7 +191,7 @@ double responsibilities(double x, const std::array<double, kTissues>& log_prior,
 constexpr double kMinSd = 0.005;
 
 void maximise(const Samples& s, const std::vector<std::vector<double>>& gamma, const std::vector<double>& corrected,
-              std::vector<GaussianClass>& classes) {
+              std::vector<GaussianClass>& classes, bool fixed_ventricle_class) {
   const std::size_t C = classes.size();
   std::vector<double> w(C, 0), m(C, 0), q(C, 0);
   for (std::size_t n = 0; n < s.intensity.size(); ++n)
@@ -149,6 +206,7 @@ void maximise(const Samples& s, const std::vector<std::vector<double>>& gamma, c
   for (std::size_t c = 0; c < C; ++c) tissue_weight[index_of(classes[c].tissue)] += w[c];
   for (std::size_t c = 0; c < C; ++c) {
     if (w[c] <= 1e-9) continue;  // an empty class keeps its parameters
+    if (fixed_ventricle_class && classes[c].tissue == Tissue::ventricle) continue;
     classes[c].mean = m[c];
     classes[c].sd = std::max(std::sqrt(q[c] / w[c]), kMinSd);
     classes[c].weight = std::max(w[c] / tissue_weight[index_of(classes[c].tissue)], 1e-6);
@@ -222,7 +280,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
       full.start_from(bias);
       bias = full;
     }
-    classes = initial_classes(s, corrected, params.classes);
+    classes = initial_classes(s, corrected, params.classes, prior.ventricle_share);
     const int budget = phase == 0 ? std::min(params.max_iterations, 10) : params.max_iterations;
     std::vector<std::vector<double>> gamma(N, std::vector<double>(classes.size(), 0));
     double previous = -std::numeric_limits<double>::infinity();
@@ -250,7 +308,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
       out.converged = std::abs(ll - previous) < params.tolerance;
       if (out.converged) break;
       previous = ll;
-      maximise(s, gamma, corrected, classes);
+      maximise(s, gamma, corrected, classes, params.fixed_ventricle_class);
       bias_moved = false;
       if (!bias_frozen) {
         before_bias = bias;

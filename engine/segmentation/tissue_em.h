@@ -35,6 +35,11 @@ struct EmParameters {
   // this between iterations (nats; far below what moves a class mean).
   double tolerance = 1e-4;
   std::size_t fit_samples = 60000;
+  // The ventricles' class stays where it was started (from the brain's fluid,
+  // tissue_em.cpp fluid_class) instead of being re-estimated: set while their
+  // prior may lie several mm off (after the head's alignment alone), where
+  // the EM would spread it over the white matter the prior holds instead.
+  bool fixed_ventricle_class = false;
   double mrf_beta = 0.35;  // Potts coupling per face neighbour (0: no smoothing)
   int mrf_sweeps = 3;
 };

@@ -26,21 +26,19 @@ float inside_probability(float signed_distance_mm, double width_mm) {
   return static_cast<float>(1.0 / (1.0 + std::exp(signed_distance_mm / width_mm)));
 }
 
-// The ventricles' prior falls off over half the width: they are a few widths
-// across, surrounded by a far larger tissue, and a single fluid class whose
-// prior reaches well into white matter is pulled onto it.
-constexpr double kVentricleWidthFraction = 0.5;
-
 }  // namespace
 
-TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double floor) {
-  if (!(width_mm > 0)) throw InputError("tissue prior: the width must be positive");
+TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double ventricle_width_mm,
+                         double ventricle_shift_mm, double floor) {
+  if (!(ventricle_shift_mm >= 0)) throw InputError("tissue prior: the ventricles' shift must be >= 0");
+  if (!(width_mm > 0) || !(ventricle_width_mm > 0)) throw InputError("tissue prior: the widths must be positive");
   if (!(floor >= 0 && floor <= 0.1)) throw InputError("tissue prior: the floor must be in [0, 0.1]");
   if (count_nonzero(outline) == 0) throw InputError("tissue prior: the carried brain outline is empty");
   const ImageF d_outline = signed_distance_mm(outline);
   const ImageF d_ventricle = signed_distance_mm(ventricles);
   TissuePrior prior;
   prior.grid = outline.grid;
+  prior.ventricle_share = static_cast<double>(count_nonzero(ventricles)) / static_cast<double>(count_nonzero(outline));
   const std::size_t n = outline.grid.voxel_count();
   for (auto& p : prior.p) p.resize(n);
   // The floor is for parenchyma and outside only: ventricles do not appear
@@ -50,7 +48,10 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double wid
   const float keep = static_cast<float>(1.0 - 2 * floor), f = static_cast<float>(floor);
   for (std::size_t v = 0; v < n; ++v) {
     const float in = inside_probability(d_outline.voxels[v], width_mm);
-    const float vent = inside_probability(d_ventricle.voxels[v], kVentricleWidthFraction * width_mm);
+    const float vent = ventricle_shift_mm > 0
+                           ? 0.5f * inside_probability(d_ventricle.voxels[v] - static_cast<float>(ventricle_shift_mm),
+                                                       ventricle_width_mm)
+                           : inside_probability(d_ventricle.voxels[v], ventricle_width_mm);
     prior.p[0][v] = f + keep * in * (1 - vent);
     prior.p[1][v] = keep * in * vent;
     prior.p[2][v] = f + keep * (1 - in);

@@ -2,9 +2,16 @@
 // Where each tissue is expected before the image is looked at: the patient's
 // own preop labels carried onto the intraop grid by the current estimate of
 // the registration, softened by how far that estimate can still be off.
-//   P(inside the brain) = s(-d_outline / w),  P(ventricle | inside) = s(-d_ventricle / w)
+//   P(inside the brain) = s(-d_outline / w),  P(ventricle | inside) = s(-d_ventricle / w_v)
 // with s the logistic function, d the signed distance (mm) to the carried
-// outline and ventricles, and w the remaining misregistration (mm). A floor
+// outline and ventricles, and w, w_v the remaining misregistration (mm) of
+// the outline and of the ventricles (deep structures shift by other amounts
+// than the cortex, docs/DESIGN.md "Automatic intraop segmentation").
+// When the ventricles may have moved farther than they are thick (after the
+// head's alignment alone: shift_mm > 0), where they are now is not known
+// within shift_mm of where they were: there
+//   P(ventricle | inside) = 0.5 s(-(d_ventricle - shift_mm) / w_v),
+// an even chance that the image decides (fluid or tissue), falling off beyond. A floor
 // keeps parenchyma and the outside possible everywhere, so that where brain
 // shift has moved tissue farther than the prior admits (fluid under the
 // craniotomy, a resection cavity), the image decides.
@@ -24,11 +31,13 @@ const char* name_of(Tissue t);
 struct TissuePrior {
   Grid3 grid;
   std::array<std::vector<float>, kTissues> p;  // per voxel, sum to 1
+  double ventricle_share = 0;  // the carried ventricles' share of the carried brain's volume
 };
 
 // outline: the brain with its ventricles (and anything inside), ventricles:
-// the lateral ventricles; both on the target grid. InputError when width_mm
-// <= 0, floor outside [0, 0.1], or the outline is empty.
-TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double floor);
+// the lateral ventricles; both on the target grid. InputError when a width
+// is <= 0, floor outside [0, 0.1], or the outline is empty.
+TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double ventricle_width_mm,
+                         double ventricle_shift_mm, double floor);
 
 }  // namespace brainshift::segmentation
