@@ -216,6 +216,8 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   const AutoSegmentationParameters code;
   EXPECT_DOUBLE_EQ(file.prior_width_affine_mm, code.prior_width_affine_mm);
   EXPECT_DOUBLE_EQ(file.prior_width_nonrigid_mm, code.prior_width_nonrigid_mm);
+  EXPECT_DOUBLE_EQ(file.ventricle_shift_affine_mm, code.ventricle_shift_affine_mm);
+  EXPECT_DOUBLE_EQ(file.ventricle_prior_width_mm, code.ventricle_prior_width_mm);
   EXPECT_EQ(file.rematch_rounds, code.rematch_rounds);
   EXPECT_DOUBLE_EQ(file.max_brain_volume_change, code.max_brain_volume_change);
   EXPECT_DOUBLE_EQ(file.min_ventricle_fraction, code.min_ventricle_fraction);
@@ -258,6 +260,8 @@ TEST(Config, BadAutoSegmentationValuesAreErrorsNamingSectionAndKey) {
   EXPECT_NE(volume.find("max_brain_volume_change"), std::string::npos) << volume;
   EXPECT_NE(message_of("[auto_segmentation]\nrematch_rounds = 9\n").find("rematch_rounds"), std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\nprior_width_affine_mm = 0\n").find("prior_width_affine_mm"),
+            std::string::npos);
+  EXPECT_NE(message_of("[auto_segmentation]\nventricle_shift_affine_mm = -1\n").find("ventricle_shift_affine_mm"),
             std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\ncheck_given_labels = 1\n").find("check_given_labels"),
             std::string::npos);
