@@ -8,7 +8,9 @@
 // store after a crash.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <csignal>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 
@@ -16,6 +18,7 @@
 
 #include "config_file.h"
 #include "daemon_harness.h"
+#include "igtl_receiver.h"
 #include "image/nifti_io.h"
 #include "process.h"
 #include "protocol/result_outputs.h"
@@ -99,10 +102,14 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
     if (truth.voxels[v] == table.find("ventricles")->value) no_fluid.voxels[v] = 100.f;
   write_scalar_image(dir / "no_fluid_t1.nii.gz", test::scanner_image(no_fluid));
 
-  Daemon daemon(spec("image-only"));
+  DaemonSpec with_igtl = spec("image-only");
+  with_igtl.extra_args = {"--igtl-port", "0"};
+  Daemon daemon(with_igtl);
+  ASSERT_TRUE(daemon.igtl_port.has_value());
   RunResult r = cli(daemon, {"load-preop", "--image", path("preop_t1.nii.gz"), "--labels",
                              path("preop_labels.nii.gz"), "--wait"});
   ASSERT_EQ(r.code, 0) << r.err << daemon.log();
+  test::IgtlReceiver slicer(*daemon.igtl_port, 120s);  // a 3D Slicer stand-in
 
   // Neither labels nor image: a usage error, nothing sent.
   EXPECT_EQ(cli(daemon, {"push"}).code, 2);
@@ -131,6 +138,16 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   EXPECT_NEAR(static_cast<double>(brain) / static_cast<double>(truth_brain), 1.0, 0.05);
   EXPECT_GT(outline_dice(seg, truth), 0.95);
   EXPECT_GT(ventricles, 500u);
+  // OpenIGTLink: the same segmentation as the label image bs.intraop_labels.
+  const auto sent = slicer.next_result();
+  const auto seg_message = std::find_if(sent.begin(), sent.end(), [](const test::IgtlReceived& m) {
+    return m.device == "bs.intraop_labels";
+  });
+  ASSERT_NE(seg_message, sent.end());
+  ASSERT_NE(seg_message->image(), nullptr);
+  EXPECT_EQ(seg_message->image()->GetScalarType(), ::igtl::ImageMessage::TYPE_UINT16);
+  ASSERT_EQ(static_cast<std::size_t>(seg_message->image()->GetImageSize()), seg.voxels.size() * 2);
+  EXPECT_EQ(std::memcmp(seg_message->image()->GetScalarPointer(), seg.voxels.data(), seg.voxels.size() * 2), 0);
   const ImageF confidence = read_scalar_image(dir / "pulled" / "segmentation_confidence.nii.gz");
   ASSERT_TRUE(confidence.grid.same_geometry(image.grid));
   double mean_confidence = 0;
