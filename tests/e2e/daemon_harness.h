@@ -52,6 +52,13 @@ class Daemon {
   pid_t rank0_pid_ = -1;
 };
 
+// A daemon working in dir: configuration dir/test.toml, store dir/store.
+DaemonSpec spec_in(const std::filesystem::path& dir, const std::string& name);
+// The brainshift CLI against the daemon (its endpoints, 20 s per request),
+// run in work_dir.
+RunResult run_cli(const Daemon& d, const std::filesystem::path& work_dir, const std::vector<std::string>& args,
+                  double timeout_s = 600);
+
 // One DEALER connection; calls wait for their own reply (by request_id).
 class Client {
  public:

@@ -35,29 +35,8 @@ namespace {
 
 const Eigen::Vector3d kShiftMm(3.0, -2.0, 2.0);
 
-std::string config_text() {
-  return R"([server]
-preop = "none"
-
-[security]
-allow_unauthenticated_shutdown = true
-
-[mesh]
-cell_size_mm = 7.0
-facet_size_mm = 4.0
-facet_distance_mm = 1.5
-)";
-}
-
-double outline_dice(const LabelImage& a, const LabelImage& b) {
-  std::size_t both = 0, na = 0, nb = 0;
-  for (std::size_t v = 0; v < a.voxels.size(); ++v) {
-    both += a.voxels[v] && b.voxels[v];
-    na += a.voxels[v] != 0;
-    nb += b.voxels[v] != 0;
-  }
-  return 2.0 * static_cast<double>(both) / static_cast<double>(na + nb);
-}
+// The harness's coarse mesh, and `brainshift shutdown` allowed.
+std::string config_text() { return test_config_text(4) + "\n[security]\nallow_unauthenticated_shutdown = true\n"; }
 
 class ImageOnlyE2E : public ::testing::Test {
  protected:
@@ -65,18 +44,9 @@ class ImageOnlyE2E : public ::testing::Test {
   fs::path dir = tmp.path();
 
   RunResult cli(const Daemon& d, std::vector<std::string> args, double timeout_s = 600) {
-    std::vector<std::string> argv = {BRAINSHIFT_BIN, "--server", d.endpoint, "--events", d.events, "--timeout", "20"};
-    argv.insert(argv.end(), args.begin(), args.end());
-    return run(argv, dir, timeout_s);
+    return run_cli(d, dir, args, timeout_s);
   }
-  DaemonSpec spec(const std::string& name) const {
-    DaemonSpec s;
-    s.work_dir = dir;
-    s.config = dir / "test.toml";
-    s.store = dir / "store";
-    s.name = name;
-    return s;
-  }
+  DaemonSpec spec(const std::string& name) const { return spec_in(dir, name); }
   std::string path(const std::string& name) const { return (dir / name).string(); }
   void SetUp() override {
     std::ofstream(dir / "test.toml") << config_text();
@@ -136,7 +106,7 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
     truth_brain += truth.voxels[v] != 0;
   }
   EXPECT_NEAR(static_cast<double>(brain) / static_cast<double>(truth_brain), 1.0, 0.05);
-  EXPECT_GT(outline_dice(seg, truth), 0.95);
+  EXPECT_GT(test::outline_dice(seg, truth), 0.95);
   EXPECT_GT(ventricles, 500u);
   // OpenIGTLink: the same segmentation as the label image bs.intraop_labels.
   const auto sent = slicer.next_result();

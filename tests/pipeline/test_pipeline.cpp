@@ -516,20 +516,6 @@ TEST_F(PipelineTest, WithoutACavityTheTumorIsNotTakenForResected) {
 
 // ---- Scans given as an image alone, and labels checked against their image ----
 
-namespace {
-
-double outline_dice(const LabelImage& a, const LabelImage& b) {
-  std::size_t both = 0, na = 0, nb = 0;
-  for (std::size_t v = 0; v < a.voxels.size(); ++v) {
-    both += a.voxels[v] && b.voxels[v];
-    na += a.voxels[v] != 0;
-    nb += b.voxels[v] != 0;
-  }
-  return 2.0 * static_cast<double>(both) / static_cast<double>(na + nb);
-}
-
-}  // namespace
-
 TEST_F(PipelineTest, AScanGivenAsAnImageAloneIsSegmentedAndRegistered) {
   const Eigen::Vector3d shift(3.0, -2.0, 2.0);
   const IntraopInput truth = translated_scan(*preop_, shift);
@@ -539,7 +525,7 @@ TEST_F(PipelineTest, AScanGivenAsAnImageAloneIsSegmentedAndRegistered) {
   EXPECT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
   ASSERT_TRUE(r.intraop_labels && r.segmentation_confidence);
   EXPECT_TRUE(r.intraop_labels->grid.same_geometry(truth.labels.grid));
-  EXPECT_GT(outline_dice(*r.intraop_labels, truth.labels), 0.95);
+  EXPECT_GT(test::outline_dice(*r.intraop_labels, truth.labels), 0.95);
   EXPECT_GT(dice_per_label(*r.intraop_labels, truth.labels, {2}).front().dice, 0.8);
   std::vector<double> errors;
   for (std::size_t v = 0; v < truth.labels.voxels.size(); ++v)

@@ -166,7 +166,7 @@ TEST(IgtlQueries, TheSegmentationOfAnImageAloneIsALabelImage) {
   std::vector<std::string> devices;
   for (const auto& m : pushed) devices.push_back(m.device);
   EXPECT_EQ(devices, (std::vector<std::string>{"bs.field", "bs.warped_image", "bs.warped_labels", "bs.intraop_labels",
-                                               "bs.model.brain", "bs.status"}));
+                                               "bs.model.brain", "bs.model.tumor", "bs.status"}));
   const LabelImage stored = test::ball_labels(14);
   const IgtlReceived& seg = pushed[3];
   ASSERT_NE(seg.image(), nullptr);

@@ -53,4 +53,14 @@ ImageF scanner_image(const ImageF& clean) {
   return out;
 }
 
+double outline_dice(const LabelImage& a, const LabelImage& b) {
+  std::size_t both = 0, na = 0, nb = 0;
+  for (std::size_t v = 0; v < a.voxels.size(); ++v) {
+    both += a.voxels[v] && b.voxels[v];
+    na += a.voxels[v] != 0;
+    nb += b.voxels[v] != 0;
+  }
+  return 2.0 * static_cast<double>(both) / static_cast<double>(na + nb);
+}
+
 }  // namespace brainshift::test

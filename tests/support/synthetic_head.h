@@ -30,4 +30,8 @@ SyntheticHead synthetic_head(const SyntheticHeadSpec& spec = {});
 // fitted on the noise, a noiseless image has none.
 ImageF scanner_image(const ImageF& clean);
 
+// Dice of the two label maps' outlines (every non-zero label as one), on
+// the same grid: how well a segmentation found the head's brain.
+double outline_dice(const LabelImage& a, const LabelImage& b);
+
 }  // namespace brainshift::test
