@@ -52,6 +52,11 @@ struct AutoSegmentationParameters {
   // (prior_floor), the width only has to cover the deep shift and the head
   // alignment's error.
   double prior_width_affine_mm = 3.0;
+  // Inside the carried outline after the head's alignment alone: the cortex
+  // under a craniotomy sinks by up to about 25 mm, where fluid or air takes
+  // its place; a logistic over 5 mm leaves the outside 1 % (-4.6 nats) at
+  // that depth, so that fluid there is decided by the image.
+  double prior_inward_width_affine_mm = 5.0;
   // After a non-rigid estimate carries the labels: its error (about 1 mm at
   // the landmarks) plus a voxel of partial volume.
   double prior_width_nonrigid_mm = 1.5;

@@ -181,6 +181,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     sp.prior_width_mm = width_mm;
     sp.ventricle_prior_width_mm = ap.ventricle_prior_width_mm;
     sp.ventricle_shift_mm = ventricle_shift_mm;
+    if (ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
     return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
   };

@@ -132,8 +132,12 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   const Grid3& g = outline_box.grid;
   const ImageF image_box = crop_image(image, box, g);
 
-  const TissuePrior prior = tissue_prior(outline_box, ventricle_box, params.prior_width_mm, params.ventricle_prior_width_mm,
-                                           params.ventricle_shift_mm, params.prior_floor);
+  PriorWidths widths;
+  widths.outline_mm = params.prior_width_mm;
+  widths.inward_mm = params.prior_inward_width_mm > 0 ? params.prior_inward_width_mm : params.prior_width_mm;
+  widths.ventricle_mm = params.ventricle_prior_width_mm;
+  widths.ventricle_shift_mm = params.ventricle_shift_mm;
+  const TissuePrior prior = tissue_prior(outline_box, ventricle_box, widths, params.prior_floor);
   EmParameters em_params = params.em;
   em_params.fixed_ventricle_class = params.ventricle_shift_mm > 0;
   const EmResult em = fit_tissue_mixture(image_box, prior, em_params);
@@ -172,6 +176,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["prior_width_mm"] = params.prior_width_mm;
   result.report["ventricle_prior_width_mm"] = params.ventricle_prior_width_mm;
   result.report["ventricle_shift_mm"] = params.ventricle_shift_mm;
+  result.report["prior_inward_width_mm"] = widths.inward_mm;
   result.report["brain_ml"] = volume_ml(brain);
   result.report["ventricles_ml"] = volume_ml(ventricle);
   if (std::isfinite(contrast) && contrast < params.min_fluid_contrast_sd)

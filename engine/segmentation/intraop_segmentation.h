@@ -22,6 +22,9 @@ struct SegmentationParameters {
   // (tissue_prior.h). The caller sets it per round: wider after the affine
   // alone, narrower once the non-rigid estimate carries the labels.
   double prior_width_mm = 3.0;
+  // Inside the carried outline (tissue_prior.h PriorWidths::inward_mm); 0:
+  // the same as prior_width_mm.
+  double prior_inward_width_mm = 0;
   // The same for the ventricles (tissue_prior.h). They are a few mm across,
   // so a width beyond their own misregistration spreads a single fluid class
   // over white matter; below it, their fluid where they moved to is

@@ -133,14 +133,12 @@ std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<d
                                            const std::array<int, kTissues>& classes_per_tissue,
                                            double ventricle_share) {
   std::vector<GaussianClass> classes;
+  const auto [fluid_mean, fluid_sd] = fluid_class(s, intensity, ventricle_share);
   for (int t = 0; t < kTissues; ++t) {
     const int K = classes_per_tissue[t];
-    if (t == index_of(Tissue::ventricle) && K == 1) {
-      const auto [mean, sd] = fluid_class(s, intensity, ventricle_share);
-      if (sd > 0) {
-        classes.push_back({Tissue::ventricle, mean, sd, 1.0});
-        continue;
-      }
+    if (t == index_of(Tissue::ventricle) && K == 1 && fluid_sd > 0) {
+      classes.push_back({Tissue::ventricle, fluid_mean, fluid_sd, 1.0});
+      continue;
     }
     std::vector<std::pair<double, double>> vw = sure_intensities(s, intensity, t);
     std::sort(vw.begin(), vw.end());
@@ -160,6 +158,16 @@ std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<d
       }
       g.weight = 1.0 / K;
       classes.push_back(g);
+    }
+    // The fluid around the brain (subarachnoid, under the craniotomy, in a
+    // cavity) is the ventricles' fluid: the outside's class nearest to it
+    // starts there, so that no parenchyma class has to take it.
+    if (t == index_of(Tissue::outside) && K > 1 && fluid_sd > 0) {
+      auto nearest = classes.end() - K;
+      for (auto c = classes.end() - K; c != classes.end(); ++c)
+        if (std::abs(c->mean - fluid_mean) < std::abs(nearest->mean - fluid_mean)) nearest = c;
+      nearest->mean = fluid_mean;
+      nearest->sd = fluid_sd;
     }
   }
   return classes;

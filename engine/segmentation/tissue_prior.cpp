@@ -28,10 +28,10 @@ float inside_probability(float signed_distance_mm, double width_mm) {
 
 }  // namespace
 
-TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double ventricle_width_mm,
-                         double ventricle_shift_mm, double floor) {
-  if (!(ventricle_shift_mm >= 0)) throw InputError("tissue prior: the ventricles' shift must be >= 0");
-  if (!(width_mm > 0) || !(ventricle_width_mm > 0)) throw InputError("tissue prior: the widths must be positive");
+TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const PriorWidths& widths, double floor) {
+  if (!(widths.ventricle_shift_mm >= 0)) throw InputError("tissue prior: the ventricles' shift must be >= 0");
+  if (!(widths.outline_mm > 0) || !(widths.inward_mm > 0) || !(widths.ventricle_mm > 0))
+    throw InputError("tissue prior: the widths must be positive");
   if (!(floor >= 0 && floor <= 0.1)) throw InputError("tissue prior: the floor must be in [0, 0.1]");
   if (count_nonzero(outline) == 0) throw InputError("tissue prior: the carried brain outline is empty");
   const ImageF d_outline = signed_distance_mm(outline);
@@ -47,11 +47,13 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double wid
   // them.
   const float keep = static_cast<float>(1.0 - 2 * floor), f = static_cast<float>(floor);
   for (std::size_t v = 0; v < n; ++v) {
-    const float in = inside_probability(d_outline.voxels[v], width_mm);
-    const float vent = ventricle_shift_mm > 0
-                           ? 0.5f * inside_probability(d_ventricle.voxels[v] - static_cast<float>(ventricle_shift_mm),
-                                                       ventricle_width_mm)
-                           : inside_probability(d_ventricle.voxels[v], ventricle_width_mm);
+    const float d = d_outline.voxels[v];
+    const float in = inside_probability(d, d < 0 ? widths.inward_mm : widths.outline_mm);
+    const float vent =
+        widths.ventricle_shift_mm > 0
+            ? 0.5f * inside_probability(d_ventricle.voxels[v] - static_cast<float>(widths.ventricle_shift_mm),
+                                        widths.ventricle_mm)
+            : inside_probability(d_ventricle.voxels[v], widths.ventricle_mm);
     prior.p[0][v] = f + keep * in * (1 - vent);
     prior.p[1][v] = keep * in * vent;
     prior.p[2][v] = f + keep * (1 - in);

@@ -37,7 +37,14 @@ struct TissuePrior {
 // outline: the brain with its ventricles (and anything inside), ventricles:
 // the lateral ventricles; both on the target grid. InputError when a width
 // is <= 0, floor outside [0, 0.1], or the outline is empty.
-TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, double width_mm, double ventricle_width_mm,
-                         double ventricle_shift_mm, double floor);
+struct PriorWidths {
+  double outline_mm = 3.0;   // w outside the carried outline
+  // w inside it: the brain's surface sinks away from the skull under a
+  // craniotomy by more than it swells past where it was.
+  double inward_mm = 3.0;
+  double ventricle_mm = 2.0;       // w_v
+  double ventricle_shift_mm = 0;   // shift_mm
+};
+TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const PriorWidths& widths, double floor);
 
 }  // namespace brainshift::segmentation

@@ -35,20 +35,41 @@ InputMode mode_from_name(const std::string& name) {
   throw InputError("unknown mode '" + name + "' (labels+image, labels, image)");
 }
 
+nlohmann::json segmentation_agreement(const LabelImage& segmented, const LabelImage& truth,
+                                      const std::vector<std::uint16_t>& ventricle_labels) {
+  // Brain: the outline (everything labelled), as the outer surface uses it.
+  std::size_t both = 0, a = 0, b = 0, vb = 0, va = 0, vt = 0;
+  auto is_ventricle = [&](std::uint16_t l) {
+    return std::find(ventricle_labels.begin(), ventricle_labels.end(), l) != ventricle_labels.end();
+  };
+  for (std::size_t v = 0; v < segmented.voxels.size() && v < truth.voxels.size(); ++v) {
+    const bool x = segmented.voxels[v] != 0, y = truth.voxels[v] != 0;
+    both += x && y;
+    a += x;
+    b += y;
+    const bool p = is_ventricle(segmented.voxels[v]), q = is_ventricle(truth.voxels[v]);
+    vb += p && q;
+    va += p;
+    vt += q;
+  }
+  return {{"brain_dice", 2.0 * static_cast<double>(both) / static_cast<double>(std::max<std::size_t>(a + b, 1))},
+          {"ventricle_dice", 2.0 * static_cast<double>(vb) / static_cast<double>(std::max<std::size_t>(va + vt, 1))}};
+}
+
 ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) {
   ModeRun run;
   run.mode = mode;
-  // Built field by field: an image-only input leaves the labels as the
-  // engine's IntraopInput defaults them (empty, or absent once optional).
-  IntraopInput input;
+  ScanInput input;
   if (mode != InputMode::image_only) input.labels = c.phantom.intraop_labels;
-  if (mode != InputMode::labels_only) input.t1 = c.phantom.intraop_t1;
+  if (mode != InputMode::labels_only) input.image = c.phantom.intraop_t1;
   try {
-    run.result = evaluate_result(c.phantom.description["name"].get<std::string>(), c.phantom,
-                                 session.register_scan(input, nullptr));
+    ScanResult result = session.register_scan(input, nullptr);
+    if (result.intraop_labels) run.segmentation = segmentation_agreement(*result.intraop_labels, c.true_labels,
+                                                session.parameters().label_table.cavity_labels());
+    run.result = evaluate_result(c.phantom.description["name"].get<std::string>(), c.phantom, std::move(result));
   } catch (const InputError& e) {
     run.status = mode == InputMode::image_only ? ModeRun::Status::skipped : ModeRun::Status::error;
-    run.note = mode == InputMode::image_only ? std::string("the engine does not take an image alone: ") + e.what()
+    run.note = mode == InputMode::image_only ? std::string("the image was refused: ") + e.what()
                                              : std::string("input error: ") + e.what();
   } catch (const std::exception& e) {
     run.status = ModeRun::Status::error;
@@ -71,7 +92,8 @@ nlohmann::json mode_json(const ModeRun& r) {
           {"tre_affine_mm", {{"mean", c.affine_mean_mm}, {"p95", c.affine_p95_mm}}},
           {"intraop_total_seconds", c.intraop_total_seconds},
           {"min_jacobian", c.metrics.contains("jacobian") ? c.metrics["jacobian"].value("min", 0.0) : 0.0},
-          {"errors_mm", c.nonrigid_errors_mm}};
+          {"errors_mm", c.nonrigid_errors_mm},
+          {"segmentation", r.segmentation}};
 }
 
 nlohmann::json brief(const nlohmann::json& d) {

@@ -31,11 +31,16 @@ struct ModeRun {
   enum class Status { ran, skipped, error } status = Status::ran;
   std::string note;   // why skipped, or the error
   CaseResult result;  // when ran
+  nlohmann::json segmentation;  // image only: Dice of the automatic segmentation vs the true labels
 };
 
+// Brain (outline) and ventricle Dice of a segmentation against the truth.
+nlohmann::json segmentation_agreement(const LabelImage& segmented, const LabelImage& truth,
+                                      const std::vector<std::uint16_t>& ventricle_labels);
+
 // Registers the case in one mode on the warm session. An image-only run the
-// engine refuses with InputError is "skipped" (the engine does not take an
-// image alone yet); other errors are recorded, not thrown.
+// engine refuses with InputError is "skipped" with the reason (an image the
+// automatic segmentation cannot use); other errors are recorded, not thrown.
 ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode);
 
 // One case's record: the case's brief description and each mode's TRE,
