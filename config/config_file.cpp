@@ -154,6 +154,7 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   TomlSection s = root.table("auto_segmentation");
   s.read("prior_width_affine_mm", p.prior_width_affine_mm, Interval::above(0));
   s.read("prior_width_nonrigid_mm", p.prior_width_nonrigid_mm, Interval::above(0));
+  s.read("prior_inward_width_affine_mm", p.prior_inward_width_affine_mm, Interval::above(0));
   s.read("ventricle_shift_affine_mm", p.ventricle_shift_affine_mm, Interval::closed(0, 30));
   s.read("ventricle_prior_width_mm", p.ventricle_prior_width_mm, Interval::above(0));
   s.read("rematch_rounds", p.rematch_rounds, 0, 5);

@@ -217,6 +217,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.prior_width_affine_mm, code.prior_width_affine_mm);
   EXPECT_DOUBLE_EQ(file.prior_width_nonrigid_mm, code.prior_width_nonrigid_mm);
   EXPECT_DOUBLE_EQ(file.ventricle_shift_affine_mm, code.ventricle_shift_affine_mm);
+  EXPECT_DOUBLE_EQ(file.prior_inward_width_affine_mm, code.prior_inward_width_affine_mm);
   EXPECT_DOUBLE_EQ(file.ventricle_prior_width_mm, code.ventricle_prior_width_mm);
   EXPECT_EQ(file.rematch_rounds, code.rematch_rounds);
   EXPECT_DOUBLE_EQ(file.max_brain_volume_change, code.max_brain_volume_change);
