@@ -110,7 +110,7 @@ PreopLoadReply parse_preop_load_reply(const Message& m);
 
 // ---- scan.push -------------------------------------------------------------
 
-// At least one of labels and image (revision 3): an image alone is segmented
+// At least one of labels and image (revision 4): an image alone is segmented
 // by the engine, and the result then has intraop_labels and
 // segmentation_confidence (result_outputs.h).
 struct ScanPushRequest {

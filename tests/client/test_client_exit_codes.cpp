@@ -133,7 +133,7 @@ TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
   EXPECT_TRUE(d.engine.last_scan_image->grid.same_geometry(expected.grid));
   EXPECT_EQ(d.engine.last_scan_image->voxels, expected.voxels);
 
-  // The series alone (PROTOCOL.md 5.3, revision 3): sent without labels, the
+  // The series alone (PROTOCOL.md 5.3, revision 4): sent without labels, the
   // daemon segments it; pull --scene brings the segmentation into the scene.
   r = d.client({"push", "--dicom", (d.dir.path() / "series").string(), "--wait", "--wait-timeout", "30"});
   ASSERT_EQ(r.code, cli::kExitOk) << r.err;

@@ -1,5 +1,5 @@
 // A scan pushed as an image alone, end to end through the real binaries
-// (PROTOCOL.md 5.3, revision 3): `brainshift push --image I --wait` with no
+// (PROTOCOL.md 5.3, revision 4): `brainshift push --image I --wait` with no
 // labels, the daemon segments the image, `pull` serves the segmentation it
 // used (intraop_labels, segmentation_confidence) on the intraop grid in the
 // label table's values; the corrected-labels push with the same image is the

@@ -181,7 +181,7 @@ TEST(ScanPush, LabelsOnlyIsEnough) {
   EXPECT_FALSE(back.client_scan_id.has_value());
 }
 
-// Revision 3: an image alone is a scan (the daemon segments it).
+// Revision 4: an image alone is a scan (the daemon segments it).
 TEST(ScanPush, ImageAloneIsEnough) {
   bp::ScanPushRequest r;
   r.image = bp::media::nifti_frame("image", bp::testing::fake_gzip(2048));

@@ -119,7 +119,7 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
   EXPECT_EQ(queued[0].scan_id, id3);
 }
 
-// An image pushed alone (PROTOCOL.md 5.3, revision 3): stored without
+// An image pushed alone (PROTOCOL.md 5.3, revision 4): stored without
 // labels, read back as such, and its digest apart from any labelled scan's.
 TEST(CaseStore, AnImageAloneIsStoredAndReadBackWithoutLabels) {
   TempDir dir;

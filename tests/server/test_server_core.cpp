@@ -496,7 +496,7 @@ TEST(ServerCore, RestartRestoresPreopMeshQueueAndResults) {
   EXPECT_TRUE(parse_scan_push_reply(h.push(labels, std::string("late"))).duplicate);
 }
 
-// Revision 3: an image alone is a scan. It is stored as such (no labels),
+// Revision 4: an image alone is a scan. It is stored as such (no labels),
 // registered without labels, its segmentation served, its idempotence key
 // bound to the image's bytes, and after a restart it runs again from the
 // stored image alone.
