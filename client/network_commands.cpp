@@ -313,7 +313,9 @@ int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, do
 
 int cmd_push(const NetworkOptions& o, const PushArgs& a) {
   ScanPushRequest r;
-  r.labels = input_frame(o, "labels", a.labels, true);
+  if (a.labels.empty() && a.image.empty() && a.dicom.empty())
+    throw CommandError(kExitUsage, "give --labels, --image (or --dicom), or both: an image alone is segmented");
+  if (!a.labels.empty()) r.labels = input_frame(o, "labels", a.labels, true);
   if (!a.image.empty()) r.image = input_frame(o, "image", a.image, false);
   if (!a.dicom.empty()) {
     if (!a.image.empty()) throw CommandError(kExitUsage, "give --image or --dicom, not both");
@@ -348,10 +350,10 @@ struct PullArgs {
 };
 
 // What scene.mrml shows that the daemon sends (the preop and intraop images
-// are the user's own files).
+// are the user's own files; intraop_labels only for an image pushed alone).
 constexpr ResultPart kScenePartsFromTheDaemon[] = {ResultPart::kDisplacementItk, ResultPart::kWarpedImage,
                                                    ResultPart::kWarpedLabels, ResultPart::kModels,
-                                                   ResultPart::kUncertainty};
+                                                   ResultPart::kUncertainty, ResultPart::kIntraopLabels};
 
 std::string cli_part_names() {
   std::string out;
@@ -569,8 +571,10 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
 
   auto pa = std::make_shared<PushArgs>();
   auto* push = app.add_subcommand("push", "send an intraop scan; prints its scan id on the first line");
-  push->add_option("--labels", pa->labels, "intraop labels (1 brain, 2 ventricles): NIfTI, NRRD or Slicer .seg.nrrd")->required();
-  push->add_option("--image", pa->image, "intraop T1 on the labels' grid, NIfTI or NRRD");
+  push->add_option("--labels", pa->labels,
+                   "intraop labels (1 brain, 2 ventricles): NIfTI, NRRD or Slicer .seg.nrrd; without them the "
+                   "daemon segments the image (pull intraop_labels to see it)");
+  push->add_option("--image", pa->image, "intraop T1 (on the labels' grid when both are given), NIfTI or NRRD");
   push->add_option("--dicom", pa->dicom, "intraop T1 as a DICOM series folder (sent as NIfTI), instead of --image");
   push->add_option("--series", pa->series, "SeriesInstanceUID in --dicom when the folder holds several");
   push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");

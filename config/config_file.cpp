@@ -134,6 +134,49 @@ void read_intensity(TomlSection& root, IntensityRefinementParameters& p) {
   if (!error.empty()) s.fail(error);
 }
 
+// [auto_segmentation]: a scan pushed as an image alone (DESIGN.md
+// "Automatic intraop segmentation" says why each default). The classifier's
+// settings serve both the image-only path and the check of given labels
+// against their image; the prior widths are each path's own.
+void read_classifier(TomlSection& s, segmentation::SegmentationParameters& c) {
+  s.read("prior_floor", c.prior_floor, Interval::open(0, 0.5));
+  s.read("margin_mm", c.margin_mm, Interval::at_least(0));
+  s.read("min_fluid_contrast_sd", c.min_fluid_contrast_sd, Interval::above(0));
+  s.read("bias_degree", c.em.bias_degree, 0, 4);
+  s.read("max_iterations", c.em.max_iterations, 1, 1000);
+  s.read("tolerance", c.em.tolerance, Interval::above(0));
+  s.read("fit_samples", c.em.fit_samples, 1000, 100000000);
+  s.read("mrf_beta", c.em.mrf_beta, Interval::closed(0, 10));
+  s.read("mrf_sweeps", c.em.mrf_sweeps, 0, 100);
+  s.reject_unknown_keys();
+}
+
+void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
+  TomlSection s = root.table("auto_segmentation");
+  s.read("prior_width_affine_mm", p.prior_width_affine_mm, Interval::above(0));
+  s.read("prior_width_nonrigid_mm", p.prior_width_nonrigid_mm, Interval::above(0));
+  s.read("prior_inward_width_affine_mm", p.prior_inward_width_affine_mm, Interval::above(0));
+  s.read("ventricle_shift_affine_mm", p.ventricle_shift_affine_mm, Interval::closed(0, 30));
+  s.read("ventricle_prior_width_mm", p.ventricle_prior_width_mm, Interval::above(0));
+  s.read("rematch_rounds", p.rematch_rounds, 0, 5);
+  s.read("max_brain_volume_change", p.max_brain_volume_change, Interval::open(0, 1));
+  s.read("min_ventricle_fraction", p.min_ventricle_fraction, Interval::closed(0, 1));
+  s.read("min_surface_confidence", p.min_surface_confidence, Interval::closed(0, 1));
+  s.read("max_uncertain_surface_fraction", p.max_uncertain_surface_fraction, Interval::closed(0, 1));
+  s.read("check_given_labels", p.check_given_labels);
+  TomlSection classifier = s.table("classifier");
+  read_classifier(classifier, p.classifier);
+  TomlSection check = s.table("label_check");
+  auto& c = p.label_image_check;
+  c.classifier = p.classifier;  // one classifier; the check sets its own prior width
+  check.read("prior_width_mm", c.prior_width_mm, Interval::above(0));
+  check.read("min_posterior", c.min_posterior, Interval::open(0.5, 1));
+  check.read("band_mm", c.band_mm, Interval::at_least(0));
+  check.read("max_disagreement_fraction", c.max_disagreement_fraction, Interval::open(0, 1));
+  check.reject_unknown_keys();
+  s.reject_unknown_keys();
+}
+
 void read_rest(TomlSection& root, PipelineParameters& p) {
   TomlSection field = root.table("field");
   field.read("blend_distance_mm", p.field.blend_distance_mm);
@@ -182,6 +225,7 @@ PipelineParameters parameters_from(const toml::table& document, const std::strin
   read_affine(root, p.affine);
   read_surfaces(root, p);
   read_intensity(root, p.intensity);
+  read_auto_segmentation(root, p.auto_segmentation);
   read_rest(root, p);
   root.reject_unknown_keys("unknown top-level key or section");
   return p;

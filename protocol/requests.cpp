@@ -266,7 +266,7 @@ PreopLoadReply parse_preop_load_reply(const Message& m) {
 Message make_scan_push_request(const std::string& request_id, const ScanPushRequest& r) {
   Message m = make_message(MessageType::kScanPush, request_id);
   if (r.client_scan_id) m.header["client_scan_id"] = *r.client_scan_id;
-  m.frames.push_back(r.labels);
+  if (r.labels) m.frames.push_back(*r.labels);
   if (r.image) m.frames.push_back(*r.image);
   return m;
 }
@@ -276,10 +276,11 @@ ScanPushRequest parse_scan_push_request(const Message& m) {
   return with_request_id(m, [&] {
     const FieldReader f(m.header, "scan.push");
     expect_frames(m, {"labels", "image"});
-    auto labels = get_frame(m, "labels", nifti_media);
-    if (!labels) throw ProtocolError(ErrorCode::kInvalidRequest, "scan.push: frame \"labels\" is required");
-    ScanPushRequest r{std::move(*labels), get_frame(m, "image", nifti_media),
+    ScanPushRequest r{get_frame(m, "labels", nifti_media), get_frame(m, "image", nifti_media),
                       f.opt_string("client_scan_id")};
+    if (!r.labels && !r.image)
+      throw ProtocolError(ErrorCode::kInvalidRequest,
+                          "scan.push: needs a frame \"labels\", \"image\" or both (an image alone is segmented)");
     if (r.client_scan_id && !detail::is_valid_id(*r.client_scan_id))
       f.fail("client_scan_id", "must be 1..128 printable ASCII characters without spaces");
     return r;

@@ -111,8 +111,11 @@ PreopLoadReply parse_preop_load_reply(const Message& m);
 
 // ---- scan.push -------------------------------------------------------------
 
+// At least one of labels and image (revision 4): an image alone is segmented
+// by the engine, and the result then has intraop_labels and
+// segmentation_confidence (result_outputs.h).
 struct ScanPushRequest {
-  Frame labels{};                               // "labels", NIfTI, intraop segmentation
+  std::optional<Frame> labels{};                // "labels", NIfTI, intraop segmentation
   std::optional<Frame> image{};                 // "image", NIfTI, intraop image
   std::optional<std::string> client_scan_id{};  // idempotence key, see PROTOCOL.md
 };

@@ -123,7 +123,7 @@ void write_atomically(const fs::path& path, Fill&& fill, std::size_t expected_by
 json record_to_json(const ScanRecord& r) {
   json j{{"format", kStoreFormat}, {"scan_id", r.scan_id}, {"sequence", r.sequence},
          {"received_at", r.received_at}, {"digest", r.digest}, {"preop_id", r.preop_id},
-         {"has_image", r.has_image}};
+         {"has_image", r.has_image}, {"has_labels", r.has_labels}};
   if (r.client_scan_id) j["client_scan_id"] = *r.client_scan_id;
   return j;
 }
@@ -150,7 +150,7 @@ const char* to_string(StoredScanState s) {
   return "?";
 }
 
-std::string content_digest(const ScanInput& input) {
+std::string content_digest(const PushedScan& input) {
   std::uint64_t h = 1469598103934665603ull;
   auto mix = [&h](std::string_view bytes) {
     for (unsigned char c : bytes) {
@@ -158,11 +158,14 @@ std::string content_digest(const ScanInput& input) {
       h *= 1099511628211ull;
     }
   };
-  mix(input.labels_bytes);
+  // A scan with labels digests as before image-only scans existed (stored
+  // digests stay valid); "no labels" is marked apart from any labels' bytes.
+  if (input.labels_bytes) mix(*input.labels_bytes);
+  else mix(std::string_view("\x02nolabels", 9));
   // Separates "no image" from "empty image" and the labels/image boundary.
   mix(input.image_bytes ? std::string_view("\x01image") : std::string_view("\x00none", 5));
   if (input.image_bytes) mix(*input.image_bytes);
-  return hex64(h) + "-" + std::to_string(input.labels_bytes.size()) + "-" +
+  return hex64(h) + "-" + std::to_string(input.labels_bytes ? input.labels_bytes->size() : 0) + "-" +
          std::to_string(input.image_bytes ? input.image_bytes->size() : 0);
 }
 
@@ -212,6 +215,7 @@ std::optional<CaseStore::Entry> CaseStore::read_scan_dir(const fs::path& sdir) c
     r.digest = meta.at("digest").get<std::string>();
     r.preop_id = meta.at("preop_id").get<std::string>();
     r.has_image = meta.at("has_image").get<bool>();
+    r.has_labels = meta.value("has_labels", true);  // stores written before image-only scans
     if (meta.contains("client_scan_id")) r.client_scan_id = meta["client_scan_id"].get<std::string>();
   } catch (const std::exception& e) {
     spdlog::error("store: ignoring {}: {}", sdir.string(), e.what());
@@ -353,7 +357,7 @@ std::optional<TetMesh> CaseStore::load_mesh(const std::string& preop_id) const {
   return m;
 }
 
-ScanRecord CaseStore::add_scan(const ScanInput& input, const std::optional<std::string>& client_scan_id,
+ScanRecord CaseStore::add_scan(const PushedScan& input, const std::optional<std::string>& client_scan_id,
                                const std::string& digest, const std::string& preop_id) {
   ScanRecord r;
   {
@@ -367,15 +371,17 @@ ScanRecord CaseStore::add_scan(const ScanInput& input, const std::optional<std::
   r.received_at = protocol::utc_now();
   r.digest = digest;
   r.preop_id = preop_id;
+  if (!input.labels_bytes && !input.image_bytes) throw std::invalid_argument("store: a scan needs labels or an image");
   r.has_image = input.image_bytes.has_value();
+  r.has_labels = input.labels_bytes.has_value();
 
   const std::string image = hdf5_image(
       [&](hid_t f) {
-        h5::write_bytes(f, "labels", input.labels_bytes);
+        if (input.labels_bytes) h5::write_bytes(f, "labels", *input.labels_bytes);
         if (input.image_bytes) h5::write_bytes(f, "image", *input.image_bytes);
         h5::write_string_attribute(f, kMetaAttr, record_to_json(r).dump());
       },
-      input.labels_bytes.size() + (input.image_bytes ? input.image_bytes->size() : 0));
+      (input.labels_bytes ? input.labels_bytes->size() : 0) + (input.image_bytes ? input.image_bytes->size() : 0));
   const fs::path tmp_dir = dir_ / "scans" / (".tmp-" + r.scan_id);
   guarded_write(tmp_dir, "the pushed scan", [&] {
     fs::create_directories(tmp_dir);
@@ -422,11 +428,11 @@ std::vector<ScanRecord> CaseStore::queued_oldest_first() const {
   return out;
 }
 
-ScanInput CaseStore::load_scan_input(const std::string& scan_id) const {
-  ScanInput in;
+PushedScan CaseStore::load_scan_input(const std::string& scan_id) const {
+  PushedScan in;
   std::lock_guard lock(h5::hdf5_mutex());
   h5::Handle f = h5::open_file_read(scan_dir(scan_id) / "scan.h5");
-  in.labels_bytes = h5::read_bytes(f.get(), "labels");
+  if (h5::exists(f.get(), "labels")) in.labels_bytes = h5::read_bytes(f.get(), "labels");
   if (h5::exists(f.get(), "image")) in.image_bytes = h5::read_bytes(f.get(), "image");
   return in;
 }

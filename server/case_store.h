@@ -7,7 +7,7 @@
 // store opens without repair; leftovers named *.tmp are deleted on open):
 //   <dir>/preop.h5                 t1, labels (+ world_from_voxel), meta JSON
 //   <dir>/mesh.h5                  nodes, tets, tet labels, boundary faces
-//   <dir>/scans/<scan_id>/scan.h5  the received NIfTI bytes (labels, image), meta
+//   <dir>/scans/<scan_id>/scan.h5  the received NIfTI bytes (labels, image: either or both), meta
 //   <dir>/scans/<scan_id>/result.h5  output files as byte datasets, or a failure
 //   <dir>/scans/<scan_id>/<name>     result files added after the result
 //                                    (report.png, rendered off the latency path)
@@ -60,6 +60,7 @@ struct ScanRecord {
   std::string digest;       // of the received bytes, for idempotent pushes
   std::string preop_id;     // the preop the scan was pushed against
   bool has_image = false;
+  bool has_labels = true;  // false: an image alone, segmented by the engine
   StoredScanState state = StoredScanState::queued;
   std::optional<std::string> finished_at;
   // Set when failed: protocol error code name, message and failing stage.
@@ -68,9 +69,11 @@ struct ScanRecord {
   protocol::ResultKindInfo result;
 };
 
-struct ScanInput {
-  std::string labels_bytes;                // NIfTI bytes exactly as received
-  std::optional<std::string> image_bytes;  // idem
+// A scan's bytes exactly as scan.push received them (at least one of the
+// two; the engine's decoded form is brainshift::ScanInput).
+struct PushedScan {
+  std::optional<std::string> labels_bytes;  // NIfTI bytes exactly as received
+  std::optional<std::string> image_bytes;   // idem
 };
 
 class CaseStore {
@@ -96,13 +99,13 @@ class CaseStore {
   // ---- scans ---------------------------------------------------------------
   // Every write below throws StoreWriteError when the store cannot take it.
   // Durably stores a scan and returns its record (new id, state queued).
-  ScanRecord add_scan(const ScanInput& input, const std::optional<std::string>& client_scan_id,
+  ScanRecord add_scan(const PushedScan& input, const std::optional<std::string>& client_scan_id,
                       const std::string& digest, const std::string& preop_id);
   std::optional<ScanRecord> find(const std::string& scan_id) const;
   std::optional<ScanRecord> find_by_client_id(const std::string& client_scan_id) const;
   std::vector<ScanRecord> list_newest_first(std::size_t limit) const;
   std::vector<ScanRecord> queued_oldest_first() const;  // acknowledged, no result
-  ScanInput load_scan_input(const std::string& scan_id) const;
+  PushedScan load_scan_input(const std::string& scan_id) const;
 
   // Stores the result files (name -> bytes, names like "field.nii.gz" or
   // "models/brain.vtp") and marks the scan done, finished at finished_at
@@ -154,7 +157,7 @@ class CaseStore {
 
 // A stable content digest (FNV-1a 64 over the frames, hex): equal bytes give
 // equal digests; used only to tell a repeated push from a conflicting one.
-std::string content_digest(const ScanInput& input);
+std::string content_digest(const PushedScan& input);
 
 const char* to_string(StoredScanState state);
 

@@ -78,7 +78,7 @@ void ServerCore::find_incomplete_results() {
     const auto names = store_.result_file_names(r.scan_id);
     bool register_again = false;
     for (const auto& row : kResultOutputs) {
-      if (!row.deferred || !part_expected(row.part, ScanFacts{r.has_image}) || stored_name(row.part, names)) continue;
+      if (!row.deferred || !part_expected(row.part, ScanFacts{r.has_image, r.has_labels}) || stored_name(row.part, names)) continue;
       if (!row.remade_from) {
         register_again = true;
       } else if (const auto source = stored_name(*row.remade_from, names)) {
@@ -121,7 +121,7 @@ void ServerCore::repair_scan(const std::string& scan_id) {
       throw InputError("it was registered against another preop than the one loaded");
     const auto names = store_.result_file_names(scan_id);
     DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
-    if (label_map) map_label_values(d.labels, label_map.get(), engine_.label_table());
+    if (label_map && d.labels) map_label_values(*d.labels, label_map.get(), engine_.label_table());
     engine_.register_scan(d.labels, d.image, d.read_seconds, [](const std::string&, double, double) {});
     engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
       if (std::find(names.begin(), names.end(), name) != names.end()) return;

@@ -34,11 +34,12 @@ void EngineAdapter::load_preop(const PreopImages& preop, std::optional<TetMesh> 
 // announcement (render_deferred): the label overlap metrics take ~0.3 s and
 // judge the result rather than make it (the quality gates ran before);
 // field.h5 repeats field.nii and cost ~0.35 s of encoding and fsync.
-EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
-                                              double read_seconds, const StageProgressFn& progress) {
+EngineScanOutput EngineAdapter::register_scan(const std::optional<LabelImage>& labels,
+                                              const std::optional<ImageF>& image, double read_seconds,
+                                              const StageProgressFn& progress) {
   deferred_.reset();
   ScanResult result =
-      session_.register_scan(IntraopInput{labels, image, read_seconds}, progress, /*defer_quality_metrics=*/true);
+      session_.register_scan(brainshift::ScanInput{labels, image, read_seconds}, progress, /*defer_quality_metrics=*/true);
   const auto t_outputs = std::chrono::steady_clock::now();
   const std::string outputs_stage(protocol::stages::kOutputs);
   progress(outputs_stage, 0.0, 0.0);
@@ -47,7 +48,10 @@ EngineScanOutput EngineAdapter::register_scan(const LabelImage& labels, const st
   progress(outputs_stage, 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
   output.result = {result.kind, result.fallback_reason};
   output.intraop_seconds = result.timings["intraop"].value(std::string(protocol::stages::kTotal), 0.0);
-  deferred_ = std::make_unique<Deferred>(Deferred{IntraopInput{labels, image}, std::move(result)});
+  // The deferred parts judge the labels the stages used: those pushed, or
+  // the engine's segmentation of the image.
+  const LabelImage& used = labels ? *labels : result.intraop_labels.value();
+  deferred_ = std::make_unique<Deferred>(Deferred{IntraopInput{used, image}, std::move(result)});
   return output;
 }
 

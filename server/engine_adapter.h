@@ -21,7 +21,7 @@ class EngineAdapter final : public EnginePort {
   bool ready() const override { return session_.ready(); }
   const TetMesh& mesh() const override { return session_.mesh(); }
   nlohmann::json preop_timings() const override { return session_.preop_timings(); }
-  EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
+  EngineScanOutput register_scan(const std::optional<LabelImage>& labels, const std::optional<ImageF>& image,
                                  double read_seconds, const StageProgressFn& progress) override;
   int ranks() const override { return session_.ranks(); }
   std::size_t max_image_bytes() const override { return session_.parameters().max_image_bytes; }

@@ -61,8 +61,10 @@ class EnginePort {
   virtual nlohmann::json preop_timings() const = 0;
   // Runs the intraop stages and encodes the outputs. read_seconds (the
   // daemon's decoding of the pushed bytes) is added to the "read" timing, as
-  // `brainshift register` adds its file reading.
-  virtual EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
+  // `brainshift register` adds its file reading. At least one of labels and
+  // image: without labels the engine segments the image, and the outputs
+  // then hold intraop_labels.nii and segmentation_confidence.nii.
+  virtual EngineScanOutput register_scan(const std::optional<LabelImage>& labels, const std::optional<ImageF>& image,
                                          double read_seconds, const StageProgressFn& progress) = 0;
   // The outputs of the scan register_scan last returned that are produced off
   // the latency path, after the result is stored and announced, in this

@@ -1,5 +1,7 @@
 #include "server/igtl_catalog.h"
 
+#include <tuple>
+
 #include <igtlImageMessage.h>
 #include <spdlog/spdlog.h>
 
@@ -84,6 +86,9 @@ igtl::ResultContent load_igtl_result(const CaseStore& store, const std::string& 
   if (auto f = read_part(store, scan_id, ResultPart::kWarpedLabels))
     try_decode(r, f->first,
                [&] { r.warped_labels = label_image_from_bytes(f->second, f->first, kMaxResultImageBytes); });
+  if (auto f = read_part(store, scan_id, ResultPart::kIntraopLabels))
+    try_decode(r, f->first,
+               [&] { r.intraop_labels = label_image_from_bytes(f->second, f->first, kMaxResultImageBytes); });
   for (const LabelEntry& e : labels.entries) {
     const std::string name = protocol::model_file_name(e.name);
     if (auto bytes = store.read_result_file(scan_id, name))
@@ -104,6 +109,7 @@ void IgtlCatalog::remember(const igtl::ResultContent& r) {
   m.field = r.field.has_value();
   m.image = r.warped_image.has_value();
   m.labels = r.warped_labels.has_value();
+  m.intraop_labels = r.intraop_labels.has_value();
   meta_[r.scan_id] = m;
 }
 
@@ -124,6 +130,7 @@ const IgtlCatalog::ScanMeta& IgtlCatalog::meta_of(const std::string& scan_id) {
   m.field = has_part(files, ResultPart::kDisplacement);
   m.image = has_part(files, ResultPart::kWarpedImage);
   m.labels = has_part(files, ResultPart::kWarpedLabels);
+  m.intraop_labels = has_part(files, ResultPart::kIntraopLabels);
   // The three share the intraop grid: the label map is the cheapest to decode.
   const ResultPart smallest = m.labels ? ResultPart::kWarpedLabels
                               : m.image ? ResultPart::kWarpedImage
@@ -169,14 +176,19 @@ igtl::PackedMessage IgtlCatalog::image_meta(const std::string& device) {
 igtl::PackedMessage IgtlCatalog::label_meta(const std::string& device) {
   // One element per structure of each label map (LBMETA's label value and
   // colour are a structure's), all naming the map's device.
+  // The engine's segmentation of an image pushed alone is a label map too.
   std::vector<igtl::LabelMetaEntry> entries;
   for (const auto& scan : listed_scans()) {
     const ScanMeta& m = meta_of(scan);
-    if (!m.labels) continue;
-    for (const LabelEntry& e : labels_.entries) {
-      if (e.value > 255) continue;  // LBMETA's label field is one byte
-      entries.push_back({scan + " " + e.name, scan + ".labels", scan + (m.image ? ".image" : ".labels"),
-                         static_cast<std::uint8_t>(e.value), e.colour, m.dims});
+    const std::string owner = scan + (m.image ? ".image" : ".labels");
+    for (const auto& [present, suffix, what] : {std::tuple{m.labels, ".labels", ""},
+                                                std::tuple{m.intraop_labels, ".seg", " (segmentation)"}}) {
+      if (!present) continue;
+      for (const LabelEntry& e : labels_.entries) {
+        if (e.value > 255) continue;  // LBMETA's label field is one byte
+        entries.push_back({scan + " " + e.name + what, scan + suffix, owner, static_cast<std::uint8_t>(e.value),
+                           e.colour, m.dims});
+      }
     }
   }
   return igtl::pack_label_meta(device, entries, {});
@@ -188,8 +200,9 @@ igtl::PackedMessage IgtlCatalog::image(const std::string& device) {
   std::string scan = scans.front(), part = "image";
   if (!is_our_name(device)) {
     if (!meta_of(scan).image) part = "labels";  // any available data
-  } else if (device == igtl::kFieldDevice || device == igtl::kWarpedLabelsDevice) {
-    part = device == igtl::kFieldDevice ? "field" : "labels";
+  } else if (device == igtl::kFieldDevice || device == igtl::kWarpedLabelsDevice ||
+             device == igtl::kIntraopLabelsDevice) {
+    part = device == igtl::kFieldDevice ? "field" : device == igtl::kWarpedLabelsDevice ? "labels" : "seg";
   } else if (device != igtl::kWarpedImageDevice) {
     const auto named = split_device(device);
     if (!named || std::find(scans.begin(), scans.end(), named->first) == scans.end())
@@ -199,16 +212,17 @@ igtl::PackedMessage IgtlCatalog::image(const std::string& device) {
   const auto t = meta_of(scan).time;
   // The reply is named as the query; an unnamed one names what it holds.
   const std::string reply = device.empty() ? scan + "." + part : device;
-  const ResultPart which = part == "field"    ? ResultPart::kDisplacement
-                           : part == "labels" ? ResultPart::kWarpedLabels
-                           : part == "image"  ? ResultPart::kWarpedImage
-                                              : ResultPart::kDisplacementItk;
+  const ResultPart which = part == "field"            ? ResultPart::kDisplacement
+                           : part == "labels"         ? ResultPart::kWarpedLabels
+                           : part == "seg"            ? ResultPart::kIntraopLabels
+                           : part == "image"          ? ResultPart::kWarpedImage
+                                                      : ResultPart::kDisplacementItk;
   if (which == ResultPart::kDisplacementItk) return null_reply("IMAGE", device);
   const auto f = read_part(store_, scan, which);
   if (!f) return null_reply("IMAGE", device);
   if (which == ResultPart::kDisplacement)
     return igtl::pack_field(reply, vector_image_from_bytes(f->second, f->first, kMaxResultImageBytes), t);
-  if (which == ResultPart::kWarpedLabels)
+  if (which == ResultPart::kWarpedLabels || which == ResultPart::kIntraopLabels)
     return igtl::pack_labels(reply, label_image_from_bytes(f->second, f->first, kMaxResultImageBytes), t);
   return igtl::pack_image(reply, scalar_image_from_bytes(f->second, f->first, kMaxResultImageBytes), t);
 }

@@ -5,8 +5,10 @@
 // GET_POLYDATA, GET_STATUS). PROTOCOL.md section 16.6.
 //
 // Devices of the newest kIgtlListedScans done scans: "<scan_id>.image"
-// (warped image), "<scan_id>.field", "<scan_id>.labels" (warped labels);
-// the pushed names (bs.field, bs.warped_image, bs.warped_labels,
+// (warped image), "<scan_id>.field", "<scan_id>.labels" (warped labels),
+// "<scan_id>.seg" (the engine's segmentation of an image alone: the header's
+// 20 bytes leave 7 characters after the scan id);
+// the pushed names (bs.field, bs.warped_image, bs.warped_labels, bs.intraop_labels,
 // bs.model.<short name>, bs.status) name the newest done scan's parts.
 // Used by the gateway thread only (not thread-safe).
 #include <array>
@@ -54,6 +56,7 @@ class IgtlCatalog {
     igtl::TimeStamp time;
     std::array<int, 3> dims{};  // field, image and labels share the intraop grid
     bool field = false, image = false, labels = false;
+    bool intraop_labels = false;  // the engine's segmentation (an image pushed alone)
   };
   std::vector<std::string> listed_scans() const;  // done, newest first
   const ScanMeta& meta_of(const std::string& scan_id);

@@ -267,6 +267,7 @@ std::vector<PackedMessage> encode_result(const ResultContent& r) {
   if (r.warped_image) add([&] { return pack_image(kWarpedImageDevice, *r.warped_image, t); });
   if (r.warped_labels)
     add([&] { return pack_labels(kWarpedLabelsDevice, *r.warped_labels, t); });
+  if (r.intraop_labels) add([&] { return pack_labels(kIntraopLabelsDevice, *r.intraop_labels, t); });
   for (const auto& [short_name, surface] : r.models)
     add([&] { return pack_polydata(model_device(short_name), surface, t); });
   out.push_back(pack_result_status(kStatusDevice, status));

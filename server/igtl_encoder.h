@@ -31,6 +31,9 @@ inline constexpr std::size_t kMaxDeviceName = 19;
 inline constexpr const char* kFieldDevice = "bs.field";
 inline constexpr const char* kWarpedImageDevice = "bs.warped_image";
 inline constexpr const char* kWarpedLabelsDevice = "bs.warped_labels";
+// The segmentation the engine made of an image pushed alone (the
+// intraop_labels part): a label map on the intraop grid, as the warped labels.
+inline constexpr const char* kIntraopLabelsDevice = "bs.intraop_labels";
 // The uncertainty map (float32 mm, 95 % band radius): made after the answer,
 // so it follows the result's STATUS as a message of its own.
 inline constexpr const char* kUncertaintyDevice = "bs.uncertainty";
@@ -110,6 +113,7 @@ struct ResultContent {
   std::optional<VectorImage3> field;
   std::optional<ImageF> warped_image;
   std::optional<LabelImage> warped_labels;
+  std::optional<LabelImage> intraop_labels;  // only for a scan pushed as an image alone
   std::vector<std::pair<std::string, TriSurface>> models;  // by short name, in label-table order
   std::vector<std::string> problems;  // parts that could not be decoded (named in the STATUS)
 };
@@ -120,7 +124,8 @@ std::string status_text(const ResultContent& r);
 // The STATUS that closes a result (also GET_STATUS's reply).
 PackedMessage pack_result_status(const std::string& device, const ResultContent& r);
 
-// Field, warped image, warped labels, the models (in structure order), then
+// Field, warped image, warped labels, the engine's segmentation (an image
+// pushed alone), the models (in structure order), then
 // the STATUS, which closes the result: a receiver has the whole set when it
 // sees it. A part that cannot be packed is left out and named in the STATUS.
 std::vector<PackedMessage> encode_result(const ResultContent& r);

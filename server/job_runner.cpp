@@ -246,7 +246,7 @@ void ServerCore::run_scan(const std::string& scan_id) {
     if (record->preop_id != preop_id)
       throw InputError("pushed against preop " + record->preop_id + " but " + preop_id + " is loaded");
     if (!decoded) decoded = std::make_shared<DecodedScan>(decode_scan(store_.load_scan_input(scan_id)));
-    if (label_map) map_label_values(decoded->labels, label_map.get(), engine_.label_table());
+    if (label_map && decoded->labels) map_label_values(*decoded->labels, label_map.get(), engine_.label_table());
     // "decode" (the pushed bytes to images) is the daemon's; the engine logs its own "read".
     progress(std::string(stages::kDecode), 1.0, decoded->read_seconds);
     EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, progress);

@@ -66,7 +66,7 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const s
     }
     // Why a part is missing, from its row (result_outputs.h).
     const ResultOutput& row = result_output(part);
-    const std::string_view not_expected = why_not_expected(part, ScanFacts{record.has_image});
+    const std::string_view not_expected = why_not_expected(part, ScanFacts{record.has_image, record.has_labels});
     const bool pending = not_expected.empty() && row.deferred && deferred_pending;
     const std::string why = !not_expected.empty() ? std::string(not_expected)
                             : pending             ? "made just after the answer; ask again shortly"
@@ -175,7 +175,8 @@ Message ServerCore::on_scan_push(const Message& m) {
   if (preop_id.empty())
     return make_error_reply(rid, ErrorCode::kNotReady, "no preop is loaded: send preop.load first");
 
-  ScanInput input{req.labels.bytes, req.image ? std::optional<std::string>(req.image->bytes) : std::nullopt};
+  PushedScan input{req.labels ? std::optional<std::string>(req.labels->bytes) : std::nullopt,
+                   req.image ? std::optional<std::string>(req.image->bytes) : std::nullopt};
   const std::string digest = content_digest(input);
   if (req.client_scan_id) {
     if (auto seen = store_.find_by_client_id(*req.client_scan_id)) {

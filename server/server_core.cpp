@@ -79,7 +79,7 @@ StatusReply ServerCore::status() const {
   return r;
 }
 
-ServerCore::DecodedScan ServerCore::decode_scan(const ScanInput& input) const {
+ServerCore::DecodedScan ServerCore::decode_scan(const PushedScan& input) const {
   const auto t0 = Clock::now();
   DecodedScan d;
   const std::size_t max_bytes = engine_.max_image_bytes();
@@ -89,10 +89,10 @@ ServerCore::DecodedScan ServerCore::decode_scan(const ScanInput& input) const {
   if (input.image_bytes)
     image = std::async(std::launch::async,
                        [&] { return scalar_image_from_bytes(*input.image_bytes, "image", max_bytes); });
-  d.labels = label_image_from_bytes(input.labels_bytes, "labels", max_bytes);
+  if (input.labels_bytes) d.labels = label_image_from_bytes(*input.labels_bytes, "labels", max_bytes);
   if (image.valid()) {
     d.image = image.get();
-    if (!d.image->grid.same_geometry(d.labels.grid))
+    if (d.labels && !d.image->grid.same_geometry(d.labels->grid))
       throw InputError("image: grid differs from the labels' grid (dims or world_from_voxel)");
   }
   d.read_seconds = seconds_since(t0);

@@ -120,7 +120,7 @@ class ServerCore {
   void repair_scan(const std::string& scan_id);
   void emit(protocol::Message event);
   void log_stage(protocol::StageTiming timing);
-  DecodedScan decode_scan(const ScanInput& input) const;
+  DecodedScan decode_scan(const PushedScan& input) const;
 
   ServerSettings settings_;
   CaseStore& store_;

@@ -30,7 +30,7 @@ struct ServerCore::PreopJob {
 };
 
 struct ServerCore::DecodedScan {
-  LabelImage labels;
+  std::optional<LabelImage> labels;  // absent: the engine segments the image
   std::optional<ImageF> image;
   double read_seconds = 0.0;
 };

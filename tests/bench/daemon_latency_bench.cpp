@@ -4,7 +4,8 @@
 //     come minutes apart; the deferred outputs after scan.done are therefore
 //     never in the way of the next scan), p50/p95 over --scans scans:
 //     with --client, the user's command `brainshift push --labels L --image I
-//     --wait` from its start to its exit (client_push_wait_s), and, from the
+//     --wait` (without --labels: an image alone, the daemon segments it) from
+//     its start to its exit (client_push_wait_s), and, from the
 //     same start, this benchmark's own receipt of event.scan.done
 //     (client_start_to_done_event_s); without it, scan.push sent by this
 //     process -> event.scan.done received (push_to_result_ready_s);
@@ -183,7 +184,7 @@ int main(int argc, char** argv) {
   std::vector<int> pids;
   app.add_option("--server", server, "request endpoint")->required();
   app.add_option("--events", events, "event endpoint")->required();
-  app.add_option("--labels", labels_path, "intraop labels NIfTI (as the scanner sends it)")->required();
+  app.add_option("--labels", labels_path, "intraop labels NIfTI (as the scanner sends it); none: the image alone");
   app.add_option("--image", image_path, "intraop T1 NIfTI");
   app.add_option("--scans", scans, "scans to push");
   app.add_flag("--load-preop", load_preop, "send preop.load (default atlas) first and time the warm-up");
@@ -192,6 +193,10 @@ int main(int argc, char** argv) {
   app.add_option("--client", client, "the brainshift CLI: time `brainshift push --wait` as the user runs it");
   app.add_option("--pids", pids, "daemon processes (every MPI rank) whose VmRSS is reported")->delimiter(',');
   CLI11_PARSE(app, argc, argv);
+  if (labels_path.empty() && image_path.empty()) {
+    std::cerr << "give --labels, --image or both\n";
+    return 2;
+  }
 
   try {
     if (restarted_at_ns > 0) {
@@ -228,6 +233,7 @@ int main(int argc, char** argv) {
     Bench b(server, events);
     nlohmann::json out;
     out["scans"] = scans;
+    out["input"] = labels_path.empty() ? "image_only" : image_path.empty() ? "labels_only" : "labels_and_image";
     if (load_preop) {
       PreopLoadRequest r;
       r.use_default_atlas = true;
@@ -257,7 +263,7 @@ int main(int argc, char** argv) {
     b.stages_.clear();
     if (client.empty()) {
       ScanPushRequest push;
-      push.labels = media::nifti_frame("labels", read_file(labels_path));
+      if (!labels_path.empty()) push.labels = media::nifti_frame("labels", read_file(labels_path));
       if (!image_path.empty()) push.image = media::nifti_frame("image", read_file(image_path));
       for (int i = 0; i < scans; ++i) {
         b.wait_idle();
@@ -279,7 +285,8 @@ int main(int argc, char** argv) {
         std::cerr << reply.scan_id << ": " << latency.back() << " s\n";
       }
     } else {
-      std::vector<std::string> argv{client, "--server", server, "--events", events, "push", "--labels", labels_path};
+      std::vector<std::string> argv{client, "--server", server, "--events", events, "push"};
+      if (!labels_path.empty()) argv.insert(argv.end(), {"--labels", labels_path});
       if (!image_path.empty()) argv.insert(argv.end(), {"--image", image_path});
       argv.push_back("--wait");
       for (int i = 0; i < scans; ++i) {

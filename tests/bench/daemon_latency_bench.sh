@@ -9,11 +9,13 @@
 # RESTART_SCANS (default 2) scans without waiting, kill -9s the daemon and
 # times the restart from the stored preop: launch -> ready -> all processed.
 # Prints one JSON object per NP, as a JSON array.
-# Usage: [PRESET=name] [DIRECT=1] [KEEP=1] [IGTL=1] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
+# Usage: [PRESET=name] [DIRECT=1] [KEEP=1] [IGTL=1] [IMAGE_ONLY=1] tests/bench/daemon_latency_bench.sh BUILD_DIR [SCANS] [NP...]
 #        (default 20 scans, NP 1 2, phantom preset left_frontal_sinking_12mm;
 #        DIRECT=1: the benchmark pushes itself, scan.push sent -> scan.done;
 #        IGTL=1: the OpenIGTLink gateway on, with one receiver connected
-#        (brainshift_igtl_receive_bench); its JSON goes to stderr)
+#        (brainshift_igtl_receive_bench); its JSON goes to stderr;
+#        IMAGE_ONLY=1: the scans are pushed as the image alone, the daemon
+#        segments them (PROTOCOL.md 5.3))
 set -euo pipefail
 BUILD=$(cd "${1:?usage: $0 BUILD_DIR [SCANS] [NP...]}" && pwd)
 SCANS=${2:-20}
@@ -27,6 +29,8 @@ trap bench_cleanup EXIT
 echo "bench: making the phantom scan" >&2
 "$CLIENT" phantom --atlas-cache "$ATLAS_CACHE" --preset "${PRESET:-left_frontal_sinking_12mm}" --out "$WORK/phantom" >/dev/null
 
+labels_args=(--labels "$WORK/phantom/intraop_labels.nii.gz")
+[[ ${IMAGE_ONLY:-0} == 1 ]] && labels_args=()
 client_args=(--client "$CLIENT")
 [[ -n ${DIRECT:-} ]] && client_args=()
 echo "[" 
@@ -46,7 +50,7 @@ for np in "${NPS[@]}"; do
   fi
   [[ $first -eq 1 ]] || echo ","
   first=0
-  "$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$WORK/phantom/intraop_labels.nii.gz" \
+  "$BENCH" --server "$SERVER" --events "$EVENTS" "${labels_args[@]}" \
     --image "$WORK/phantom/intraop_t1.nii.gz" --scans "$SCANS" --load-preop --pids "$pids" \
     "${client_args[@]}" |
     sed "1s/^{/{\n  \"np\": $np,/"
@@ -54,14 +58,14 @@ for np in "${NPS[@]}"; do
   # Restart after kill -9 with the preop in the store and RESTART_SCANS
   # acknowledged scans not yet processed: launch -> ready, -> all processed.
   for _ in $(seq 1 "${RESTART_SCANS:-2}"); do
-    "$CLIENT" --server "$SERVER" push --labels "$WORK/phantom/intraop_labels.nii.gz" \
+    "$CLIENT" --server "$SERVER" push "${labels_args[@]}" \
       --image "$WORK/phantom/intraop_t1.nii.gz" >/dev/null
   done
   kill9_daemon "$run"
   t_restart=$(date +%s%N)
   start_daemon "$run" "$np"
   echo ","
-  "$BENCH" --server "$SERVER" --events "$EVENTS" --labels "$WORK/phantom/intraop_labels.nii.gz" \
+  "$BENCH" --server "$SERVER" --events "$EVENTS" --image "$WORK/phantom/intraop_t1.nii.gz" \
     --restarted-at "$t_restart" | sed "1s/^{/{\n  \"np\": $np, \"restart_after_kill9\": true,/"
   stop_daemon
 done

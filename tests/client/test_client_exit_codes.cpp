@@ -135,6 +135,19 @@ TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
   EXPECT_TRUE(d.engine.last_scan_image->grid.same_geometry(expected.grid));
   EXPECT_EQ(d.engine.last_scan_image->voxels, expected.voxels);
 
+  // The series alone (PROTOCOL.md 5.3, revision 4): sent without labels, the
+  // daemon segments it; pull --scene brings the segmentation into the scene.
+  r = d.client({"push", "--dicom", (d.dir.path() / "series").string(), "--wait", "--wait-timeout", "30"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+  EXPECT_FALSE(d.engine.last_scan_had_labels);
+  EXPECT_EQ(d.engine.last_scan_image->voxels, expected.voxels);
+  const std::string image_only = r.out.substr(0, r.out.find('\n'));
+  r = d.client({"pull", "--scan", image_only, "--out", (d.dir.path() / "image_only").string(), "--scene"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+  EXPECT_TRUE(fs::is_regular_file(d.dir.path() / "image_only" / "intraop_labels.nii.gz")) << r.out;
+  EXPECT_NE(e2e::read_file(d.dir.path() / "image_only" / "scene.mrml").find("intraop_labels.nii.gz"),
+            std::string::npos);
+
   // The T1 as NRRD (as Slicer saves it): converted to NIfTI by the client too.
   write_nrrd_scalar(d.dir.path() / "t1.nrrd", expected);
   r = d.client({"push", "--labels", labels_file.string(), "--image", (d.dir.path() / "t1.nrrd").string(), "--wait",

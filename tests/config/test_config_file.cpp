@@ -218,3 +218,71 @@ TEST(Config, SurfaceRepairAndSelfContactAreConfiguredWithTheEnginesDefaults) {
 TEST(ConfigFile, ShippedBrainshiftdTomlIsAccepted) {
   EXPECT_NO_THROW(config::pipeline_parameters_from_file(BRAINSHIFT_SOURCE_DIR "/config/brainshiftd.toml"));
 }
+
+// [auto_segmentation]: the shipped file documents the engine's defaults (an
+// image-only scan behaves the same with or without it), values override, and
+// a bad value is refused naming the section and key.
+TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
+  const auto file = config::pipeline_parameters_from_text(config::default_config_text(), "built-in").auto_segmentation;
+  const AutoSegmentationParameters code;
+  EXPECT_DOUBLE_EQ(file.prior_width_affine_mm, code.prior_width_affine_mm);
+  EXPECT_DOUBLE_EQ(file.prior_width_nonrigid_mm, code.prior_width_nonrigid_mm);
+  EXPECT_DOUBLE_EQ(file.ventricle_shift_affine_mm, code.ventricle_shift_affine_mm);
+  EXPECT_DOUBLE_EQ(file.prior_inward_width_affine_mm, code.prior_inward_width_affine_mm);
+  EXPECT_DOUBLE_EQ(file.ventricle_prior_width_mm, code.ventricle_prior_width_mm);
+  EXPECT_EQ(file.rematch_rounds, code.rematch_rounds);
+  EXPECT_DOUBLE_EQ(file.max_brain_volume_change, code.max_brain_volume_change);
+  EXPECT_DOUBLE_EQ(file.min_ventricle_fraction, code.min_ventricle_fraction);
+  EXPECT_DOUBLE_EQ(file.min_surface_confidence, code.min_surface_confidence);
+  EXPECT_DOUBLE_EQ(file.max_uncertain_surface_fraction, code.max_uncertain_surface_fraction);
+  EXPECT_EQ(file.check_given_labels, code.check_given_labels);
+  for (const auto* c : {&file.classifier, &file.label_image_check.classifier}) {
+    EXPECT_DOUBLE_EQ(c->prior_floor, code.classifier.prior_floor);
+    EXPECT_DOUBLE_EQ(c->margin_mm, code.classifier.margin_mm);
+    EXPECT_DOUBLE_EQ(c->min_fluid_contrast_sd, code.classifier.min_fluid_contrast_sd);
+    EXPECT_EQ(c->em.bias_degree, code.classifier.em.bias_degree);
+    EXPECT_EQ(c->em.max_iterations, code.classifier.em.max_iterations);
+    EXPECT_DOUBLE_EQ(c->em.tolerance, code.classifier.em.tolerance);
+    EXPECT_EQ(c->em.fit_samples, code.classifier.em.fit_samples);
+    EXPECT_DOUBLE_EQ(c->em.mrf_beta, code.classifier.em.mrf_beta);
+    EXPECT_EQ(c->em.mrf_sweeps, code.classifier.em.mrf_sweeps);
+  }
+  EXPECT_DOUBLE_EQ(file.label_image_check.prior_width_mm, code.label_image_check.prior_width_mm);
+  EXPECT_DOUBLE_EQ(file.label_image_check.min_posterior, code.label_image_check.min_posterior);
+  EXPECT_DOUBLE_EQ(file.label_image_check.band_mm, code.label_image_check.band_mm);
+  EXPECT_DOUBLE_EQ(file.label_image_check.max_disagreement_fraction,
+                   code.label_image_check.max_disagreement_fraction);
+
+  const auto p = config::pipeline_parameters_from_text(
+      "[auto_segmentation]\nrematch_rounds = 0\ncheck_given_labels = false\n"
+      "[auto_segmentation.classifier]\nmrf_beta = 0.0\nbias_degree = 1\n"
+      "[auto_segmentation.label_check]\nband_mm = 2.0\n",
+      "t").auto_segmentation;
+  EXPECT_EQ(p.rematch_rounds, 0);
+  EXPECT_FALSE(p.check_given_labels);
+  EXPECT_DOUBLE_EQ(p.classifier.em.mrf_beta, 0.0);
+  EXPECT_EQ(p.classifier.em.bias_degree, 1);
+  EXPECT_EQ(p.label_image_check.classifier.em.bias_degree, 1);  // one classifier for both paths
+  EXPECT_DOUBLE_EQ(p.label_image_check.band_mm, 2.0);
+}
+
+TEST(Config, BadAutoSegmentationValuesAreErrorsNamingSectionAndKey) {
+  const std::string volume = message_of("[auto_segmentation]\nmax_brain_volume_change = 1.5\n");
+  EXPECT_NE(volume.find("[auto_segmentation]"), std::string::npos) << volume;
+  EXPECT_NE(volume.find("max_brain_volume_change"), std::string::npos) << volume;
+  EXPECT_NE(message_of("[auto_segmentation]\nrematch_rounds = 9\n").find("rematch_rounds"), std::string::npos);
+  EXPECT_NE(message_of("[auto_segmentation]\nprior_width_affine_mm = 0\n").find("prior_width_affine_mm"),
+            std::string::npos);
+  EXPECT_NE(message_of("[auto_segmentation]\nventricle_shift_affine_mm = -1\n").find("ventricle_shift_affine_mm"),
+            std::string::npos);
+  EXPECT_NE(message_of("[auto_segmentation]\ncheck_given_labels = 1\n").find("check_given_labels"),
+            std::string::npos);
+  const std::string floor = message_of("[auto_segmentation.classifier]\nprior_floor = 0.7\n");
+  EXPECT_NE(floor.find("auto_segmentation.classifier"), std::string::npos) << floor;
+  EXPECT_NE(floor.find("prior_floor"), std::string::npos) << floor;
+  EXPECT_NE(message_of("[auto_segmentation.classifier]\nmax_iterations = 0\n").find("max_iterations"),
+            std::string::npos);
+  EXPECT_NE(message_of("[auto_segmentation.label_check]\nmin_posterior = 0.3\n").find("min_posterior"),
+            std::string::npos);
+  EXPECT_NE(message_of("[auto_segmentation]\nprior_widht_mm = 3\n").find("prior_widht_mm"), std::string::npos);
+}

@@ -102,10 +102,25 @@ void Client::load_preop(const std::string& t1_bytes, const std::string& labels_b
   throw_if_error(*r);
 }
 
+DaemonSpec spec_in(const fs::path& dir, const std::string& name) {
+  DaemonSpec s;
+  s.work_dir = dir;
+  s.config = dir / "test.toml";
+  s.store = dir / "store";
+  s.name = name;
+  return s;
+}
+
+RunResult run_cli(const Daemon& d, const fs::path& work_dir, const std::vector<std::string>& args, double timeout_s) {
+  std::vector<std::string> argv = {BRAINSHIFT_BIN, "--server", d.endpoint, "--events", d.events, "--timeout", "20"};
+  argv.insert(argv.end(), args.begin(), args.end());
+  return run(argv, work_dir, timeout_s);
+}
+
 Message Client::push(const std::string& labels_bytes, const std::string& image_bytes,
                      const std::optional<std::string>& client_scan_id) {
   ScanPushRequest req;
-  req.labels = media::nifti_frame("labels", labels_bytes);
+  if (!labels_bytes.empty()) req.labels = media::nifti_frame("labels", labels_bytes);
   if (!image_bytes.empty()) req.image = media::nifti_frame("image", image_bytes);
   req.client_scan_id = client_scan_id;
   auto r = call(make_scan_push_request(next_id(), req), 60s);

@@ -52,6 +52,13 @@ class Daemon {
   pid_t rank0_pid_ = -1;
 };
 
+// A daemon working in dir: configuration dir/test.toml, store dir/store.
+DaemonSpec spec_in(const std::filesystem::path& dir, const std::string& name);
+// The brainshift CLI against the daemon (its endpoints, 20 s per request),
+// run in work_dir.
+RunResult run_cli(const Daemon& d, const std::filesystem::path& work_dir, const std::vector<std::string>& args,
+                  double timeout_s = 600);
+
 // One DEALER connection; calls wait for their own reply (by request_id).
 class Client {
  public:
@@ -63,7 +70,8 @@ class Client {
 
   protocol::StatusReply status();
   void load_preop(const std::string& t1_bytes, const std::string& labels_bytes);
-  // The raw reply (a scan.push reply or an error).
+  // The raw reply (a scan.push reply or an error). An empty labels or image
+  // is not sent (an image alone is a scan).
   protocol::Message push(const std::string& labels_bytes, const std::string& image_bytes,
                          const std::optional<std::string>& client_scan_id);
   protocol::Message result(const std::string& scan_id, const std::vector<protocol::ResultPart>& parts);

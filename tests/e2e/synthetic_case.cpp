@@ -38,7 +38,7 @@ void write_synthetic_preop(const std::filesystem::path& dir) {
 namespace {
 
 void write_scan_on(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
-                   const Grid3& g) {
+                   const Grid3& g, bool scanner_noise = false) {
   const Head h = synthetic_head();
   Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
   preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
@@ -46,17 +46,26 @@ void write_scan_on(const std::filesystem::path& dir, const std::string& prefix, 
   for (auto& v : labels.voxels)
     if (v == 4) v = 1;  // intraop labels: 1 brain, 2 ventricles
   write_label_image(dir / (prefix + "_labels.nii.gz"), labels);
-  write_scalar_image(dir / (prefix + "_t1.nii.gz"), resample_linear(h.t1, g, preop_from_intraop));
+  const ImageF t1 = resample_linear(h.t1, g, preop_from_intraop);
+  write_scalar_image(dir / (prefix + "_t1.nii.gz"), scanner_noise ? test::scanner_image(t1) : t1);
+}
+
+Grid3 imri_grid(double voxel_scale) {
+  // iMRI-like: thick slices, its own field of view.
+  auto n = [voxel_scale](int dim) { return static_cast<int>(dim / voxel_scale + 0.5); };
+  return grid({n(96), n(110), n(44)}, Eigen::Vector3d(1.4, 1.4, 2.8) * voxel_scale, {-68, -77, -62});
 }
 
 }  // namespace
 
 void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
                           double voxel_scale) {
-  // iMRI-like: thick slices, its own field of view.
-  auto n = [voxel_scale](int dim) { return static_cast<int>(dim / voxel_scale + 0.5); };
-  write_scan_on(dir, prefix, shift_mm,
-                grid({n(96), n(110), n(44)}, Eigen::Vector3d(1.4, 1.4, 2.8) * voxel_scale, {-68, -77, -62}));
+  write_scan_on(dir, prefix, shift_mm, imri_grid(voxel_scale));
+}
+
+void write_synthetic_noisy_scan(const std::filesystem::path& dir, const std::string& prefix,
+                                const Eigen::Vector3d& shift_mm) {
+  write_scan_on(dir, prefix, shift_mm, imri_grid(1.0), true);
 }
 
 void write_synthetic_oblique_las_scan(const std::filesystem::path& dir, const std::string& prefix,

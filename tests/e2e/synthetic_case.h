@@ -15,6 +15,10 @@ void write_synthetic_preop(const std::filesystem::path& dir);
 // same field of view): smaller results, for the soak test.
 void write_synthetic_scan(const std::filesystem::path& dir, const std::string& prefix, const Eigen::Vector3d& shift_mm,
                           double voxel_scale = 1.0);
+// The same scan as write_synthetic_scan with a scanner's noise and bias on
+// the image (test::scanner_image): what an automatic segmentation needs.
+void write_synthetic_noisy_scan(const std::filesystem::path& dir, const std::string& prefix,
+                                const Eigen::Vector3d& shift_mm);
 // The same scan on an oblique LAS grid (i to the left, tilted 12 degrees)
 // with the same field of view.
 void write_synthetic_oblique_las_scan(const std::filesystem::path& dir, const std::string& prefix,

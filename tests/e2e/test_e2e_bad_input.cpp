@@ -295,8 +295,8 @@ TEST_F(BadInputE2E, ProtocolBatteryGetsTypedErrorsAndTheDaemonKeepsServing) {
        "b", ErrorCode::kTooLarge},
       {"undeclared frame name", {header(push_header("b", {{"labels", n_labels}, {"extra", 2}})), labels, "{}"}, "b",
        ErrorCode::kInvalidRequest},
-      {"scan.push without labels", {header(push_header("b", {{"image", image.size()}})), image}, "b",
-       ErrorCode::kInvalidRequest},
+      // An image alone is a scan (revision 4); neither labels nor image is not.
+      {"scan.push with neither labels nor image", {header(push_header("b", {}))}, "b", ErrorCode::kInvalidRequest},
       {"labels frame that is not gzip", {header(push_header("b", {{"labels", 9}})), "not gzip!"}, "b",
        ErrorCode::kInvalidRequest},
       {"unknown media type", {header(push_header("b", {{"labels", n_labels}}, "image/jpeg")), labels}, "b",

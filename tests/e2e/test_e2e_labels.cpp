@@ -95,18 +95,9 @@ class LabelTableE2E : public ::testing::Test {
   fs::path dir = tmp.path();
 
   RunResult cli(const Daemon& d, std::vector<std::string> args, double timeout_s = 600) {
-    std::vector<std::string> argv = {BRAINSHIFT_BIN, "--server", d.endpoint, "--events", d.events, "--timeout", "20"};
-    argv.insert(argv.end(), args.begin(), args.end());
-    return run(argv, dir, timeout_s);
+    return run_cli(d, dir, args, timeout_s);
   }
-  DaemonSpec spec(const std::string& name) const {
-    DaemonSpec s;
-    s.work_dir = dir;
-    s.config = dir / "test.toml";
-    s.store = dir / "store";
-    s.name = name;
-    return s;
-  }
+  DaemonSpec spec(const std::string& name) const { return spec_in(dir, name); }
   // load-preop with these labels (and extra arguments), push the scan with
   // these labels and wait, pull it with a scene into pulled/: the first
   // command that fails, or the pull.

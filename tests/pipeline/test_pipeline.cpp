@@ -511,49 +511,16 @@ TEST_F(PipelineTest, WithoutACavityTheTumorIsNotTakenForResected) {
 
 // ---- Scans given as an image alone, and labels checked against their image ----
 
-namespace {
-
-// The synthetic head's image with mild Rician-like noise and a smooth bias,
-// as a scanner would give it (the classifier is fitted on the noise).
-ImageF scanner_image(const ImageF& clean) {
-  ImageF out = clean;
-  std::uint32_t state = 12345;
-  auto uniform = [&] {
-    state = state * 1664525u + 1013904223u;
-    return (state >> 8) / 16777216.0;
-  };
-  for (int k = 0; k < out.grid.dims[2]; ++k)
-    for (int j = 0; j < out.grid.dims[1]; ++j)
-      for (int i = 0; i < out.grid.dims[0]; ++i) {
-        const double b = 1.0 + 0.15 * (i / double(out.grid.dims[0]) - 0.5) + 0.1 * (k / double(out.grid.dims[2]) - 0.5);
-        const double n = 3.0 * std::sqrt(-2 * std::log(uniform() + 1e-12)) * std::cos(6.283185307 * uniform());
-        out.at(i, j, k) = static_cast<float>(std::max(0.0, b * out.at(i, j, k) + n));
-      }
-  return out;
-}
-
-double outline_dice(const LabelImage& a, const LabelImage& b) {
-  std::size_t both = 0, na = 0, nb = 0;
-  for (std::size_t v = 0; v < a.voxels.size(); ++v) {
-    both += a.voxels[v] && b.voxels[v];
-    na += a.voxels[v] != 0;
-    nb += b.voxels[v] != 0;
-  }
-  return 2.0 * static_cast<double>(both) / static_cast<double>(na + nb);
-}
-
-}  // namespace
-
 TEST_F(PipelineTest, AScanGivenAsAnImageAloneIsSegmentedAndRegistered) {
   const Eigen::Vector3d shift(3.0, -2.0, 2.0);
   const IntraopInput truth = translated_scan(*preop_, shift);
   ScanInput scan;
-  scan.image = scanner_image(*truth.t1);
+  scan.image = test::scanner_image(*truth.t1);
   const ScanResult r = session_->register_scan(scan, nullptr);
   EXPECT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
   ASSERT_TRUE(r.intraop_labels && r.segmentation_confidence);
   EXPECT_TRUE(r.intraop_labels->grid.same_geometry(truth.labels.grid));
-  EXPECT_GT(outline_dice(*r.intraop_labels, truth.labels), 0.95);
+  EXPECT_GT(test::outline_dice(*r.intraop_labels, truth.labels), 0.95);
   EXPECT_GT(dice_per_label(*r.intraop_labels, truth.labels, {2}).front().dice, 0.8);
   std::vector<double> errors;
   for (std::size_t v = 0; v < truth.labels.voxels.size(); ++v)
@@ -573,7 +540,7 @@ TEST_F(PipelineTest, AnImageWithoutFluidContrastIsRefusedWithTheReason) {
   // Ventricles as bright as white matter: nothing in the image shows them.
   for (std::size_t v = 0; v < scan.image->voxels.size(); ++v)
     if (truth.labels.voxels[v] == 2) scan.image->voxels[v] = 100.f;
-  scan.image = scanner_image(*scan.image);
+  scan.image = test::scanner_image(*scan.image);
   try {
     session_->register_scan(scan, nullptr);
     FAIL() << "no error";
@@ -587,7 +554,7 @@ TEST_F(PipelineTest, LabelsThatLeakBeyondTheirImageAreReportedAndNotACleanResult
   const IntraopInput truth = translated_scan(*preop_, {2, 1, 0});
   ScanInput good;
   good.labels = truth.labels;
-  good.image = scanner_image(*truth.t1);
+  good.image = test::scanner_image(*truth.t1);
   const ScanResult ok = session_->register_scan(good, nullptr);
   EXPECT_EQ(ok.kind, ResultKind::nonrigid) << ok.metrics["label_image_check"].dump();
   EXPECT_EQ(ok.metrics["label_image_check"].value("passed", false), true) << ok.metrics["label_image_check"].dump();

@@ -166,7 +166,8 @@ TEST(ScanPush, RoundTripWithImageAndClientScanId) {
   bp::ScanPushRequest r{labels_frame(), bp::media::nifti_frame("image", bp::testing::fake_gzip(2048)),
                         "or1-scan-0042"};
   const auto back = bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", r)));
-  EXPECT_EQ(back.labels.bytes, r.labels.bytes);
+  ASSERT_TRUE(back.labels.has_value());
+  EXPECT_EQ(back.labels->bytes, r.labels->bytes);
   ASSERT_TRUE(back.image.has_value());
   EXPECT_EQ(back.image->bytes, r.image->bytes);
   EXPECT_EQ(back.image->media_type, bp::media::kNiftiGz);
@@ -182,10 +183,28 @@ TEST(ScanPush, LabelsOnlyIsEnough) {
   EXPECT_FALSE(back.client_scan_id.has_value());
 }
 
-TEST(ScanPush, RefusesMissingLabelsExtraFramesAndBadIds) {
-  auto no_labels = bp::make_scan_push_request("q", {labels_frame()});
-  no_labels.frames[0].name = "image";
-  EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(no_labels)); }), ErrorCode::kInvalidRequest);
+// Revision 4: an image alone is a scan (the daemon segments it).
+TEST(ScanPush, ImageAloneIsEnough) {
+  bp::ScanPushRequest r;
+  r.image = bp::media::nifti_frame("image", bp::testing::fake_gzip(2048));
+  const auto m = wire_trip(bp::make_scan_push_request("q", r));
+  ASSERT_EQ(m.frames.size(), 1u);
+  const auto back = bp::parse_scan_push_request(m);
+  EXPECT_FALSE(back.labels.has_value());
+  ASSERT_TRUE(back.image.has_value());
+  EXPECT_EQ(back.image->bytes, r.image->bytes);
+}
+
+TEST(ScanPush, RefusesNoFramesExtraFramesAndBadIds) {
+  try {
+    bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", {})));
+    FAIL();
+  } catch (const bp::ProtocolError& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kInvalidRequest);
+    // The message names both frames a scan may have.
+    EXPECT_NE(std::string(e.what()).find("\"labels\""), std::string::npos);
+    EXPECT_NE(std::string(e.what()).find("\"image\""), std::string::npos);
+  }
 
   auto extra = bp::make_scan_push_request("q", {labels_frame()});
   extra.frames.push_back(bp::media::json_frame("notes", "{}"));

@@ -61,7 +61,7 @@ class TestServer {
         case bp::MessageType::kScanPush: {
           const auto push = bp::parse_scan_push_request(m);
           std::lock_guard lock(mutex_);
-          last_labels_ = push.labels.bytes;
+          last_labels_ = push.labels.value().bytes;
           return bp::make_scan_push_reply(m.request_id(), {"s-000001", false});
         }
         default:

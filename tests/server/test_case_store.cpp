@@ -24,10 +24,10 @@ PreopRecord sample_preop(const std::string& id) {
   return p;
 }
 
-ScanInput sample_input(char fill, bool image) {
-  ScanInput in;
+PushedScan sample_input(char fill, bool image) {
+  PushedScan in;
   in.labels_bytes = std::string(1000, fill);
-  in.labels_bytes[10] = '\0';  // binary-safe
+  (*in.labels_bytes)[10] = '\0';  // binary-safe
   if (image) in.image_bytes = std::string(333, static_cast<char>(fill + 1));
   return in;
 }
@@ -79,7 +79,7 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
       {"field.nii.gz", std::string("\x1f\x8b\0binary", 9)}, {"models/brain.vtp", "<VTKFile/>"}, {"empty.json", ""}};
   {
     CaseStore store(dir.path());
-    const ScanInput a = sample_input('a', true);
+    const PushedScan a = sample_input('a', true);
     id1 = store.add_scan(a, std::string("client-1"), content_digest(a), "preop-a").scan_id;
     id2 = store.add_scan(sample_input('b', false), std::nullopt, "d2", "preop-a").scan_id;
     EXPECT_NE(id1, id2);
@@ -99,7 +99,7 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
   for (const auto& [name, bytes] : files) EXPECT_EQ(store.read_result_file(id1, name).value(), bytes) << name;
   EXPECT_FALSE(store.read_result_file(id1, "nope"));
   EXPECT_EQ(store.result_file_names(id1).size(), 3u);
-  const ScanInput in = store.load_scan_input(id1);
+  const PushedScan in = store.load_scan_input(id1);
   EXPECT_EQ(in.labels_bytes, sample_input('a', true).labels_bytes);
   EXPECT_EQ(in.image_bytes.value(), sample_input('a', true).image_bytes.value());
   const auto r2 = store.find(id2);
@@ -117,6 +117,37 @@ TEST(CaseStore, ScansAndResultsSurviveReopen) {
   const auto queued = store.queued_oldest_first();
   ASSERT_EQ(queued.size(), 1u);
   EXPECT_EQ(queued[0].scan_id, id3);
+}
+
+// An image pushed alone (PROTOCOL.md 5.3, revision 4): stored without
+// labels, read back as such, and its digest apart from any labelled scan's.
+TEST(CaseStore, AnImageAloneIsStoredAndReadBackWithoutLabels) {
+  TempDir dir;
+  PushedScan image_only;
+  image_only.image_bytes = std::string(500, 'i');
+  PushedScan empty_labels = image_only;
+  empty_labels.labels_bytes = std::string();
+  EXPECT_NE(content_digest(image_only), content_digest(empty_labels));
+  EXPECT_EQ(content_digest(image_only).substr(16), "-0-500");
+  std::string id;
+  {
+    CaseStore store(dir.path());
+    id = store.add_scan(image_only, std::string("img"), content_digest(image_only), "preop-a").scan_id;
+    EXPECT_FALSE(store.find(id)->has_labels);
+    EXPECT_THROW(store.add_scan(PushedScan{}, std::nullopt, "d", "preop-a"), std::invalid_argument);
+  }
+  CaseStore store(dir.path());
+  const auto r = store.find(id);
+  ASSERT_TRUE(r);
+  EXPECT_FALSE(r->has_labels);
+  EXPECT_TRUE(r->has_image);
+  EXPECT_EQ(r->digest, content_digest(image_only));
+  const PushedScan back = store.load_scan_input(id);
+  EXPECT_FALSE(back.labels_bytes.has_value());
+  EXPECT_EQ(back.image_bytes.value(), image_only.image_bytes.value());
+  const PushedScan labelled = sample_input('a', true);
+  const std::string labelled_id = store.add_scan(labelled, std::nullopt, content_digest(labelled), "preop-a").scan_id;
+  EXPECT_TRUE(store.find(labelled_id)->has_labels);
 }
 
 TEST(CaseStore, HalfWrittenFilesAreIgnoredAndRemovedOnOpen) {

@@ -203,10 +203,10 @@ TEST(IgtlEncoder, ResultOrderEndsWithStatusAndNamesPartsThatCannotBeSent) {
 
 TEST(IgtlEncoder, DeviceNamesAreStableShortAndDistinct) {
   std::set<std::string> names = {sigtl::kFieldDevice, sigtl::kWarpedImageDevice, sigtl::kWarpedLabelsDevice,
-                                 sigtl::kStatusDevice};
+                                 sigtl::kIntraopLabelsDevice, sigtl::kUncertaintyDevice, sigtl::kStatusDevice};
   const LabelTable& table = config::default_label_table();
   for (const auto& e : table.entries) names.insert(sigtl::model_device(short_name_of(e)));
-  EXPECT_EQ(names.size(), 4 + table.entries.size());
+  EXPECT_EQ(names.size(), 6 + table.entries.size());
   for (const auto& n : names) EXPECT_LE(n.size(), sigtl::kMaxDeviceName) << n;
   EXPECT_EQ(sigtl::model_device(short_name_of(*table.find("ventricles"))), "bs.model.ventricles");
   EXPECT_EQ(sigtl::model_device(short_name_of(*table.find("corticospinal_tract"))), "bs.model.cst");

@@ -152,6 +152,51 @@ TEST(IgtlQueries, ListsTheStoredScansAndReturnsEachByName) {
   EXPECT_EQ(gateway.info().messages_dropped, 0u);
 }
 
+// The engine's segmentation of an image pushed alone travels as a label
+// IMAGE (uint16, the table's values) named bs.intraop_labels, after the warped
+// labels; it is listed in LBMETA and answered by GET_IMAGE.
+TEST(IgtlQueries, TheSegmentationOfAnImageAloneIsALabelImage) {
+  test::TempDir dir;
+  CaseStore store(dir.path() / "store");
+  const std::string labelled = test::store_result(store, 1.0f, 12);
+  const std::string image_only = test::store_image_only_result(store, 2.0f, 14);
+  IgtlGateway gateway(test::any_port(), store, config::default_label_table());
+  IgtlReceiver slicer(gateway.port(), 10s);
+  const auto pushed = slicer.next_result();
+  std::vector<std::string> devices;
+  for (const auto& m : pushed) devices.push_back(m.device);
+  EXPECT_EQ(devices, (std::vector<std::string>{"bs.field", "bs.warped_image", "bs.warped_labels", "bs.intraop_labels",
+                                               "bs.model.brain", "bs.model.tumor", "bs.status"}));
+  const LabelImage stored = test::ball_labels(14);
+  const IgtlReceived& seg = pushed[3];
+  ASSERT_NE(seg.image(), nullptr);
+  EXPECT_EQ(seg.image()->GetScalarType(), ::igtl::ImageMessage::TYPE_UINT16);
+  EXPECT_EQ(std::memcmp(seg.image()->GetScalarPointer(), stored.voxels.data(), stored.voxels.size() * 2), 0);
+  EXPECT_LT((test::igtl_world_from_voxel(*seg.image()) - stored.grid.world_from_voxel).cwiseAbs().maxCoeff(), 1e-4);
+
+  for (const std::string& name : {std::string("bs.intraop_labels"), image_only + ".seg"}) {
+    const IgtlReceived asked = ask(slicer, "GET_IMAGE", name);
+    ASSERT_NE(asked.image(), nullptr) << name;
+    EXPECT_EQ(asked.device, name);
+    EXPECT_EQ(std::memcmp(asked.image()->GetScalarPointer(), stored.voxels.data(), stored.voxels.size() * 2), 0);
+  }
+  // A scan pushed with labels has no segmentation of the engine's.
+  EXPECT_EQ(ask(slicer, "GET_IMAGE", labelled + ".seg").body_size, 0u);
+
+  const LabelTable table = config::default_label_table();
+  const IgtlReceived lb = ask(slicer, "GET_LBMETA", "");
+  std::size_t segmentation_entries = 0;
+  for (int i = 0; i < lb.label_meta()->GetNumberOfLabelMetaElement(); ++i) {
+    ::igtl::LabelMetaElement::Pointer e;
+    lb.label_meta()->GetLabelMetaElement(i, e);
+    if (std::string(e->GetDeviceName()) != image_only + ".seg") continue;
+    EXPECT_EQ(std::string(e->GetOwner()), image_only + ".image");
+    ++segmentation_entries;
+  }
+  EXPECT_EQ(segmentation_entries, table.entries.size());
+  EXPECT_EQ(lb.label_meta()->GetNumberOfLabelMetaElement(), static_cast<int>(3 * table.entries.size()));
+}
+
 TEST(IgtlQueries, SttAndStpStartAndStopThePushes) {
   test::TempDir dir;
   CaseStore store(dir.path() / "store");

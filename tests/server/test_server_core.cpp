@@ -68,6 +68,13 @@ struct Harness {
     r.client_scan_id = client_id;
     return call(make_scan_push_request("push", r));
   }
+  // An image alone on this grid (the engine segments it).
+  Message push_image(const Grid3& grid, std::optional<std::string> client_id = std::nullopt) {
+    ScanPushRequest r;
+    r.image = media::nifti_frame("image", scalar_image_to_bytes(test::ramp_image(grid), VoxelType::float32, true));
+    r.client_scan_id = client_id;
+    return call(make_scan_push_request("push", r));
+  }
 };
 
 void expect_error(const Message& reply, ErrorCode code, const std::string& request_id = "") {
@@ -81,6 +88,15 @@ void expect_error(const Message& reply, ErrorCode code, const std::string& reque
 LabelImage intraop_labels(int n = 12) {
   LabelImage l = test::ball_labels(n);
   return l;
+}
+
+// Each kind of scan scan.push takes: labels, labels and image, image alone.
+constexpr ScanFacts kScanKinds[] = {{false, true}, {true, true}, {true, false}};
+std::string describe(const ScanFacts& kind) {
+  return !kind.has_labels ? "image alone" : kind.has_image ? "labels and image" : "labels only";
+}
+Message push_kind(Harness& h, const ScanFacts& kind) {
+  return kind.has_labels ? h.push(intraop_labels(), std::nullopt, kind.has_image) : h.push_image(intraop_labels().grid);
 }
 
 }  // namespace
@@ -390,6 +406,10 @@ TEST(ServerCore, BadScansAreTypedErrorsAndTheServerKeepsServing) {
   r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
   r.image = media::nifti_frame("image", scalar_image_to_bytes(test::ramp_image(test::small_grid(7)), VoxelType::float32, false));
   expect_error(h.call(make_scan_push_request("b2", r)), ErrorCode::kInvalidRequest, "b2");
+  ScanPushRequest image_alone;  // an image alone that does not decode
+  image_alone.image = media::nifti_frame("image", std::string(400, 'x'));
+  expect_error(h.call(make_scan_push_request("b3", image_alone)), ErrorCode::kInvalidRequest, "b3");
+  expect_error(h.call(make_scan_push_request("b4", ScanPushRequest{})), ErrorCode::kInvalidRequest, "b4");
   EXPECT_TRUE(h.store->list_newest_first(10).empty());
 
   // Protocol-level garbage.
@@ -503,6 +523,50 @@ TEST(ServerCore, RestartRestoresPreopMeshQueueAndResults) {
   EXPECT_TRUE(parse_scan_push_reply(h.push(labels, std::string("late"))).duplicate);
 }
 
+// Revision 4: an image alone is a scan. It is stored as such (no labels),
+// registered without labels, its segmentation served, its idempotence key
+// bound to the image's bytes, and after a restart it runs again from the
+// stored image alone.
+TEST(ServerCore, AnImageAloneIsStoredRegisteredServedAndRunAgainAfterARestart) {
+  Harness h;
+  h.load_preop();
+  const Grid3 grid = intraop_labels().grid;
+  const Message reply = h.push_image(grid, std::string("img-1"));
+  ASSERT_EQ(reply.type(), MessageType::kScanPushReply) << reply.header.dump();
+  const std::string id = parse_scan_push_reply(reply).scan_id;
+  EXPECT_FALSE(h.store->find(id)->has_labels);
+  EXPECT_TRUE(h.store->find(id)->has_image);
+  EXPECT_FALSE(h.store->load_scan_input(id).labels_bytes.has_value());
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_FALSE(h.engine.last_scan_had_labels);
+  const ScanResultReply r = parse_scan_result_reply(h.call(make_scan_result_request(
+      "r", {id, {ResultPart::kIntraopLabels, ResultPart::kSegmentationConfidence, ResultPart::kWarpedLabels}, {}})));
+  ASSERT_NE(r.find("intraop_labels"), nullptr);
+  const LabelImage seg = label_image_from_bytes(r.find("intraop_labels")->bytes, "intraop_labels", 1u << 26);
+  EXPECT_EQ(seg.voxels, h.engine.fake_segmentation(test::ramp_image(grid)).voxels);
+  EXPECT_NE(r.find("segmentation_confidence"), nullptr);
+  EXPECT_TRUE(r.unavailable.empty());
+
+  // The same image under the same key: the same scan. Labels added to it: other data.
+  EXPECT_TRUE(parse_scan_push_reply(h.push_image(grid, std::string("img-1"))).duplicate);
+  expect_error(h.push(intraop_labels(), std::string("img-1"), true), ErrorCode::kConflict, "push");
+
+  // Queued, then a restart: run again from the stored image alone.
+  const std::string queued = parse_scan_push_reply(h.push_image(grid, std::string("img-2"))).scan_id;
+  h.engine = test::FakeEngine{};
+  h.open();
+  ASSERT_TRUE(h.core->step(10ms));  // warm-up from the store
+  EXPECT_FALSE(h.store->find(queued)->has_labels) << "has_labels survives the restart";
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_EQ(h.store->find(queued)->state, StoredScanState::done);
+  EXPECT_FALSE(h.engine.last_scan_had_labels);
+  ASSERT_TRUE(h.engine.last_scan_image.has_value());
+  const ScanResultReply after = parse_scan_result_reply(
+      h.call(make_scan_result_request("r", {queued, {ResultPart::kIntraopLabels}, {}})));
+  ASSERT_NE(after.find("intraop_labels"), nullptr);
+  EXPECT_EQ(after.find("intraop_labels")->bytes, r.find("intraop_labels")->bytes);
+}
+
 TEST(ServerCore, ShutdownRequestStopsTheEngineLoop) {
   Harness h;
   // Without CURVE a shutdown needs this (tests/server/test_security_settings.cpp).
@@ -546,6 +610,32 @@ ScanResultReply pull(Harness& h, const std::string& scan_id, ResultPart part) {
   return parse_scan_result_reply(h.call(make_scan_result_request("row", {scan_id, {part}, {}})));
 }
 
+void deferred_part_lost_and_made_again(const ResultOutput& row, const ScanFacts& kind) {
+  Harness h;
+  h.load_preop();
+  const std::string id = parse_scan_push_reply(push_kind(h, kind)).scan_id;
+  ASSERT_TRUE(h.core->step(10ms));
+  ASSERT_TRUE(has_part(pull(h, id, row.part), row.part));
+  // Stopped before the part was stored: its file is not in the store.
+  for (const auto& name : stored_file_names(row.part)) fs::remove(h.settings.store / "scans" / id / name);
+  h.engine = test::FakeEngine{};
+  h.open();
+  const ScanResultReply before_repair = pull(h, id, row.part);
+  for (int i = 0; i < 10 && h.core->step(10ms); ++i) {
+  }
+  EXPECT_TRUE(has_part(pull(h, id, row.part), row.part));
+  if (row.remade_from) {
+    // Re-encoded from the stored part at start-up, without registering again.
+    EXPECT_TRUE(has_part(before_repair, row.part));
+    EXPECT_EQ(h.engine.scans_run, 0);
+  } else {
+    const UnavailablePart* u = unavailable_part(before_repair, row.part);
+    ASSERT_NE(u, nullptr);
+    EXPECT_TRUE(u->pending) << "pulls answer pending until the repair has made it";
+    EXPECT_EQ(h.engine.scans_run, 1) << "made again by registering the stored scan again";
+  }
+}
+
 }  // namespace
 
 class ResultRow : public ::testing::TestWithParam<ResultOutput> {};
@@ -555,15 +645,15 @@ TEST_P(ResultRow, IsServedPendingOrAbsentAsItsRowSays) {
   const ResultOutput& row = GetParam();
   Harness h;
   h.load_preop();
-  for (const bool image : {false, true}) {
-    SCOPED_TRACE(image ? "with an intraop image" : "labels only");
-    const std::string id = parse_scan_push_reply(h.push(intraop_labels(), std::nullopt, image)).scan_id;
+  for (const ScanFacts& kind : kScanKinds) {
+    SCOPED_TRACE(describe(kind));
+    const std::string id = parse_scan_push_reply(push_kind(h, kind)).scan_id;
     std::optional<ScanResultReply> during;  // after scan.done, before the deferred parts
     h.engine.while_rendering_deferred = [&] { during = pull(h, id, row.part); };
     ASSERT_TRUE(h.core->step(10ms));
     ASSERT_TRUE(during.has_value());
     const ScanResultReply after = pull(h, id, row.part);
-    const std::string_view absent = why_not_expected(row.part, ScanFacts{image});
+    const std::string_view absent = why_not_expected(row.part, kind);
     if (!absent.empty()) {  // this scan never has it
       for (const ScanResultReply* r : {static_cast<const ScanResultReply*>(&*during), &after}) {
         EXPECT_FALSE(has_part(*r, row.part));
@@ -587,28 +677,9 @@ TEST_P(ResultRow, IsServedPendingOrAbsentAsItsRowSays) {
 
 TEST_P(DeferredRow, LostToACrashIsMadeAgainAtTheNextStart) {
   const ResultOutput& row = GetParam();
-  Harness h;
-  h.load_preop();
-  const std::string id = parse_scan_push_reply(h.push(intraop_labels(), std::nullopt, true)).scan_id;
-  ASSERT_TRUE(h.core->step(10ms));
-  ASSERT_TRUE(has_part(pull(h, id, row.part), row.part));
-  // Stopped before the part was stored: its file is not in the store.
-  for (const auto& name : stored_file_names(row.part)) fs::remove(h.settings.store / "scans" / id / name);
-  h.engine = test::FakeEngine{};
-  h.open();
-  const ScanResultReply before_repair = pull(h, id, row.part);
-  for (int i = 0; i < 10 && h.core->step(10ms); ++i) {
-  }
-  EXPECT_TRUE(has_part(pull(h, id, row.part), row.part));
-  if (row.remade_from) {
-    // Re-encoded from the stored part at start-up, without registering again.
-    EXPECT_TRUE(has_part(before_repair, row.part));
-    EXPECT_EQ(h.engine.scans_run, 0);
-  } else {
-    const UnavailablePart* u = unavailable_part(before_repair, row.part);
-    ASSERT_NE(u, nullptr);
-    EXPECT_TRUE(u->pending) << "pulls answer pending until the repair has made it";
-    EXPECT_EQ(h.engine.scans_run, 1) << "made again by registering the stored scan again";
+  for (const ScanFacts& kind : {ScanFacts{true, true}, ScanFacts{true, false}}) {
+    SCOPED_TRACE(describe(kind));
+    deferred_part_lost_and_made_again(row, kind);
   }
 }
 

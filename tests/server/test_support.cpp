@@ -1,6 +1,7 @@
 #include "test_support.h"
 
 
+#include <algorithm>
 #include <chrono>
 #include <fstream>
 #include <utility>
@@ -88,8 +89,18 @@ std::map<std::string, std::string> FakeEngine::files_for(const LabelImage& label
   return files;
 }
 
-server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
-                                                   double, const server::StageProgressFn& progress) {
+LabelImage FakeEngine::fake_segmentation(const ImageF& image) const {
+  LabelImage labels(image.grid);
+  float top = 0.f;
+  for (float v : image.voxels) top = std::max(top, v);
+  for (std::size_t i = 0; i < image.voxels.size(); ++i)
+    labels.voxels[i] = image.voxels[i] > 0.5f * top ? table.brain_label() : std::uint16_t{0};
+  return labels;
+}
+
+server::EngineScanOutput FakeEngine::register_scan(const std::optional<LabelImage>& given,
+                                                   const std::optional<ImageF>& image, double,
+                                                   const server::StageProgressFn& progress) {
   ++scans_run;
   progress("affine", 0.0, 0.0);
   progress("affine", 1.0, 0.002);
@@ -99,7 +110,13 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
   }
   progress("solve", 1.0, 0.003);
   server::EngineScanOutput out;
+  const LabelImage labels = given ? *given : fake_segmentation(image.value());
   out.files = files_for(labels);
+  if (!given) {
+    out.files["intraop_labels.nii"] = label_image_to_bytes(labels, false);
+    const ImageF confidence(labels.grid, 0.9f);
+    out.files["segmentation_confidence.nii"] = scalar_image_to_bytes(confidence, VoxelType::float32, false);
+  }
   if (fallback_next_scan) {
     fallback_next_scan = false;
     out.result = {protocol::ResultKind::affine_only_fallback, "fake: surface match diverged"};
@@ -120,6 +137,7 @@ server::EngineScanOutput FakeEngine::register_scan(const LabelImage& labels, con
   }
   report_due_ = image.has_value();
   last_scan_image = image;
+  last_scan_had_labels = given.has_value();
   return out;
 }
 

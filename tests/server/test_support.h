@@ -41,7 +41,9 @@ class FakeEngine : public server::EnginePort {
   bool ready() const override { return ready_; }
   const TetMesh& mesh() const override { return mesh_; }
   nlohmann::json preop_timings() const override { return {{"mesh", 0.1}}; }
-  server::EngineScanOutput register_scan(const LabelImage& labels, const std::optional<ImageF>& image,
+  // Without labels the double "segments" the image (fake_segmentation) and
+  // adds intraop_labels.nii and segmentation_confidence.nii, as the engine does.
+  server::EngineScanOutput register_scan(const std::optional<LabelImage>& labels, const std::optional<ImageF>& image,
                                          double read_seconds, const server::StageProgressFn& progress) override;
   int ranks() const override { return 1; }
   std::size_t max_image_bytes() const override { return std::size_t{64} << 20; }
@@ -54,6 +56,9 @@ class FakeEngine : public server::EnginePort {
 
   // Expected output files for these inputs (what register_scan returns).
   static std::map<std::string, std::string> files_for(const LabelImage& labels);
+  // The double's segmentation of an image alone: the table's brain label where
+  // the image exceeds half its maximum, 0 elsewhere (not the engine's method).
+  LabelImage fake_segmentation(const ImageF& image) const;
 
   // A valid 1x1 RGB PNG standing in for report.png.
   static const std::string kReportPng;
@@ -70,6 +75,7 @@ class FakeEngine : public server::EnginePort {
   std::optional<TetMesh> last_stored_mesh;
   server::PreopImages last_preop;
   std::optional<ImageF> last_scan_image;  // the intraop image of the last register_scan
+  bool last_scan_had_labels = false;      // whether the last register_scan was given labels
   int scans_run = 0;
   bool stopped = false;
 

@@ -1,5 +1,9 @@
 #include "synthetic_head.h"
 
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
 namespace brainshift::test {
 namespace {
 
@@ -30,6 +34,33 @@ SyntheticHead synthetic_head(const SyntheticHeadSpec& spec) {
         h.t1.at(i, j, k) = l == 0 ? 10.f : l == 2 ? 30.f : l == 4 ? 150.f : 100.f;
       }
   return h;
+}
+
+ImageF scanner_image(const ImageF& clean) {
+  ImageF out = clean;
+  std::uint32_t state = 12345;
+  auto uniform = [&] {
+    state = state * 1664525u + 1013904223u;
+    return (state >> 8) / 16777216.0;
+  };
+  for (int k = 0; k < out.grid.dims[2]; ++k)
+    for (int j = 0; j < out.grid.dims[1]; ++j)
+      for (int i = 0; i < out.grid.dims[0]; ++i) {
+        const double b = 1.0 + 0.15 * (i / double(out.grid.dims[0]) - 0.5) + 0.1 * (k / double(out.grid.dims[2]) - 0.5);
+        const double n = 3.0 * std::sqrt(-2 * std::log(uniform() + 1e-12)) * std::cos(6.283185307 * uniform());
+        out.at(i, j, k) = static_cast<float>(std::max(0.0, b * out.at(i, j, k) + n));
+      }
+  return out;
+}
+
+double outline_dice(const LabelImage& a, const LabelImage& b) {
+  std::size_t both = 0, na = 0, nb = 0;
+  for (std::size_t v = 0; v < a.voxels.size(); ++v) {
+    both += a.voxels[v] && b.voxels[v];
+    na += a.voxels[v] != 0;
+    nb += b.voxels[v] != 0;
+  }
+  return 2.0 * static_cast<double>(both) / static_cast<double>(na + nb);
 }
 
 }  // namespace brainshift::test

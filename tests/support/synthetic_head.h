@@ -25,4 +25,13 @@ struct SyntheticHead {
 
 SyntheticHead synthetic_head(const SyntheticHeadSpec& spec = {});
 
+// The synthetic head's image with mild Rician-like noise (sd 3) and a smooth
+// bias (+-7 %), as a scanner would give it: an automatic segmentation is
+// fitted on the noise, a noiseless image has none.
+ImageF scanner_image(const ImageF& clean);
+
+// Dice of the two label maps' outlines (every non-zero label as one), on
+// the same grid: how well a segmentation found the head's brain.
+double outline_dice(const LabelImage& a, const LabelImage& b);
+
 }  // namespace brainshift::test
