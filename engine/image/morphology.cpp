@@ -1,6 +1,8 @@
 #include "image/morphology.h"
 
 #include <algorithm>
+#include <cstddef>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -110,24 +112,50 @@ Mask largest_component(const Mask& mask, int connectivity) {
   return out;
 }
 
+// The background reached from outside the grid, 6-connected. The grid is
+// padded by two layers: the outer one is a wall, the inner one a background
+// shell that touches every border voxel, so one flood from a shell voxel
+// reaches what a flood from every background border voxel would, and no
+// neighbour needs a bounds check (this runs on every outline mask of a scan).
 Mask fill_holes(const Mask& mask) {
   const Grid3& g = mask.grid;
-  const auto offs = neighbourhood(6);
-  std::vector<std::int32_t> reached(mask.voxels.size(), 0);
-  std::vector<std::size_t> stack;
+  const std::ptrdiff_t nx = g.dims[0], ny = g.dims[1], nz = g.dims[2];
+  const std::ptrdiff_t px = nx + 4, py = ny + 4, pz = nz + 4, pxy = px * py;
+  enum : std::uint8_t { kOpen = 0, kWall = 1, kReached = 2 };
+  std::vector<std::uint8_t> state(static_cast<std::size_t>(pxy * pz), kOpen);
+  for (std::ptrdiff_t k = 0; k < pz; ++k)
+    for (std::ptrdiff_t j = 0; j < py; ++j)
+      for (std::ptrdiff_t i = 0; i < px; ++i)
+        if (i == 0 || j == 0 || k == 0 || i == px - 1 || j == py - 1 || k == pz - 1)
+          state[static_cast<std::size_t>(k * pxy + j * px + i)] = kWall;
   const std::uint8_t* m = mask.voxels.data();
-  auto background = [m](std::size_t i) { return m[i] == 0; };
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const bool border = i == 0 || j == 0 || k == 0 || i == g.dims[0] - 1 || j == g.dims[1] - 1 ||
-                            k == g.dims[2] - 1;
-        if (!border) continue;
-        const std::size_t v = g.index(i, j, k);
-        if (background(v) && reached[v] == 0) flood(g, v, 1, offs, reached, background, stack);
+  auto padded = [&](std::ptrdiff_t i, std::ptrdiff_t j, std::ptrdiff_t k) {
+    return static_cast<std::size_t>((k + 2) * pxy + (j + 2) * px + (i + 2));
+  };
+  std::size_t v = 0;
+  for (std::ptrdiff_t k = 0; k < nz; ++k)
+    for (std::ptrdiff_t j = 0; j < ny; ++j)
+      for (std::ptrdiff_t i = 0; i < nx; ++i, ++v)
+        if (m[v]) state[padded(i, j, k)] = kWall;
+  const std::ptrdiff_t step[6] = {1, -1, px, -px, pxy, -pxy};
+  std::vector<std::size_t> stack{static_cast<std::size_t>(pxy + px + 1)};
+  state[stack.back()] = kReached;
+  while (!stack.empty()) {
+    const std::size_t at = stack.back();
+    stack.pop_back();
+    for (std::ptrdiff_t s : step) {
+      const std::size_t n = static_cast<std::size_t>(static_cast<std::ptrdiff_t>(at) + s);
+      if (state[n] == kOpen) {
+        state[n] = kReached;
+        stack.push_back(n);
       }
+    }
+  }
   Mask out(g, 0);
-  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = m[i] || reached[i] == 0;
+  v = 0;
+  for (std::ptrdiff_t k = 0; k < nz; ++k)
+    for (std::ptrdiff_t j = 0; j < ny; ++j)
+      for (std::ptrdiff_t i = 0; i < nx; ++i, ++v) out.voxels[v] = m[v] || state[padded(i, j, k)] != kReached;
   return out;
 }
 

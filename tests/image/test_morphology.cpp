@@ -1,6 +1,9 @@
 #include <gtest/gtest.h>
 
+#include <array>
 #include <cmath>
+#include <cstdint>
+#include <vector>
 
 #include "core/errors.h"
 #include "image/image_stats.h"
@@ -107,6 +110,49 @@ TEST(Morphology, FillHolesFillsEnclosedCavityOnly) {
   EXPECT_EQ(count_nonzero(filled), 8u * 8 * 8);
   const Mask not_filled = fill_holes(open_cavity);
   EXPECT_EQ(not_filled.voxels, open_cavity.voxels);
+}
+
+// The background 6-connected to the grid's faces, by the definition: a
+// breadth-first search from every background voxel on a face, bounds
+// checked at every step.
+Mask holes_filled_by_definition(const Mask& m) {
+  const auto& d = m.grid.dims;
+  std::vector<char> outside(m.voxels.size(), 0);
+  std::vector<std::array<int, 3>> queue;
+  auto visit = [&](int i, int j, int k) {
+    if (i < 0 || j < 0 || k < 0 || i >= d[0] || j >= d[1] || k >= d[2]) return;
+    const std::size_t v = m.grid.index(i, j, k);
+    if (m.voxels[v] || outside[v]) return;
+    outside[v] = 1;
+    queue.push_back({i, j, k});
+  };
+  for (int k = 0; k < d[2]; ++k)
+    for (int j = 0; j < d[1]; ++j)
+      for (int i = 0; i < d[0]; ++i)
+        if (i == 0 || j == 0 || k == 0 || i == d[0] - 1 || j == d[1] - 1 || k == d[2] - 1) visit(i, j, k);
+  for (std::size_t q = 0; q < queue.size(); ++q) {
+    const auto [i, j, k] = queue[q];
+    visit(i + 1, j, k), visit(i - 1, j, k), visit(i, j + 1, k);
+    visit(i, j - 1, k), visit(i, j, k + 1), visit(i, j, k - 1);
+  }
+  Mask out(m.grid, 0);
+  for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] = m.voxels[v] || !outside[v];
+  return out;
+}
+
+TEST(Morphology, FillHolesAgreesWithTheDefinitionOnRandomMasks) {
+  // Random masks of several densities on odd grids (including a single
+  // slice and a single row, where every voxel is on a face).
+  std::uint32_t state = 12345;
+  auto next = [&state] { return state = state * 1664525u + 1013904223u; };
+  for (const std::array<int, 3> dims : {std::array<int, 3>{17, 13, 11}, {9, 21, 1}, {1, 1, 7}, {23, 5, 8}})
+    for (const unsigned percent : {20u, 45u, 60u, 75u}) {
+      Mask m(grid(dims), 0);
+      for (auto& v : m.voxels) v = (next() >> 8) % 100 < percent;
+      const Mask filled = fill_holes(m);
+      EXPECT_EQ(filled.voxels, holes_filled_by_definition(m).voxels)
+          << dims[0] << "x" << dims[1] << "x" << dims[2] << " at " << percent << " %";
+    }
 }
 
 TEST(Morphology, LabelsThresholdAndStats) {
