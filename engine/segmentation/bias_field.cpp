@@ -6,6 +6,15 @@
 #include "core/errors.h"
 
 namespace brainshift::segmentation {
+namespace {
+// A small non-negative integer power by multiplication: std::pow took a
+// tenth of the EM's time, called per sample, term and axis in every iteration.
+double power(double x, int e) {
+  double r = 1;
+  for (int n = 0; n < e; ++n) r *= x;
+  return r;
+}
+}  // namespace
 
 LogBiasField::LogBiasField(const Grid3& grid, int degree) : grid_(grid), degree_(degree) {
   if (degree < 0 || degree > 4) throw InputError("bias field degree must be in [0, 4]");
@@ -25,7 +34,7 @@ double LogBiasField::log_bias(int i, int j, int k) const {
   double s = 0;
   for (std::size_t t = 0; t < powers_.size(); ++t) {
     const auto& p = powers_[t];
-    s += coef_[static_cast<Eigen::Index>(t)] * std::pow(x, p[0]) * std::pow(y, p[1]) * std::pow(z, p[2]);
+    s += coef_[static_cast<Eigen::Index>(t)] * power(x, p[0]) * power(y, p[1]) * power(z, p[2]);
   }
   return s;
 }
@@ -77,7 +86,7 @@ bool LogBiasField::fit(const std::vector<std::array<int, 3>>& voxels, const std:
     const double x = scaled(0, voxels[s][0]), y = scaled(1, voxels[s][1]), z = scaled(2, voxels[s][2]);
     for (Eigen::Index t = 0; t < m; ++t) {
       const auto& p = powers_[static_cast<std::size_t>(t)];
-      phi[t] = std::pow(x, p[0]) * std::pow(y, p[1]) * std::pow(z, p[2]);
+      phi[t] = power(x, p[0]) * power(y, p[1]) * power(z, p[2]);
     }
     normal.selfadjointView<Eigen::Lower>().rankUpdate(phi, w);
     rhs += w * log_ratio[s] * phi;
