@@ -12,9 +12,23 @@ RECORDS=${RECORDS:-hospital_records.ndjson}
 BENCH="$BUILD/tests/bench/brainshift_hospital_bench"
 CACHE=${ATLAS_CACHE:-$BUILD/brainshift-atlas}
 : > "$RECORDS"
-for subject in $("$BENCH" --list-subjects "$@"); do
+SUBJECTS=$("$BENCH" --list-subjects "$@")
+# Each run below is given one subject: a --subjects of the caller's would
+# otherwise run every listed subject in every pass of the loop.
+ARGS=""
+skip=0
+for a in "$@"; do
+  if [ "$skip" -eq 1 ]; then skip=0; continue; fi
+  case "$a" in
+    --subjects) skip=1 ;;
+    --subjects=*) ;;
+    *) ARGS="$ARGS $a" ;;
+  esac
+done
+for subject in $SUBJECTS; do
   echo "subject $subject (limit $LIMIT s)" >&2
-  timeout "$LIMIT" "$BENCH" --atlas-cache "$CACHE" --subjects "$subject" "$@" >> "$RECORDS"
+  # shellcheck disable=SC2086  # ARGS: the caller's words, none with spaces
+  timeout "$LIMIT" "$BENCH" --atlas-cache "$CACHE" --subjects "$subject" $ARGS >> "$RECORDS"
   rc=$?
   if [ "$rc" -eq 124 ]; then
     printf '{"record":"preop","subject":"%s","note":"stopped by the time limit of %s s"}\n' "$subject" "$LIMIT" >> "$RECORDS"
