@@ -48,6 +48,23 @@ std::vector<HospitalCaseSpec> selected(const std::vector<std::string>& cases, co
   return suite;
 }
 
+// Each case once per SNR (none given: the suite as it is); the seed is kept, so
+// the cases differ by their noise's level only.
+std::vector<HospitalCaseSpec> with_snr_sweep(const std::vector<HospitalCaseSpec>& suite, const std::vector<double>& snrs) {
+  if (snrs.empty()) return suite;
+  std::vector<HospitalCaseSpec> out;
+  for (const auto& s : suite)
+    for (double snr : snrs) {
+      HospitalCaseSpec c = s;
+      c.scanner.snr = snr;
+      char suffix[32];
+      std::snprintf(suffix, sizeof suffix, "_snr%g", snr);
+      c.deformation.name += suffix;
+      out.push_back(c);
+    }
+  return out;
+}
+
 // Every selected case without a record is marked unfinished, with its
 // subject's warm-up status.
 int summarise(const std::string& path, const std::vector<HospitalCaseSpec>& suite, const std::vector<std::string>& modes) {
@@ -136,10 +153,16 @@ int main(int argc, char** argv) {
   app.add_option("--write-cases", write_dir, "write each case's images, labels, truth and landmarks under this directory");
   bool generate_only = false;
   app.add_flag("--generate-only", generate_only, "make (and write) the cases, register nothing");
+  std::vector<double> snr_sweep;
+  app.add_option("--snr", snr_sweep,
+                 "run each selected case once per signal-to-noise ratio given (the scanner's SNR replaced; the "
+                 "case named CASE_snrX): how the result falls off with the noise")
+      ->delimiter(',')
+      ->check(CLI::PositiveNumber);
   bool list_subjects = false;
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
-  const std::vector<HospitalCaseSpec> suite = selected(cases, subjects);
+  const std::vector<HospitalCaseSpec> suite = with_snr_sweep(selected(cases, subjects), snr_sweep);
   if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {
     std::set<std::string> seen;
