@@ -57,6 +57,9 @@ std::string validation_error(const IntensityRefinementParameters& p) {
   if (!(p.membrane_weight >= 0 && std::isfinite(p.membrane_weight))) return "membrane_weight must be >= 0";
   if (!(p.shrink_weight_per_mm2 > 0 && std::isfinite(p.shrink_weight_per_mm2)))
     return "shrink_weight_per_mm2 must be > 0 (without it a region without image edges is undetermined)";
+  if (!(p.smoothing_length_mm >= 0 && p.smoothing_length_mm <= 50)) return "smoothing_length_mm must be in [0, 50]";
+  if (!(p.fem_trust_length_mm > 0 && p.fem_trust_length_mm <= 1000))
+    return "fem_trust_length_mm must be in (0, 1000] (without it a region without image edges is undetermined)";
   if (!(p.max_correction_mm > 0 && p.max_correction_mm <= 20)) return "max_correction_mm must be in (0, 20]";
   if (!(p.max_step_mm > 0)) return "max_step_mm must be > 0";
   if (!(p.sample_spacing_mm > 0)) return "sample_spacing_mm must be > 0";
@@ -91,6 +94,8 @@ void to_json(nlohmann::json& j, const IntensityRefinementReport& r) {
        {"mean_correction_mm", r.mean_correction_mm},
        {"bias_model", r.bias_model},
        {"explained_variance", r.explained_variance},
+       {"data_curvature_per_mm2", r.data_curvature_per_mm2},
+       {"smoothing_length_mm", r.smoothing_length_mm},
        {"seconds", {{"sampling", r.sampling_seconds}, {"optimise", r.optimise_seconds}, {"apply", r.apply_seconds},
                     {"total", r.seconds}}}};
 }
@@ -119,7 +124,7 @@ IntensityRefinementReport refine_with_intensity(VectorImage3& pullback_mm, const
   report.sampling_seconds = clock.seconds();
   const double median = std::max(median_intensity(samples.bias), 1e-12);
   report.iterations = optimise(lattice, samples.motion, samples.bias, preop, p, samples.density_per_mm3,
-                               1e-3 * median, &report);
+                               pullback_mm.grid.spacing_mm().maxCoeff(), 1e-3 * median, &report);
   if (!report.skipped_reason.empty()) return report;
   report.optimise_seconds = clock.seconds() - report.sampling_seconds;
   report.rms_residual_before /= median;

@@ -64,6 +64,12 @@ struct IntensityRefinementParameters {
   // Pull toward v = 0 (1/mm^2). Where the image has no edges v decays back to
   // the FEM's answer over sqrt(membrane / shrink) ~ 30 mm.
   double shrink_weight_per_mm2 = 0.02;
+  // When > 0, the two weights above are replaced by lengths, relative to the
+  // data term's mean curvature (so the same whatever the noise, contrast and
+  // voxel size): the image decides motion features longer than
+  // smoothing_length_mm; where it is silent v fades over fem_trust_length_mm.
+  double smoothing_length_mm = 0.0;
+  double fem_trust_length_mm = 30.0;
   // Bounds on the correction v (mm, the move of the intraop point; the change
   // of u can be somewhat larger where the FEM stretches the tissue): the
   // surfaces already agree with the segmentation; the image refines the
@@ -131,6 +137,10 @@ struct IntensityRefinementReport {
   double max_correction_mm = 0, mean_correction_mm = 0;  // |u' - u| inside the brain region
   std::string bias_model;
   double explained_variance = 0;  // weighted R^2 of the bias model's fit
+  // What one sample tells of the motion at the start (mean data curvature
+  // per axis, 1/mm^2; noise and blur lower it).
+  double data_curvature_per_mm2 = 0;
+  double smoothing_length_mm = 0;  // in force (raised by the noise floor; 0: fixed weights)
   double seconds = 0;  // whole stage; and its parts:
   double sampling_seconds = 0, optimise_seconds = 0, apply_seconds = 0;
 };
