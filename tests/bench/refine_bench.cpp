@@ -4,11 +4,14 @@
 // seconds and the Jacobian of the refined field per case and variant.
 //   brainshift_refine_bench [--atlas-cache DIR] [--variant "key=value;key=value"]...
 //                           [--blur-slices] [--extra-noise F] [--gamma G] [--invert] [--shuffle-brain] [--repeat N]
-//                           [--hospital case,case]
+//                           [--hospital case,case [--snr S] [--bias B]] [--psf-preop]
 // --hospital replays cases of the hospital-variation suite (phantom/hospital_suite.h,
 // labels + image: the algorithmic segmentation and the scanner's image, each
 // subject warmed up once) instead of the phantom suite, and splits each
-// case's TRE by the landmark's depth below the brain's outline.
+// case's TRE by the landmark's depth below the brain's outline. For
+// diagnosis, --snr / --bias give the cases' scanner another SNR or bias
+// amplitude, and --psf-preop blurs the preop to the intraop voxel's
+// point-spread function before the refinement (docs/PERFORMANCE.md 9.1).
 // A variant holds [intensity] keys of brainshiftd.toml; "" is the defaults.
 // --blur-slices smooths the intraop T1 across slices ([1 2 1]/4): a thicker
 // slice profile than the phantom's point sampling, as a robustness check.
@@ -163,10 +166,10 @@ int main(int argc, char** argv) {
   for (const auto& e : table.entries)
     if (e.role != LabelRole::cavity) tissue.push_back(e.value);
 
-  std::map<std::string, ImageF> preop_t1;  // by subject; stable addresses
+  std::map<std::string, ImageF> preop_t1;  // each case's preop (--psf-preop blurs it); stable addresses
   std::vector<Case> cases;
   // Registers the case without the refinement and keeps what a variant needs.
-  auto add_case = [&](EngineSession& session, Case c, const ImageF& preop, std::uint64_t seed) {
+  auto add_case = [&](EngineSession& session, Case c, ImageF& preop, std::uint64_t seed) {
     if (blur) c.phantom.intraop_t1 = blurred_across_slices(c.phantom.intraop_t1);
     degrade(c.phantom, noise, gamma, invert, shuffle, seed);
     ScanResult r = session.register_scan(IntraopInput{c.phantom.intraop_labels, c.phantom.intraop_t1}, nullptr, true);
@@ -186,8 +189,7 @@ int main(int argc, char** argv) {
       const Eigen::Matrix3d C = R * var.asDiagonal() * R.transpose();
       Eigen::Vector3d sigma_vox;
       for (int a = 0; a < 3; ++a) sigma_vox[a] = std::sqrt(std::max(0.0, C(a, a) - pre[a] * pre[a] / 12)) / pre[a];
-      ImageF& blurred = const_cast<ImageF&>(preop);
-      gaussian_smooth_voxels(blurred, sigma_vox);
+      gaussian_smooth_voxels(preop, sigma_vox);  // this case's copy, read by the variants only
       std::printf("preop blurred by %.2f %.2f %.2f voxels\n", sigma_vox[0], sigma_vox[1], sigma_vox[2]);
     }
     c.preop_t1 = &preop;
@@ -201,8 +203,8 @@ int main(int argc, char** argv) {
     EngineSession session(MPI_COMM_WORLD, params);
     DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache);
     session.load_preop(PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, nullptr);
-    const ImageF& preop = preop_t1.emplace("atlas", session.preop().t1).first->second;
     for (const auto& spec : standard_phantom_suite()) {
+      ImageF& preop = preop_t1.emplace(spec.name, session.preop().t1).first->second;
       Case c;
       c.name = spec.name;
       c.phantom = make_phantom(session.preop().t1, session.preop().labels, spec);
@@ -217,7 +219,7 @@ int main(int argc, char** argv) {
       const Subject subject = evaluation::make_named_subject(atlas, spec.subject);
       EngineSession session(MPI_COMM_WORLD, params);
       session.load_preop(PreopInput{subject.t1, subject.labels}, nullptr);
-      const ImageF& preop = preop_t1.emplace(spec.deformation.name, subject.t1).first->second;
+      ImageF& preop = preop_t1.emplace(spec.deformation.name, subject.t1).first->second;
       Case c;
       c.name = spec.deformation.name;
       c.phantom = make_hospital_case(subject, spec).phantom;
