@@ -147,6 +147,7 @@ TEST(Config, IntensitySectionDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.shrink_weight_per_mm2, code.shrink_weight_per_mm2);
   EXPECT_DOUBLE_EQ(file.smoothing_length_mm, code.smoothing_length_mm);
   EXPECT_DOUBLE_EQ(file.fem_trust_length_mm, code.fem_trust_length_mm);
+  EXPECT_EQ(file.match_point_spread, code.match_point_spread);
   EXPECT_DOUBLE_EQ(file.max_correction_mm, code.max_correction_mm);
   EXPECT_DOUBLE_EQ(file.max_step_mm, code.max_step_mm);
   EXPECT_DOUBLE_EQ(file.sample_spacing_mm, code.sample_spacing_mm);
