@@ -4,14 +4,13 @@
 // seconds and the Jacobian of the refined field per case and variant.
 //   brainshift_refine_bench [--atlas-cache DIR] [--variant "key=value;key=value"]...
 //                           [--blur-slices] [--extra-noise F] [--gamma G] [--invert] [--shuffle-brain] [--repeat N]
-//                           [--hospital case,case [--snr S] [--bias B]] [--psf-preop]
+//                           [--hospital case,case [--snr S] [--bias B]]
 // --hospital replays cases of the hospital-variation suite (phantom/hospital_suite.h,
 // labels + image: the algorithmic segmentation and the scanner's image, each
 // subject warmed up once) instead of the phantom suite, and splits each
 // case's TRE by the landmark's depth below the brain's outline. For
 // diagnosis, --snr / --bias give the cases' scanner another SNR or bias
-// amplitude, and --psf-preop blurs the preop to the intraop voxel's
-// point-spread function before the refinement (docs/PERFORMANCE.md 9.1).
+// amplitude (docs/PERFORMANCE.md 9.1).
 // A variant holds [intensity] keys of brainshiftd.toml; "" is the defaults.
 // --blur-slices smooths the intraop T1 across slices ([1 2 1]/4): a thicker
 // slice profile than the phantom's point sampling, as a robustness check.
@@ -39,7 +38,6 @@
 #include "hospital_evaluation.h"
 #include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
-#include "phantom/phantom_artefacts.h"
 #include "pipeline/engine_session.h"
 #include "registration/boundary_samples.h"
 #include "registration/intensity_refinement.h"
@@ -151,8 +149,6 @@ int main(int argc, char** argv) {
   double snr = 0, bias = -1;
   app.add_option("--snr", snr, "hospital cases: the scanner's SNR instead of its own (diagnosis)");
   app.add_option("--bias", bias, "hospital cases: the scanner's bias amplitude instead of its own (diagnosis)");
-  bool psf_preop = false;
-  app.add_flag("--psf-preop", psf_preop, "blur each case's preop T1 to the intraop voxel's point-spread function");
   app.add_option("--hospital", hospital, "hospital-suite case names instead of the phantom suite")->delimiter(',');
   CLI11_PARSE(app, argc, argv);
   if (variants.empty()) variants.push_back("");
@@ -166,10 +162,10 @@ int main(int argc, char** argv) {
   for (const auto& e : table.entries)
     if (e.role != LabelRole::cavity) tissue.push_back(e.value);
 
-  std::map<std::string, ImageF> preop_t1;  // each case's preop (--psf-preop blurs it); stable addresses
+  std::map<std::string, ImageF> preop_t1;  // each case's preop; stable addresses
   std::vector<Case> cases;
   // Registers the case without the refinement and keeps what a variant needs.
-  auto add_case = [&](EngineSession& session, Case c, ImageF& preop, std::uint64_t seed) {
+  auto add_case = [&](EngineSession& session, Case c, const ImageF& preop, std::uint64_t seed) {
     if (blur) c.phantom.intraop_t1 = blurred_across_slices(c.phantom.intraop_t1);
     degrade(c.phantom, noise, gamma, invert, shuffle, seed);
     ScanResult r = session.register_scan(IntraopInput{c.phantom.intraop_labels, c.phantom.intraop_t1}, nullptr, true);
@@ -178,20 +174,6 @@ int main(int argc, char** argv) {
     c.brain_region = outline_mask(c.phantom.intraop_labels);
     c.brain_sdf_mm = prepare_intraop_maps(c.phantom.intraop_labels, c.brain_region, table.brain_label(),
                                           table.cavity_labels().front()).outer_sdf_mm;
-    if (psf_preop) {
-      // Experiment: in-plane box (h^2/12), across slices a Gaussian of FWHM
-      // one slice, less the preop voxel's own box; the intraop axes' covariance
-      // read on the preop axes (its diagonal).
-      const Eigen::Vector3d sp = c.phantom.intraop_t1.grid.spacing_mm(), pre = preop.grid.spacing_mm();
-      Eigen::Matrix3d R = c.phantom.intraop_t1.grid.world_from_voxel.topLeftCorner<3, 3>();
-      for (int a = 0; a < 3; ++a) R.col(a).normalize();
-      const Eigen::Vector3d var(sp[0] * sp[0] / 12, sp[1] * sp[1] / 12, std::pow(sp[2] / 2.3548, 2));
-      const Eigen::Matrix3d C = R * var.asDiagonal() * R.transpose();
-      Eigen::Vector3d sigma_vox;
-      for (int a = 0; a < 3; ++a) sigma_vox[a] = std::sqrt(std::max(0.0, C(a, a) - pre[a] * pre[a] / 12)) / pre[a];
-      gaussian_smooth_voxels(preop, sigma_vox);  // this case's copy, read by the variants only
-      std::printf("preop blurred by %.2f %.2f %.2f voxels\n", sigma_vox[0], sigma_vox[1], sigma_vox[2]);
-    }
     c.preop_t1 = &preop;
     const TreStats t = target_registration_error(c.field, column(c.phantom, false), column(c.phantom, true));
     std::printf("%-34s fem    mean %5.2f p95 %5.2f max %5.2f%s | %s\n", c.name.c_str(), t.mean_mm, t.p95_mm, t.max_mm,
@@ -204,7 +186,7 @@ int main(int argc, char** argv) {
     DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache);
     session.load_preop(PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, nullptr);
     for (const auto& spec : standard_phantom_suite()) {
-      ImageF& preop = preop_t1.emplace(spec.name, session.preop().t1).first->second;
+      const ImageF& preop = preop_t1.emplace(spec.name, session.preop().t1).first->second;
       Case c;
       c.name = spec.name;
       c.phantom = make_phantom(session.preop().t1, session.preop().labels, spec);
@@ -219,7 +201,7 @@ int main(int argc, char** argv) {
       const Subject subject = evaluation::make_named_subject(atlas, spec.subject);
       EngineSession session(MPI_COMM_WORLD, params);
       session.load_preop(PreopInput{subject.t1, subject.labels}, nullptr);
-      ImageF& preop = preop_t1.emplace(spec.deformation.name, subject.t1).first->second;
+      const ImageF& preop = preop_t1.emplace(spec.deformation.name, subject.t1).first->second;
       Case c;
       c.name = spec.deformation.name;
       c.phantom = make_hospital_case(subject, spec).phantom;
