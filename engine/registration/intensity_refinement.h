@@ -31,11 +31,13 @@
 //   + (l / L)^2 k density * int |v|^2 dV             trust the FEM where the image is silent (L: fem_trust_length_mm)
 // density = samples per mm^3 and k the data term's mean curvature per sample
 // (1/mm^2), so the balance between the image and the priors depends neither
-// on how many samples are drawn nor on the image's noise and contrast. The samples are intraop
-// tissue voxels (not ventricles, background or a resection cavity), those with
-// the strongest preop gradient first, down-weighted near the outer boundary
-// and near background/cavity voxels: there the intraop intensity (fluid in a
-// gap or cavity, dura, skull) does not follow the brain.
+// on how many samples are drawn nor on the image's noise and contrast. The
+// samples are intraop tissue voxels (not ventricles, background or a
+// resection cavity), those with the strongest preop gradient first,
+// down-weighted near the outer boundary and near background/cavity voxels:
+// there the intraop intensity (fluid in a gap or cavity, dura, skull) does
+// not follow the brain. The preop is compared at the intraop scanner's
+// resolution (match_point_spread).
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -64,7 +66,7 @@ struct IntensityRefinementParameters {
   // smoothing_length_mm, the lattice limits the rest; where the image is
   // silent v fades back to the FEM's answer over fem_trust_length_mm. The
   // same on any scanner: fixed weights against a data term normalised by the
-  // noise made a 0.15 T scan (SNR 7, curvature 0.2 / mm^2) ten times stiffer
+  // noise made a 0.15 T scan (SNR 7, curvature 0.2 / mm^2) eight times stiffer
   // than a 1.5 T one (1.55 / mm^2). 3.6 mm is the length the fixed weights
   // below had on the 1.5 T scan. Raised where the image's noise would move v
   // by more than its grid's position uncertainty (voxel / sqrt(12)).
