@@ -77,7 +77,7 @@ struct IntensityRefinementParameters {
   // point-spread function (a box in-plane, a slice profile of FWHM one slice
   // across), not with the sharp preop: at 2-3 mm slices partial volume
   // otherwise reads as misalignment (0.15 T cases 0.03-0.07 mm closer,
-  // docs/PERFORMANCE.md 9.1). A blurred copy of the preop per scan (~0.1 s).
+  // docs/PERFORMANCE.md 9.1). A blurred copy of the preop per scan (~0.15 s).
   bool match_point_spread = true;
   // Used only with smoothing_length_mm = 0: fixed weights, against the data
   // term normalised by its residual spread. Membrane weight (dimensionless);
