@@ -120,6 +120,9 @@ void read_intensity(TomlSection& root, IntensityRefinementParameters& p) {
   s.read("convergence_mm", p.convergence_mm);
   s.read("membrane_weight", p.membrane_weight);
   s.read("shrink_weight_per_mm2", p.shrink_weight_per_mm2);
+  s.read("smoothing_length_mm", p.smoothing_length_mm);
+  s.read("fem_trust_length_mm", p.fem_trust_length_mm);
+  s.read("match_point_spread", p.match_point_spread);
   s.read("max_correction_mm", p.max_correction_mm);
   s.read("max_step_mm", p.max_step_mm);
   s.read("sample_spacing_mm", p.sample_spacing_mm);

@@ -9,6 +9,7 @@
 #include <Eigen/Dense>
 
 #include "core/image.h"
+#include "image/gaussian_smooth.h"  // the slice profile of a scanner, the smoothing of a segmenter
 
 namespace brainshift {
 
@@ -19,11 +20,6 @@ std::vector<float> smooth_noise(const Grid3& grid, double correlation_mm, double
 // exp(amplitude * g), g a random quadratic polynomial over the grid box with
 // max |g| = 1 (ones for amplitude 0).
 std::vector<float> bias_field(const Grid3& grid, double amplitude, std::mt19937_64& rng);
-
-// Separable Gaussian smoothing along the voxel axes, sigma per axis in voxels
-// (an axis with sigma below 0.05 is left alone); edges replicated. The slice
-// profile of a scanner, the smoothing of a segmenter.
-void gaussian_smooth_voxels(ImageF& image, const Eigen::Vector3d& sigma_voxels);
 
 // Magnitude of the value plus complex Gaussian noise of sigma (> 0) per
 // component, voxel by voxel in order (one random stream): an MR magnitude

@@ -10,6 +10,7 @@
 
 #include "core/errors.h"
 #include "core/timer.h"
+#include "image/gaussian_smooth.h"
 #include "registration/intensity_correction.h"
 #include "registration/intensity_lattice.h"
 #include "registration/intensity_robust.h"
@@ -41,6 +42,32 @@ void check_inputs(const VectorImage3& u, const IntensityRefinementInput& in) {
     throw InputError("intensity refinement: the preop image is empty");
 }
 
+// The preop T1 as the intraop scanner would record it: each intraop voxel
+// integrates a box of one pixel in-plane (variance h^2 / 12) and a slice
+// profile across, taken as a Gaussian of FWHM one slice (a 2D
+// acquisition's; the slice axis is the coarsest one), of which the preop
+// voxel's own box (p^2 / 12) is already in the preop. Without it a sharp
+// 1 mm preop is compared with a 2.4 mm slice's partial-volume average. The
+// covariance is read on the preop's axes (its diagonal; exact for aligned
+// grids). A copy; the preop itself when nothing needs blurring.
+ImageF preop_at_intraop_resolution(const ImageF& preop, const Grid3& intraop) {
+  const Vec3 h = intraop.spacing_mm(), pre = preop.grid.spacing_mm();
+  int slice = 2;
+  for (int a = 0; a < 3; ++a)
+    if (h[a] > h[slice] * (1 + 1e-6)) slice = a;
+  Vec3 variance = h.cwiseProduct(h) / 12.0;
+  variance[slice] = std::pow(h[slice] / 2.3548, 2);
+  Mat3 r_in = intraop.world_from_voxel.topLeftCorner<3, 3>(), r_pre = preop.grid.world_from_voxel.topLeftCorner<3, 3>();
+  for (int a = 0; a < 3; ++a) r_in.col(a).normalize(), r_pre.col(a).normalize();
+  const Mat3 on_preop_axes = r_pre.transpose() * r_in * variance.asDiagonal() * r_in.transpose() * r_pre;
+  Vec3 sigma_voxels;
+  for (int a = 0; a < 3; ++a)
+    sigma_voxels[a] = std::sqrt(std::max(0.0, on_preop_axes(a, a) - pre[a] * pre[a] / 12.0)) / pre[a];
+  ImageF out = preop;
+  gaussian_smooth_voxels(out, sigma_voxels);
+  return out;
+}
+
 double median_intensity(const std::vector<Sample>& s) {
   std::vector<double> v;
   v.reserve(s.size());
@@ -57,6 +84,9 @@ std::string validation_error(const IntensityRefinementParameters& p) {
   if (!(p.membrane_weight >= 0 && std::isfinite(p.membrane_weight))) return "membrane_weight must be >= 0";
   if (!(p.shrink_weight_per_mm2 > 0 && std::isfinite(p.shrink_weight_per_mm2)))
     return "shrink_weight_per_mm2 must be > 0 (without it a region without image edges is undetermined)";
+  if (!(p.smoothing_length_mm >= 0 && p.smoothing_length_mm <= 50)) return "smoothing_length_mm must be in [0, 50]";
+  if (!(p.fem_trust_length_mm > 0 && p.fem_trust_length_mm <= 1000))
+    return "fem_trust_length_mm must be in (0, 1000] (without it a region without image edges is undetermined)";
   if (!(p.max_correction_mm > 0 && p.max_correction_mm <= 20)) return "max_correction_mm must be in (0, 20]";
   if (!(p.max_step_mm > 0)) return "max_step_mm must be > 0";
   if (!(p.sample_spacing_mm > 0)) return "sample_spacing_mm must be > 0";
@@ -91,6 +121,8 @@ void to_json(nlohmann::json& j, const IntensityRefinementReport& r) {
        {"mean_correction_mm", r.mean_correction_mm},
        {"bias_model", r.bias_model},
        {"explained_variance", r.explained_variance},
+       {"data_curvature_per_mm2", r.data_curvature_per_mm2},
+       {"smoothing_length_mm", r.smoothing_length_mm},
        {"seconds", {{"sampling", r.sampling_seconds}, {"optimise", r.optimise_seconds}, {"apply", r.apply_seconds},
                     {"total", r.seconds}}}};
 }
@@ -107,7 +139,8 @@ IntensityRefinementReport refine_with_intensity(VectorImage3& pullback_mm, const
     return report;
   }
   Lattice lattice(boxes.region, pullback_mm.grid, p.lattice_spacing_mm);
-  const LinearSampler preop(input.preop_t1);
+  const ImageF blurred = p.match_point_spread ? preop_at_intraop_resolution(input.preop_t1, pullback_mm.grid) : ImageF();
+  const LinearSampler preop(p.match_point_spread ? blurred : input.preop_t1);
   Samples samples = prepare_samples(pullback_mm, input, p, lattice, preop, boxes);
   report.candidates = samples.candidates;
   report.samples = samples.motion.size();
@@ -119,7 +152,7 @@ IntensityRefinementReport refine_with_intensity(VectorImage3& pullback_mm, const
   report.sampling_seconds = clock.seconds();
   const double median = std::max(median_intensity(samples.bias), 1e-12);
   report.iterations = optimise(lattice, samples.motion, samples.bias, preop, p, samples.density_per_mm3,
-                               1e-3 * median, &report);
+                               pullback_mm.grid.spacing_mm().maxCoeff(), 1e-3 * median, &report);
   if (!report.skipped_reason.empty()) return report;
   report.optimise_seconds = clock.seconds() - report.sampling_seconds;
   report.rms_residual_before /= median;

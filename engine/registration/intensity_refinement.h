@@ -27,14 +27,17 @@
 //
 // Cost (Gauss-Newton with iteratively reweighted least squares):
 //   sum_s w_s rho(r_s / sigma)                      image, robust (Geman-McClure)
-//   + membrane * density * int |grad v|^2 dV         smoothness
-//   + shrink * density * int |v|^2 dV                trust the FEM where the image is silent
-// density = samples per mm^3, so the balance between the image and the priors
-// does not depend on how many samples are drawn. The samples are intraop
-// tissue voxels (not ventricles, background or a resection cavity), those with
-// the strongest preop gradient first, down-weighted near the outer boundary
-// and near background/cavity voxels: there the intraop intensity (fluid in a
-// gap or cavity, dura, skull) does not follow the brain.
+//   + l^2 k density * int |grad v|^2 dV              smoothness over l = smoothing_length_mm
+//   + (l / L)^2 k density * int |v|^2 dV             trust the FEM where the image is silent (L: fem_trust_length_mm)
+// density = samples per mm^3 and k the data term's mean curvature per sample
+// (1/mm^2), so the balance between the image and the priors depends neither
+// on how many samples are drawn nor on the image's noise and contrast. The
+// samples are intraop tissue voxels (not ventricles, background or a
+// resection cavity), those with the strongest preop gradient first,
+// down-weighted near the outer boundary and near background/cavity voxels:
+// there the intraop intensity (fluid in a gap or cavity, dura, skull) does
+// not follow the brain. The preop is compared at the intraop scanner's
+// resolution (match_point_spread).
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -57,12 +60,29 @@ struct IntensityRefinementParameters {
   // earlier when no node moves by more than convergence_mm.
   int iterations = 10;
   double convergence_mm = 0.01;
-  // Membrane weight (dimensionless; see the cost above). The image alone
-  // decides features larger than about sqrt(membrane / typical image
-  // curvature) ~ 3-4 mm; the lattice limits the rest.
+  // The regulariser, as lengths relative to the data term's mean curvature
+  // at the start (what one sample tells of the motion; noise, blur and a
+  // weak contrast lower it): the image decides motion features longer than
+  // smoothing_length_mm, the lattice limits the rest; where the image is
+  // silent v fades back to the FEM's answer over fem_trust_length_mm. The
+  // same on any scanner: fixed weights against a data term normalised by the
+  // noise made a 0.15 T scan (SNR 7, curvature 0.2 / mm^2) eight times stiffer
+  // than a 1.5 T one (1.55 / mm^2). 3.6 mm is the length the fixed weights
+  // below had on the 1.5 T scan. Raised where the image's noise would move v
+  // by more than its grid's position uncertainty (voxel / sqrt(12)).
+  // docs/DESIGN.md "Interior refinement from the intraop T1".
+  double smoothing_length_mm = 3.6;
+  double fem_trust_length_mm = 30.0;
+  // Compare the intraop image with the preop blurred to the intraop voxel's
+  // point-spread function (a box in-plane, a slice profile of FWHM one slice
+  // across), not with the sharp preop: at 2-3 mm slices partial volume
+  // otherwise reads as misalignment (0.15 T cases 0.03-0.07 mm closer,
+  // docs/PERFORMANCE.md 9.1). A blurred copy of the preop per scan (~0.15 s).
+  bool match_point_spread = true;
+  // Used only with smoothing_length_mm = 0: fixed weights, against the data
+  // term normalised by its residual spread. Membrane weight (dimensionless);
+  // pull toward v = 0 (1/mm^2), v decays over sqrt(membrane / shrink) ~ 30 mm.
   double membrane_weight = 20.0;
-  // Pull toward v = 0 (1/mm^2). Where the image has no edges v decays back to
-  // the FEM's answer over sqrt(membrane / shrink) ~ 30 mm.
   double shrink_weight_per_mm2 = 0.02;
   // Bounds on the correction v (mm, the move of the intraop point; the change
   // of u can be somewhat larger where the FEM stretches the tissue): the
@@ -131,6 +151,10 @@ struct IntensityRefinementReport {
   double max_correction_mm = 0, mean_correction_mm = 0;  // |u' - u| inside the brain region
   std::string bias_model;
   double explained_variance = 0;  // weighted R^2 of the bias model's fit
+  // What one sample tells of the motion at the start (mean data curvature
+  // per axis, 1/mm^2; noise and blur lower it).
+  double data_curvature_per_mm2 = 0;
+  double smoothing_length_mm = 0;  // in force (raised by the noise floor; 0: fixed weights)
   double seconds = 0;  // whole stage; and its parts:
   double sampling_seconds = 0, optimise_seconds = 0, apply_seconds = 0;
 };

@@ -22,6 +22,14 @@ struct NodeSystem {
   std::vector<Vec3> gradient;
   double sum_r2 = 0;
   std::size_t used = 0;
+  // Mean over the used samples of the data term's curvature along one axis,
+  // w |d r / d v|^2 / (3 sigma^2) (1/mm^2): what one sample tells of the
+  // motion, averaged over edge orientations.
+  double mean_curvature_per_mm2() const {
+    double trace = 0;
+    for (const Sym3& h : hessian) trace += h[0] + h[3] + h[5];  // the trilinear weights sum to 1
+    return used ? trace / (3.0 * static_cast<double>(used)) : 0.0;
+  }
   explicit NodeSystem(std::size_t n) : hessian(n, Sym3::Zero()), gradient(n, Vec3::Zero()) {}
   void add(const NodeSystem& o) {
     for (std::size_t n = 0; n < hessian.size(); ++n) hessian[n] += o.hessian[n], gradient[n] += o.gradient[n];
@@ -182,14 +190,42 @@ double take_step(Lattice& l, const std::vector<Vec3>& step, const IntensityRefin
   return largest;
 }
 
+// The regulariser's weights on the lattice (the Hessians of
+// int |grad v|^2 dV and int |v|^2 dV, per sample density). With a smoothing
+// length, relative to the data term's mean curvature at the start: the image
+// then decides motion features longer than that length, and v fades to the
+// FEM's answer over fem_trust_length_mm where the image is silent, whatever
+// its noise, contrast and voxel size. The length is raised where the image
+// says so little that its noise would move v by more than the position
+// uncertainty of its own grid (voxel / sqrt(12)): a membrane of length l
+// averages the data over about 8 pi l^3, so the noise's standard deviation
+// in v is 1 / sqrt(8 pi l^3 density curvature). docs/DESIGN.md "Interior
+// refinement from the intraop T1". Without a smoothing length, the fixed
+// weights.
+struct Prior {
+  double alpha = 0, beta = 0;
+  double length_mm = 0;  // the smoothing length in force (0: fixed weights)
+};
+Prior prior_weights(const IntensityRefinementParameters& p, double density_per_mm3, double h, double voxel_mm,
+                    double curvature) {
+  if (!(p.smoothing_length_mm > 0))
+    return {p.membrane_weight * density_per_mm3 * h, p.shrink_weight_per_mm2 * density_per_mm3 * h * h * h, 0.0};
+  const double info = std::max(density_per_mm3 * curvature, 1e-12);  // per mm^3 per mm^2 of motion
+  const double tolerance2 = voxel_mm * voxel_mm / 12.0;
+  const double noise_length = std::cbrt(1.0 / (8.0 * M_PI * info * tolerance2));
+  const double l = std::min(std::max(p.smoothing_length_mm, noise_length), p.fem_trust_length_mm);
+  const double t2 = p.fem_trust_length_mm * p.fem_trust_length_mm;
+  const double membrane = l * l * curvature;  // the old weights' units (per sample)
+  return {membrane * density_per_mm3 * h, membrane / t2 * density_per_mm3 * h * h * h, l};
+}
+
 }  // namespace
 
 int optimise(Lattice& lattice, std::vector<Sample>& motion, const std::vector<Sample>& bias_samples,
              const LinearSampler& preop, const IntensityRefinementParameters& p, double density_per_mm3,
-             double sigma_floor, IntensityRefinementReport* report) {
+             double voxel_mm, double sigma_floor, IntensityRefinementReport* report) {
   const double h = lattice.spacing_mm();
-  const double alpha = p.membrane_weight * density_per_mm3 * h;       // int |grad v|^2 dV on the lattice
-  const double beta = p.shrink_weight_per_mm2 * density_per_mm3 * h * h * h;  // int |v|^2 dV
+  Prior prior;
   DataTerm data{motion, lattice, preop, 0.0, 1.0, p.robust_scale, Transfer{}};
   int it = 0;
   for (; it < p.iterations; ++it) {
@@ -220,7 +256,14 @@ int optimise(Lattice& lattice, std::vector<Sample>& motion, const std::vector<Sa
       if (it == 0) report->rms_residual_before = rms;
     }
     const NodeSystem sys = data.evaluate();
-    const double moved = take_step(lattice, gauss_newton_step(sys, lattice, alpha, beta), p);
+    if (it == 0) {
+      // Set once, at the start: as the edges align sigma falls and the image
+      // is trusted more, as with fixed weights.
+      report->data_curvature_per_mm2 = sys.mean_curvature_per_mm2();
+      prior = prior_weights(p, density_per_mm3, h, voxel_mm, report->data_curvature_per_mm2);
+      report->smoothing_length_mm = prior.length_mm;
+    }
+    const double moved = take_step(lattice, gauss_newton_step(sys, lattice, prior.alpha, prior.beta), p);
     if (moved < p.convergence_mm) {
       ++it;
       break;

@@ -12,9 +12,10 @@
 namespace brainshift::intensity {
 
 // The Gauss-Newton loop on the motion samples; returns the iterations done,
-// 0 with report->skipped_reason set when the image is not trusted.
+// 0 with report->skipped_reason set when the image is not trusted. voxel_mm:
+// the intraop image's largest voxel dimension.
 int optimise(Lattice& lattice, std::vector<Sample>& motion, const std::vector<Sample>& bias_samples,
              const LinearSampler& preop, const IntensityRefinementParameters& p, double density_per_mm3,
-             double sigma_floor, IntensityRefinementReport* report);
+             double voxel_mm, double sigma_floor, IntensityRefinementReport* report);
 
 }  // namespace brainshift::intensity

@@ -4,6 +4,13 @@
 // seconds and the Jacobian of the refined field per case and variant.
 //   brainshift_refine_bench [--atlas-cache DIR] [--variant "key=value;key=value"]...
 //                           [--blur-slices] [--extra-noise F] [--gamma G] [--invert] [--shuffle-brain] [--repeat N]
+//                           [--hospital case,case [--snr S] [--bias B]]
+// --hospital replays cases of the hospital-variation suite (phantom/hospital_suite.h,
+// labels + image: the algorithmic segmentation and the scanner's image, each
+// subject warmed up once) instead of the phantom suite, and splits each
+// case's TRE by the landmark's depth below the brain's outline. For
+// diagnosis, --snr / --bias give the cases' scanner another SNR or bias
+// amplitude (docs/PERFORMANCE.md 9.1).
 // A variant holds [intensity] keys of brainshiftd.toml; "" is the defaults.
 // --blur-slices smooths the intraop T1 across slices ([1 2 1]/4): a thicker
 // slice profile than the phantom's point sampling, as a robustness check.
@@ -19,6 +26,7 @@
 #include <algorithm>
 #include <cstdio>
 #include <ctime>
+#include <map>
 #include <random>
 
 #include "atlas/default_atlas.h"
@@ -27,6 +35,8 @@
 #include "core/timer.h"
 #include "fem/petsc_session.h"
 #include "field/metrics.h"
+#include "hospital_evaluation.h"
+#include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
 #include "pipeline/engine_session.h"
 #include "registration/boundary_samples.h"
@@ -43,7 +53,26 @@ struct Case {
   ImageF brain_sdf_mm;
   Mask brain_region;
   bool fallback = false;
+  const ImageF* preop_t1 = nullptr;
 };
+
+// The TRE split by the landmark's depth below the intraop brain outline
+// (mm, from the signed distance map): where the refinement helps or not.
+std::string depth_split(const Case& c, const std::vector<double>& errors_mm) {
+  const double edges[] = {0, 5, 15, 1e9};
+  double sum[3] = {0, 0, 0};
+  int count[3] = {0, 0, 0};
+  const GridSampler sdf(c.brain_sdf_mm.grid);
+  for (std::size_t n = 0; n < errors_mm.size() && n < c.phantom.landmarks_intraop_preop_mm.size(); ++n) {
+    const double depth = -sdf.linear(c.brain_sdf_mm.voxels, c.phantom.landmarks_intraop_preop_mm[n].first, 0.f);
+    for (int b = 0; b < 3; ++b)
+      if (depth >= edges[b] && depth < edges[b + 1]) sum[b] += errors_mm[n], ++count[b];
+  }
+  char out[160];
+  std::snprintf(out, sizeof out, "depth <5 %.2f (%d) 5-15 %.2f (%d) >15 %.2f (%d)", count[0] ? sum[0] / count[0] : 0.0,
+                count[0], count[1] ? sum[1] / count[1] : 0.0, count[1], count[2] ? sum[2] / count[2] : 0.0, count[2]);
+  return out;
+}
 
 ImageF blurred_across_slices(const ImageF& in) {
   ImageF out = in;
@@ -116,6 +145,11 @@ int main(int argc, char** argv) {
   app.add_option("--gamma", gamma);
   app.add_flag("--shuffle-brain", shuffle);
   app.add_flag("--invert", invert);
+  std::vector<std::string> hospital;
+  double snr = 0, bias = -1;
+  app.add_option("--snr", snr, "hospital cases: the scanner's SNR instead of its own (diagnosis)");
+  app.add_option("--bias", bias, "hospital cases: the scanner's bias amplitude instead of its own (diagnosis)");
+  app.add_option("--hospital", hospital, "hospital-suite case names instead of the phantom suite")->delimiter(',');
   CLI11_PARSE(app, argc, argv);
   if (variants.empty()) variants.push_back("");
 
@@ -123,31 +157,56 @@ int main(int argc, char** argv) {
   if (!bench::drive_from_this_rank()) return 0;
   PipelineParameters params = config::pipeline_parameters_from_text(config::default_config_text(), "built-in");
   params.intensity.enabled = false;
-  EngineSession session(MPI_COMM_WORLD, params);
-  DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache);
-  session.load_preop(PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, nullptr);
   const LabelTable& table = params.label_table;
   std::vector<std::uint16_t> tissue;
   for (const auto& e : table.entries)
     if (e.role != LabelRole::cavity) tissue.push_back(e.value);
 
+  std::map<std::string, ImageF> preop_t1;  // each case's preop; stable addresses
   std::vector<Case> cases;
-  for (const auto& spec : standard_phantom_suite()) {
-    Case c;
-    c.name = spec.name;
-    c.phantom = make_phantom(session.preop().t1, session.preop().labels, spec);
+  // Registers the case without the refinement and keeps what a variant needs.
+  auto add_case = [&](EngineSession& session, Case c, const ImageF& preop, std::uint64_t seed) {
     if (blur) c.phantom.intraop_t1 = blurred_across_slices(c.phantom.intraop_t1);
-    degrade(c.phantom, noise, gamma, invert, shuffle, spec.seed);
+    degrade(c.phantom, noise, gamma, invert, shuffle, seed);
     ScanResult r = session.register_scan(IntraopInput{c.phantom.intraop_labels, c.phantom.intraop_t1}, nullptr, true);
     c.fallback = r.kind != ResultKind::nonrigid;
     c.field = std::move(r.pullback_field_mm);
     c.brain_region = outline_mask(c.phantom.intraop_labels);
     c.brain_sdf_mm = prepare_intraop_maps(c.phantom.intraop_labels, c.brain_region, table.brain_label(),
                                           table.cavity_labels().front()).outer_sdf_mm;
+    c.preop_t1 = &preop;
     const TreStats t = target_registration_error(c.field, column(c.phantom, false), column(c.phantom, true));
-    std::printf("%-34s fem    mean %5.2f p95 %5.2f max %5.2f%s\n", c.name.c_str(), t.mean_mm, t.p95_mm, t.max_mm,
-                c.fallback ? " FALLBACK" : "");
+    std::printf("%-34s fem    mean %5.2f p95 %5.2f max %5.2f%s | %s\n", c.name.c_str(), t.mean_mm, t.p95_mm, t.max_mm,
+                c.fallback ? " FALLBACK" : "", depth_split(c, t.errors_mm).c_str());
+    std::fflush(stdout);
     cases.push_back(std::move(c));
+  };
+  if (hospital.empty()) {
+    EngineSession session(MPI_COMM_WORLD, params);
+    DefaultAtlas atlas = load_or_build_default_atlas(atlas_cache);
+    session.load_preop(PreopInput{std::move(atlas.t1), std::move(atlas.labels)}, nullptr);
+    for (const auto& spec : standard_phantom_suite()) {
+      const ImageF& preop = preop_t1.emplace(spec.name, session.preop().t1).first->second;
+      Case c;
+      c.name = spec.name;
+      c.phantom = make_phantom(session.preop().t1, session.preop().labels, spec);
+      add_case(session, std::move(c), preop, spec.seed);
+    }
+  } else {
+    const evaluation::AtlasInputs atlas = evaluation::load_atlas_inputs(atlas_cache);
+    for (auto spec : hospital_suite()) {
+      if (std::find(hospital.begin(), hospital.end(), spec.deformation.name) == hospital.end()) continue;
+      if (snr > 0) spec.scanner.snr = snr;
+      if (bias >= 0) spec.scanner.bias_amplitude = bias;
+      const Subject subject = evaluation::make_named_subject(atlas, spec.subject);
+      EngineSession session(MPI_COMM_WORLD, params);
+      session.load_preop(PreopInput{subject.t1, subject.labels}, nullptr);
+      const ImageF& preop = preop_t1.emplace(spec.deformation.name, subject.t1).first->second;
+      Case c;
+      c.name = spec.deformation.name;
+      c.phantom = make_hospital_case(subject, spec).phantom;
+      add_case(session, std::move(c), preop, spec.deformation.seed);
+    }
   }
   for (const auto& v : variants) {
     std::string text = "[intensity]\n" + v;
@@ -158,7 +217,7 @@ int main(int argc, char** argv) {
     std::vector<double> pooled, seconds, cpu_seconds;
     for (const auto& c : cases) {
       const IntensityRefinementInput in{c.phantom.intraop_t1, c.phantom.intraop_labels, c.brain_sdf_mm,
-                                        session.preop().t1, tissue, 0};
+                                        *c.preop_t1, tissue, 0};
       VectorImage3 u;
       IntensityRefinementReport rep;
       std::vector<double> runs, cpu;
@@ -179,12 +238,13 @@ int main(int argc, char** argv) {
       sum_mean += t.mean_mm;
       pooled.insert(pooled.end(), t.errors_mm.begin(), t.errors_mm.end());
       std::printf("%-34s refine mean %5.2f p95 %5.2f max %5.2f | %.3f s it %d | |v| max %.2f mean %.2f | "
-                  "rms %.3f -> %.3f | det min %.3f -> %.3f folded %zu -> %zu | s %.3f %.3f %.3f | median %.3f cpu %.3f | R2 %.3f %s\n",
+                  "rms %.3f -> %.3f | det min %.3f -> %.3f folded %zu -> %zu | s %.3f %.3f %.3f | median %.3f cpu %.3f | R2 %.3f k %.3f l %.2f %s | %s\n",
                   c.name.c_str(), t.mean_mm, t.p95_mm, t.max_mm, seconds.back(), rep.iterations,
                   rep.max_correction_mm, rep.mean_correction_mm, rep.rms_residual_before, rep.rms_residual_after,
                   jb.min_det, ja.min_det, jb.folded_voxels, ja.folded_voxels, rep.sampling_seconds,
                   rep.optimise_seconds, rep.apply_seconds, runs[runs.size() / 2], cpu.front(), rep.explained_variance,
-                  rep.applied ? "" : ("SKIPPED: " + rep.skipped_reason).c_str());
+                  rep.data_curvature_per_mm2, rep.smoothing_length_mm, rep.applied ? "" : ("SKIPPED: " + rep.skipped_reason).c_str(), depth_split(c, t.errors_mm).c_str());
+      std::fflush(stdout);
     }
     std::sort(seconds.begin(), seconds.end());
     std::sort(cpu_seconds.begin(), cpu_seconds.end());

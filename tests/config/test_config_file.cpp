@@ -145,6 +145,9 @@ TEST(Config, IntensitySectionDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.convergence_mm, code.convergence_mm);
   EXPECT_DOUBLE_EQ(file.membrane_weight, code.membrane_weight);
   EXPECT_DOUBLE_EQ(file.shrink_weight_per_mm2, code.shrink_weight_per_mm2);
+  EXPECT_DOUBLE_EQ(file.smoothing_length_mm, code.smoothing_length_mm);
+  EXPECT_DOUBLE_EQ(file.fem_trust_length_mm, code.fem_trust_length_mm);
+  EXPECT_EQ(file.match_point_spread, code.match_point_spread);
   EXPECT_DOUBLE_EQ(file.max_correction_mm, code.max_correction_mm);
   EXPECT_DOUBLE_EQ(file.max_step_mm, code.max_step_mm);
   EXPECT_DOUBLE_EQ(file.sample_spacing_mm, code.sample_spacing_mm);
@@ -173,6 +176,8 @@ TEST(Config, BadIntensityValuesAreErrorsNamingSectionAndKey) {
   EXPECT_NE(message_of("[intensity]\nbias_degree = 5\n").find("bias_degree"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nmin_explained_variance = 1.0\n").find("min_explained_variance"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nshrink_weight_per_mm2 = 0.0\n").find("shrink_weight_per_mm2"), std::string::npos);
+  EXPECT_NE(message_of("[intensity]\nsmoothing_length_mm = -1.0\n").find("smoothing_length_mm"), std::string::npos);
+  EXPECT_NE(message_of("[intensity]\nfem_trust_length_mm = 0.0\n").find("fem_trust_length_mm"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nmax_samples = -3\n").find("max_samples"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nlatice_spacing_mm = 8.0\n").find("latice_spacing_mm"), std::string::npos);
   EXPECT_NE(message_of("[intensity]\nenabled = \"yes\"\n").find("enabled"), std::string::npos);

@@ -34,6 +34,17 @@ Eigen::Vector3d true_pullback_mm(const Eigen::Vector3d& x, const Eigen::Vector3d
   return bump({15, -10, 5}, 25, {2.0, -1.5, 1.0}) + bump({-20, 15, -10}, 28, {-1.5, 1.0, 2.0});
 }
 
+// A scanner's grid and what a voxel integrates: by default 80 x 80 x 36
+// voxels of 1.2 x 1.2 x 2.5 mm sampled at their centres; the corners reach
+// past the brain surface.
+struct Scanner {
+  std::array<int, 3> dims{80, 80, 36};
+  Eigen::Vector3d spacing_mm{1.2, 1.2, 2.5};
+  // A voxel averages the scene over its box in-plane and a Gaussian slice
+  // profile (FWHM one slice) across, as a low-field 2D acquisition.
+  bool partial_volume = false;
+};
+
 struct Crop {
   ImageF intraop_t1;
   LabelImage labels;
@@ -62,6 +73,8 @@ class IntensityRefinementTest : public ::testing::Test {
     centre_ = sum / static_cast<double>(tissue.size());
     std::nth_element(tissue.begin(), tissue.begin() + tissue.size() * 99 / 100, tissue.end());
     p99_ = tissue[tissue.size() * 99 / 100];
+    std::nth_element(tissue.begin(), tissue.begin() + tissue.size() / 2, tissue.end());
+    median_ = tissue[tissue.size() / 2];
   }
   static void TearDownTestSuite() {
     delete t1_;
@@ -71,12 +84,33 @@ class IntensityRefinementTest : public ::testing::Test {
     if (!t1_) GTEST_SKIP() << kT1 << " is not installed (Debian package mricron-data)";
   }
 
-  // 80 x 80 x 36 voxels of 1.2 x 1.2 x 2.5 mm, tilted, around the brain's
-  // centre; the corners reach past the brain surface.
-  static Crop make_crop(bool deform, double bias_amplitude, double noise_fraction) {
+  // The value a voxel centred at x records (the preop T1 pulled back by u).
+  static double voxel_value(const LinearSampler& t1, const Grid3& g, int i, int j, int k, bool deform,
+                            bool partial_volume) {
+    auto at = [&](const Eigen::Vector3d& x) {
+      double value = 0;
+      t1.sample(x + (deform ? true_pullback_mm(x, centre_) : Eigen::Vector3d::Zero()), &value, nullptr);
+      return value;
+    };
+    if (!partial_volume) return at(g.world_mm(i, j, k));
+    double sum = 0, weights = 0;
+    for (int c = -3; c <= 3; ++c)  // across: +-1.5 FWHM, sigma = FWHM / 2.355
+      for (int b = -1; b <= 1; ++b)
+        for (int a = -1; a <= 1; ++a) {
+          const double t = 0.5 * c;  // slices
+          const double w = std::exp(-0.5 * t * t * 2.3548 * 2.3548);
+          sum += w * at(g.world_mm(i + a / 3.0, j + b / 3.0, k + t));
+          weights += w;
+        }
+    return sum / weights;
+  }
+
+  // Tilted around the brain's centre. Noise: Rician, noise_fraction of the
+  // brain's p99.
+  static Crop make_crop(bool deform, double bias_amplitude, double noise_fraction, const Scanner& scanner = {}) {
     const Eigen::Matrix3d tilt =
         Eigen::AngleAxisd(10 * M_PI / 180, Eigen::Vector3d(0.3, 1, 0.2).normalized()).toRotationMatrix();
-    const Grid3 g = test::make_grid({80, 80, 36}, {1.2, 1.2, 2.5}, tilt, centre_);
+    const Grid3 g = test::make_grid(scanner.dims, scanner.spacing_mm, tilt, centre_);
     Crop c{ImageF(g), LabelImage(g), ImageF(), VectorImage3(g)};
     const LinearSampler t1(*t1_), brain(*brain_);
     std::mt19937_64 rng(7);
@@ -88,10 +122,10 @@ class IntensityRefinementTest : public ::testing::Test {
         for (int i = 0; i < g.dims[0]; ++i) {
           const Eigen::Vector3d x = g.world_mm(i, j, k);
           const Eigen::Vector3d u = deform ? true_pullback_mm(x, centre_) : Eigen::Vector3d::Zero();
-          double value = 0, in_brain = 0;
-          t1.sample(x + u, &value, nullptr);
+          double in_brain = 0;
+          const double value = voxel_value(t1, g, i, j, k, deform, scanner.partial_volume);
           brain.sample(x + u, &in_brain, nullptr);
-          const double bias = std::exp(bias_amplitude * (i / 79.0 - 0.5 + 0.5 * (k / 35.0 - 0.5)));
+          const double bias = std::exp(bias_amplitude * (i / (g.dims[0] - 1.0) - 0.5 + 0.5 * (k / (g.dims[2] - 1.0) - 0.5)));
           const double re = bias * value + sigma * normal(rng), im = sigma * normal(rng);
           c.intraop_t1.at(i, j, k) = static_cast<float>(sigma > 0 ? std::sqrt(re * re + im * im) : bias * value);
           c.labels.at(i, j, k) = in_brain > 0.5 ? 1 : 0;
@@ -133,7 +167,8 @@ class IntensityRefinementTest : public ::testing::Test {
   static inline ImageF* t1_ = nullptr;
   static inline ImageF* brain_ = nullptr;
   static inline Eigen::Vector3d centre_ = Eigen::Vector3d::Zero();
-  static inline double p99_ = 0;  // of the T1 in the brain
+  static inline double p99_ = 0;     // of the T1 in the brain
+  static inline double median_ = 0;  // likewise
 };
 
 TEST_F(IntensityRefinementTest, RecoversAKnownSmoothDeformationUnderBiasAndNoise) {
@@ -154,7 +189,13 @@ TEST_F(IntensityRefinementTest, RecoversAKnownSmoothDeformationUnderBiasAndNoise
 TEST_F(IntensityRefinementTest, LeavesAnIdenticalPairAlone) {
   const Crop c = make_crop(/*deform=*/false, 0.0, 0.0);
   VectorImage3 u(c.labels.grid);
-  const IntensityRefinementReport r = refine(c, &u);
+  // This "scan" samples the preop at voxel centres, with no point-spread
+  // function of its own: compared with the preop as it is, the pair is
+  // identical to the last bit.
+  IntensityRefinementParameters p;
+  p.match_point_spread = false;
+  const IntensityRefinementReport r =
+      refine_with_intensity(u, IntensityRefinementInput{c.intraop_t1, c.labels, c.brain_sdf_mm, *t1_, {1}, 0}, p);
   ASSERT_TRUE(r.applied) << r.skipped_reason;
   EXPECT_LT(r.max_correction_mm, 0.01);
   double largest = 0;
@@ -169,6 +210,73 @@ TEST_F(IntensityRefinementTest, NoiseAndBiasAloneMoveAnIdenticalPairLittle) {
   ASSERT_TRUE(r.applied) << r.skipped_reason;
   EXPECT_LT(mean_difference_mm(c, u, VectorImage3(c.labels.grid), 8.0), 0.15);
   EXPECT_LT(r.max_correction_mm, 0.6);
+}
+
+// A 0.15 T-like scan: 1.7 x 1.7 x 2.4 mm voxels that integrate the scene
+// (partial volume), SNR 7 at the tissue's median, a +-40 % bias. The noise
+// enters the data term as 1 / sigma^2; with fixed regulariser weights the
+// prior then outweighs the image about tenfold against a 1.5 T scan and the
+// correction stays near the FEM's answer. Relative to the data's own
+// curvature (smoothing_length_mm), the image decides the same features at
+// any noise level.
+Scanner low_field() {
+  Scanner s;
+  s.dims = {56, 56, 36};
+  s.spacing_mm = {1.7, 1.7, 2.4};
+  s.partial_volume = true;
+  return s;
+}
+
+TEST_F(IntensityRefinementTest, RecoversAKnownDeformationFromALowFieldScan) {
+  const Crop c = make_crop(/*deform=*/true, /*bias_amplitude=*/std::log(1.4), median_ / 7 / p99_, low_field());
+  const IntensityRefinementInput in{c.intraop_t1, c.labels, c.brain_sdf_mm, *t1_, {1}, 0};
+  VectorImage3 u(c.labels.grid), fixed(c.labels.grid);  // 0: the model knew nothing of this motion
+  const double before = mean_difference_mm(c, u, c.truth_mm, 8.0);
+  const IntensityRefinementReport r = refine_with_intensity(u, in, IntensityRefinementParameters{});
+  IntensityRefinementParameters old_weights;
+  old_weights.smoothing_length_mm = 0;  // the fixed membrane and shrink weights
+  old_weights.match_point_spread = false;
+  const IntensityRefinementReport rf = refine_with_intensity(fixed, in, old_weights);
+  IntensityRefinementParameters sharp;  // the new prior against the sharp preop
+  sharp.match_point_spread = false;
+  VectorImage3 unblurred(c.labels.grid);
+  ASSERT_TRUE(refine_with_intensity(unblurred, in, sharp).applied);
+  const double after_sharp = mean_difference_mm(c, unblurred, c.truth_mm, 8.0);
+  ASSERT_TRUE(r.applied) << r.skipped_reason;
+  ASSERT_TRUE(rf.applied) << rf.skipped_reason;
+  const double after = mean_difference_mm(c, u, c.truth_mm, 8.0), after_fixed = mean_difference_mm(c, fixed, c.truth_mm, 8.0);
+  std::printf("low field: mean error %.3f -> %.3f mm (sharp preop %.3f, fixed weights %.3f), curvature %.3f / mm^2, "
+              "length %.2f mm\n", before, after, after_sharp, after_fixed, r.data_curvature_per_mm2, r.smoothing_length_mm);
+  EXPECT_LE(after, after_sharp) << "the preop at the scanner's resolution must not do worse than the sharp one";
+  EXPECT_LT(after, before / 2) << "mean error " << before << " -> " << after << " mm";
+  EXPECT_LT(after, 0.8 * after_fixed) << "the data-relative prior must recover more than the fixed weights";
+  EXPECT_GT(r.smoothing_length_mm, 0.0);
+}
+
+TEST_F(IntensityRefinementTest, LowFieldNoiseAloneMovesAnIdenticalPairLittle) {
+  const Crop c = make_crop(/*deform=*/false, std::log(1.4), median_ / 7 / p99_, low_field());
+  VectorImage3 u(c.labels.grid);
+  const IntensityRefinementReport r = refine(c, &u);
+  ASSERT_TRUE(r.applied) << r.skipped_reason;
+  const double moved = mean_difference_mm(c, u, VectorImage3(c.labels.grid), 8.0);
+  std::printf("low field, identical pair: mean move %.3f mm, max %.2f mm\n", moved, r.max_correction_mm);
+  // Below the position uncertainty of the grid itself (1.7 mm / sqrt(12)).
+  EXPECT_LT(moved, 1.7 / std::sqrt(12.0));
+  // A far noisier image that is still trusted (SNR 3), and few samples: so
+  // little information per mm^3 that the noise floor lengthens the smoothing
+  // and holds v as still.
+  const Crop faint = make_crop(/*deform=*/false, std::log(1.4), median_ / 3 / p99_, low_field());
+  VectorImage3 w(faint.labels.grid);
+  IntensityRefinementParameters few;
+  few.max_samples = 1000;
+  const IntensityRefinementReport rw = refine_with_intensity(
+      w, IntensityRefinementInput{faint.intraop_t1, faint.labels, faint.brain_sdf_mm, *t1_, {1}, 0}, few);
+  ASSERT_TRUE(rw.applied) << rw.skipped_reason << " (explained " << rw.explained_variance << ")";
+  const double faint_moved = mean_difference_mm(faint, w, VectorImage3(faint.labels.grid), 8.0);
+  std::printf("SNR 3, identical pair: mean move %.3f mm, curvature %.4f / mm^2, length %.2f mm\n", faint_moved,
+              rw.data_curvature_per_mm2, rw.smoothing_length_mm);
+  EXPECT_GT(rw.smoothing_length_mm, IntensityRefinementParameters{}.smoothing_length_mm) << "the noise floor binds";
+  EXPECT_LT(faint_moved, 1.7 / std::sqrt(12.0));
 }
 
 TEST_F(IntensityRefinementTest, AnImageUnrelatedToThePreopIsNotTrusted) {
