@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "core/parallel.h"
+
 namespace brainshift::segmentation {
 namespace {
 
@@ -21,7 +23,11 @@ std::array<std::vector<float>, kTissues> potts_mean_field(const std::array<std::
                                                           const Grid3& grid, double beta, int sweeps) {
   const std::size_t V = grid.voxel_count();
   std::array<std::vector<float>, kTissues> q = evidence;
-  for (std::size_t v = 0; v < V; ++v) normalise(q, v);
+  // Jacobi sweeps: each voxel's update reads only the previous sweep, so the
+  // slabs of slices run side by side with the same result on any core count.
+  parallel_halves(V, 1 << 16, [&](std::size_t b, std::size_t e) {
+    for (std::size_t v = b; v < e; ++v) normalise(q, v);
+  });
   if (beta <= 0 || sweeps <= 0) return q;
   const Eigen::Vector3d spacing = grid.spacing_mm();
   const double h = spacing.minCoeff();
@@ -30,8 +36,8 @@ std::array<std::vector<float>, kTissues> potts_mean_field(const std::array<std::
   const auto& n = grid.dims;
   const std::ptrdiff_t stride[3] = {1, n[0], static_cast<std::ptrdiff_t>(n[0]) * n[1]};
   std::array<std::vector<float>, kTissues> next = q;
-  for (int sweep = 0; sweep < sweeps; ++sweep) {
-    for (int k = 0; k < n[2]; ++k)
+  const auto sweep_slices = [&](int k_begin, int k_end) {
+    for (int k = k_begin; k < k_end; ++k)
       for (int j = 0; j < n[1]; ++j)
         for (int i = 0; i < n[0]; ++i) {
           const std::size_t v = grid.index(i, j, k);
@@ -49,6 +55,11 @@ std::array<std::vector<float>, kTissues> potts_mean_field(const std::array<std::
           for (int t = 0; t < kTissues; ++t) next[t][v] = evidence[t][v] * std::exp(field[t] - top);
           normalise(next, v);
         }
+  };
+  for (int sweep = 0; sweep < sweeps; ++sweep) {
+    parallel_halves(static_cast<std::size_t>(n[2]), 2, [&](std::size_t b, std::size_t e) {
+      sweep_slices(static_cast<int>(b), static_cast<int>(e));
+    });
     std::swap(q, next);
   }
   return q;

@@ -6,6 +6,7 @@
 #include <numeric>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "segmentation/bias_field.h"
 #include "segmentation/potts.h"
 
@@ -352,8 +353,10 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
   // class and voxel, no logarithm (a voxel far from every class still has
   // its nearest class's term at 1, so the sum never vanishes).
   const ClassTerms terms = class_terms(classes);
+  // Each voxel on its own: the two halves side by side, the same result.
+  parallel_halves(V, 1 << 16, [&](std::size_t begin, std::size_t end) {
   std::vector<double> l(classes.size());
-  for (std::size_t v = 0; v < V; ++v) {
+  for (std::size_t v = begin; v < end; ++v) {
     out.bias[v] = std::exp(log_bias[v]);
     const double x = image.voxels[v] / scale / out.bias[v];
     double m = -std::numeric_limits<double>::infinity();
@@ -368,6 +371,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     for (int t = 0; t < kTissues; ++t) top = std::max(top, e[t] *= std::max<double>(prior.p[t][v], 1e-30));
     for (int t = 0; t < kTissues; ++t) evidence[t][v] = static_cast<float>(e[t] / top);
   }
+  });
   out.posterior = potts_mean_field(evidence, image.grid, params.mrf_beta, params.mrf_sweeps);
   for (auto& g : classes) {
     g.mean *= scale;
