@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "image/distance_map.h"
 #include "image/image_stats.h"
 
@@ -46,7 +47,8 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const Prio
   // logistic's tail covers), while fluid outside the brain looks exactly like
   // them.
   const float keep = static_cast<float>(1.0 - 2 * floor), f = static_cast<float>(floor);
-  for (std::size_t v = 0; v < n; ++v) {
+  parallel_halves(n, 1 << 16, [&](std::size_t begin, std::size_t end) {  // each voxel on its own
+  for (std::size_t v = begin; v < end; ++v) {
     const float d = d_outline.voxels[v];
     const float in = inside_probability(d, d < 0 ? widths.inward_mm : widths.outline_mm);
     const float vent =
@@ -58,6 +60,7 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const Prio
     prior.p[1][v] = keep * in * vent;
     prior.p[2][v] = f + keep * (1 - in);
   }
+  });
   return prior;
 }
 
