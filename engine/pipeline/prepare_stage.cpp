@@ -5,6 +5,7 @@
 #include <future>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "core/timer.h"
 #include "field/warp.h"
 #include "image/image_stats.h"
@@ -176,8 +177,9 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
-  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm) {
+  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, double margin_mm) {
     segmentation::SegmentationParameters sp = ap.classifier;
+    sp.margin_mm = margin_mm;
     sp.prior_width_mm = width_mm;
     sp.ventricle_prior_width_mm = ap.ventricle_prior_width_mm;
     sp.ventricle_shift_mm = ventricle_shift_mm;
@@ -186,7 +188,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
   };
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
-  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
+  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, ap.classifier.margin_mm);
   if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
   segment_seconds += watch.lap();
   if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
@@ -200,7 +202,10 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     SegmentationGates gates;
   };
   auto run_pass = [&](const segmentation::IntraopSegmentation& s) {
-    auto check = std::async(std::launch::async, [&] { return check_segmentation(s.labels, s.confidence, carried, table, ap); });
+    auto check = std::async(std::launch::async, [&] {
+      SerialOnThisThread beside_the_stages;
+      return check_segmentation(s.labels, s.confidence, carried, table, ap);
+    });
     Pass pass;
     pass.result = run_intraop(warm, IntraopInput{s.labels, image, read_seconds}, params, progress, false);
     pass.gates = check.get();
@@ -218,7 +223,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   for (int round = 1; round <= ap.rematch_rounds && result.kind == ResultKind::nonrigid; ++round) {
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
     // warped labels), a narrower prior.
-    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0);
+    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, ap.rematch_margin_mm);
     segment_seconds += watch.lap();
     if (!next.refusal.empty()) {  // the previous pass stands
       const SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
@@ -264,6 +269,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   Stopwatch watch;
   double check_seconds = 0;
   auto check = std::async(std::launch::async, [&] {
+    SerialOnThisThread beside_the_stages;
     Stopwatch w;
     segmentation::LabelImageCheckParameters p = params.auto_segmentation.label_image_check;
     p.classifier.max_filled_hole_ml = params.min_resection_cavity_ml;
