@@ -190,61 +190,33 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, ap.classifier.margin_mm);
   if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
+  SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap);
   segment_seconds += watch.lap();
   if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
 
-  // The stages run on a segmentation while its gates judge it on the other
-  // core: one that passes (the common case) waits for neither. One that fails
-  // gives, in the first round, the stages again with the reason (the marked
-  // affine-only result); in a re-match, the previous pass stands.
-  struct Pass {
-    ScanResult result;
-    SegmentationGates gates;
-  };
-  auto run_pass = [&](const segmentation::IntraopSegmentation& s) {
-    auto check = std::async(std::launch::async, [&] {
-      SerialOnThisThread beside_the_stages;
-      return check_segmentation(s.labels, s.confidence, carried, table, ap);
-    });
-    Pass pass;
-    pass.result = run_intraop(warm, IntraopInput{s.labels, image, read_seconds}, params, progress, false);
-    pass.gates = check.get();
-    return pass;
-  };
-  Pass pass = run_pass(seg);
-  if (!pass.gates.failure.empty())
-    pass.result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false,
-                              pass.gates.failure);
-  ScanResult result = std::move(pass.result);
-  SegmentationGates gates = std::move(pass.gates);
+  // The gates are checked before the stages, not beside them: every stage
+  // already splits its work over both cores (the affine in every iteration),
+  // and a third thread slowed them by more than the check costs.
+  ScanResult result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false,
+                                  gates.failure);
   nlohmann::json rounds = nlohmann::json::array();
   rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
-  double last_pass_seconds = watch.lap();
   for (int round = 1; round <= ap.rematch_rounds && result.kind == ResultKind::nonrigid; ++round) {
+    const double pass_seconds = watch.lap();
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
-    // warped labels), a narrower prior.
+    // warped labels), a narrower prior, a smaller box.
     auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, ap.rematch_margin_mm);
+    SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
     segment_seconds += watch.lap();
-    if (!next.refusal.empty()) {  // the previous pass stands
-      const SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
+    if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the previous pass stands
       rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
                         {"refusal", next.refusal}, {"kept", false}});
-      segment_seconds += watch.lap();
       break;
     }
-    Pass candidate = run_pass(next);
-    const double candidate_seconds = watch.lap();
-    if (!candidate.gates.failure.empty()) {  // the previous pass stands
-      rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", candidate.gates.metrics},
-                        {"refusal", next.refusal}, {"kept", false}});
-      earlier_passes_seconds += candidate_seconds;
-      break;
-    }
-    earlier_passes_seconds += last_pass_seconds;
-    last_pass_seconds = candidate_seconds;
+    earlier_passes_seconds += pass_seconds;
     seg = std::move(next);
-    gates = std::move(candidate.gates);
-    result = std::move(candidate.result);
+    gates = std::move(next_gates);
+    result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false);
     rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
   }
   seg_metrics["classifier"] = seg.report;
