@@ -71,13 +71,6 @@ struct AutoSegmentationParameters {
   double ventricle_prior_width_mm = 1.5;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
-  // The classified box's margin beyond the carried outline in a re-match
-  // (mm; the classifier's margin_mm holds for the first round): where the
-  // non-rigid estimate's prior (prior_width_nonrigid_mm) has fallen to its
-  // floor, w ln(1 / floor) = 1.5 x 6.9 = 10.4 mm; farther out the box adds
-  // only scalp and air, which the outside's classes then fit instead of the
-  // fluid and dura at the brain's edge, where the decision is.
-  double rematch_margin_mm = 10.0;
   // Gates. Brain volume (the outline, after the affine's volume change is
   // divided out) against the preop's: brain shift changes it by a few per
   // cent (fluid drained, oedema), a resection by the resectable structures'

@@ -13,6 +13,7 @@
 #include "registration/affine_registration.h"
 #include "segmentation/head_mask.h"
 #include "segmentation/label_image_check.h"
+#include "segmentation/tissue_prior.h"
 
 namespace brainshift {
 namespace stages = protocol::stages;
@@ -177,9 +178,11 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
-  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, double margin_mm) {
+  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm) {
     segmentation::SegmentationParameters sp = ap.classifier;
-    sp.margin_mm = margin_mm;
+    // The classified box ends where the prior meets its floor (docs/DESIGN.md
+    // "Automatic intraop segmentation", item 7).
+    sp.margin_mm = segmentation::prior_reach_mm(width_mm, sp.prior_floor);
     sp.prior_width_mm = width_mm;
     sp.ventricle_prior_width_mm = ap.ventricle_prior_width_mm;
     sp.ventricle_shift_mm = ventricle_shift_mm;
@@ -188,7 +191,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
   };
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
-  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, ap.classifier.margin_mm);
+  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
   if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
   SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap);
   segment_seconds += watch.lap();
@@ -205,7 +208,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     const double pass_seconds = watch.lap();
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
     // warped labels), a narrower prior, a smaller box.
-    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, ap.rematch_margin_mm);
+    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0);
     SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
     segment_seconds += watch.lap();
     if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the previous pass stands

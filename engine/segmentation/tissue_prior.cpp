@@ -29,6 +29,11 @@ float inside_probability(float signed_distance_mm, double width_mm) {
 
 }  // namespace
 
+double prior_reach_mm(double outline_mm, double floor) {
+  if (!(outline_mm > 0) || !(floor > 0 && floor < 0.25)) throw InputError("tissue prior: reach needs a width > 0 and a floor in (0, 0.25)");
+  return outline_mm * std::log((1 - 3 * floor) / floor);
+}
+
 TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const PriorWidths& widths, double floor) {
   if (!(widths.ventricle_shift_mm >= 0)) throw InputError("tissue prior: the ventricles' shift must be >= 0");
   if (!(widths.outline_mm > 0) || !(widths.inward_mm > 0) || !(widths.ventricle_mm > 0))

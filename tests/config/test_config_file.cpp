@@ -231,7 +231,6 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.prior_inward_width_affine_mm, code.prior_inward_width_affine_mm);
   EXPECT_DOUBLE_EQ(file.ventricle_prior_width_mm, code.ventricle_prior_width_mm);
   EXPECT_EQ(file.rematch_rounds, code.rematch_rounds);
-  EXPECT_DOUBLE_EQ(file.rematch_margin_mm, code.rematch_margin_mm);
   EXPECT_DOUBLE_EQ(file.max_brain_volume_change, code.max_brain_volume_change);
   EXPECT_DOUBLE_EQ(file.min_ventricle_fraction, code.min_ventricle_fraction);
   EXPECT_DOUBLE_EQ(file.min_surface_confidence, code.min_surface_confidence);
@@ -255,12 +254,11 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
                    code.label_image_check.max_disagreement_fraction);
 
   const auto p = config::pipeline_parameters_from_text(
-      "[auto_segmentation]\nrematch_rounds = 0\nrematch_margin_mm = 25.0\ncheck_given_labels = false\n"
+      "[auto_segmentation]\nrematch_rounds = 0\ncheck_given_labels = false\n"
       "[auto_segmentation.classifier]\nmrf_beta = 0.0\nbias_degree = 1\n"
       "[auto_segmentation.label_check]\nband_mm = 2.0\n",
       "t").auto_segmentation;
   EXPECT_EQ(p.rematch_rounds, 0);
-  EXPECT_DOUBLE_EQ(p.rematch_margin_mm, 25.0);
   EXPECT_FALSE(p.check_given_labels);
   EXPECT_DOUBLE_EQ(p.classifier.em.mrf_beta, 0.0);
   EXPECT_EQ(p.classifier.em.bias_degree, 1);
@@ -273,7 +271,6 @@ TEST(Config, BadAutoSegmentationValuesAreErrorsNamingSectionAndKey) {
   EXPECT_NE(volume.find("[auto_segmentation]"), std::string::npos) << volume;
   EXPECT_NE(volume.find("max_brain_volume_change"), std::string::npos) << volume;
   EXPECT_NE(message_of("[auto_segmentation]\nrematch_rounds = 9\n").find("rematch_rounds"), std::string::npos);
-  EXPECT_NE(message_of("[auto_segmentation]\nrematch_margin_mm = -1\n").find("rematch_margin_mm"), std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\nprior_width_affine_mm = 0\n").find("prior_width_affine_mm"),
             std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\nventricle_shift_affine_mm = -1\n").find("ventricle_shift_affine_mm"),
