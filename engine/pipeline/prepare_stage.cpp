@@ -7,7 +7,6 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "core/timer.h"
-#include "field/warp.h"
 #include "image/image_stats.h"
 #include "image/resample.h"
 #include "registration/affine_registration.h"

@@ -30,7 +30,8 @@ float inside_probability(float signed_distance_mm, double width_mm) {
 }  // namespace
 
 double prior_reach_mm(double outline_mm, double floor) {
-  if (!(outline_mm > 0) || !(floor > 0 && floor < 0.25)) throw InputError("tissue prior: reach needs a width > 0 and a floor in (0, 0.25)");
+  if (!(outline_mm > 0) || !(floor > 0 && floor < 0.25))
+    throw InputError("tissue prior: the reach needs a width > 0 and a floor in (0, 0.25)");
   return outline_mm * std::log((1 - 3 * floor) / floor);
 }
 
