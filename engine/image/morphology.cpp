@@ -8,6 +8,7 @@
 
 #include "core/errors.h"
 #include "image/distance_map.h"
+#include "image/image_stats.h"
 
 namespace brainshift {
 namespace {
@@ -118,8 +119,15 @@ Mask largest_component(const Mask& mask, int connectivity) {
 // reaches what a flood from every background border voxel would, and no
 // neighbour needs a bounds check (this runs on every outline mask of a scan).
 Mask fill_holes(const Mask& mask) {
+  // Only the mask's bounding box needs the flood: every voxel outside it
+  // reaches the border along an axis, and a path from inside the box to the
+  // border leaves the box through the ring around it. A brain fills a third
+  // of a scan's grid, so this is a fraction of the work.
   const Grid3& g = mask.grid;
-  const std::ptrdiff_t nx = g.dims[0], ny = g.dims[1], nz = g.dims[2];
+  Mask out = mask;
+  const VoxelBox box = bounding_box_voxels(mask);
+  if (box.empty) return out;
+  const std::ptrdiff_t nx = box.hi[0] - box.lo[0] + 1, ny = box.hi[1] - box.lo[1] + 1, nz = box.hi[2] - box.lo[2] + 1;
   const std::ptrdiff_t px = nx + 4, py = ny + 4, pz = nz + 4, pxy = px * py;
   enum : std::uint8_t { kOpen = 0, kWall = 1, kReached = 2 };
   std::vector<std::uint8_t> state(static_cast<std::size_t>(pxy * pz), kOpen);
@@ -132,11 +140,13 @@ Mask fill_holes(const Mask& mask) {
   auto padded = [&](std::ptrdiff_t i, std::ptrdiff_t j, std::ptrdiff_t k) {
     return static_cast<std::size_t>((k + 2) * pxy + (j + 2) * px + (i + 2));
   };
-  std::size_t v = 0;
+  auto full = [&](std::ptrdiff_t i, std::ptrdiff_t j, std::ptrdiff_t k) {
+    return g.index(static_cast<int>(i) + box.lo[0], static_cast<int>(j) + box.lo[1], static_cast<int>(k) + box.lo[2]);
+  };
   for (std::ptrdiff_t k = 0; k < nz; ++k)
     for (std::ptrdiff_t j = 0; j < ny; ++j)
-      for (std::ptrdiff_t i = 0; i < nx; ++i, ++v)
-        if (m[v]) state[padded(i, j, k)] = kWall;
+      for (std::ptrdiff_t i = 0; i < nx; ++i)
+        if (m[full(i, j, k)]) state[padded(i, j, k)] = kWall;
   const std::ptrdiff_t step[6] = {1, -1, px, -px, pxy, -pxy};
   std::vector<std::size_t> stack{static_cast<std::size_t>(pxy + px + 1)};
   state[stack.back()] = kReached;
@@ -151,11 +161,10 @@ Mask fill_holes(const Mask& mask) {
       }
     }
   }
-  Mask out(g, 0);
-  v = 0;
   for (std::ptrdiff_t k = 0; k < nz; ++k)
     for (std::ptrdiff_t j = 0; j < ny; ++j)
-      for (std::ptrdiff_t i = 0; i < nx; ++i, ++v) out.voxels[v] = m[v] || state[padded(i, j, k)] != kReached;
+      for (std::ptrdiff_t i = 0; i < nx; ++i)
+        if (state[padded(i, j, k)] == kOpen) out.voxels[full(i, j, k)] = 1;
   return out;
 }
 

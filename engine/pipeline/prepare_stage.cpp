@@ -5,13 +5,14 @@
 #include <future>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "core/timer.h"
-#include "field/warp.h"
 #include "image/image_stats.h"
 #include "image/resample.h"
 #include "registration/affine_registration.h"
 #include "segmentation/head_mask.h"
 #include "segmentation/label_image_check.h"
+#include "segmentation/tissue_prior.h"
 
 namespace brainshift {
 namespace stages = protocol::stages;
@@ -178,6 +179,9 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
   auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm) {
     segmentation::SegmentationParameters sp = ap.classifier;
+    // The classified box ends where the prior meets its floor (docs/DESIGN.md
+    // "Automatic intraop segmentation", item 7).
+    sp.margin_mm = segmentation::prior_reach_mm(width_mm, sp.prior_floor);
     sp.prior_width_mm = width_mm;
     sp.ventricle_prior_width_mm = ap.ventricle_prior_width_mm;
     sp.ventricle_shift_mm = ventricle_shift_mm;
@@ -192,26 +196,30 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   segment_seconds += watch.lap();
   if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
 
-  ScanResult result;
+  // The gates are checked before the stages, not beside them: every stage
+  // already splits its work over both cores (the affine in every iteration),
+  // and a third thread slowed them by more than the check costs.
+  ScanResult result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false,
+                                  gates.failure);
   nlohmann::json rounds = nlohmann::json::array();
-  for (int round = 0;; ++round) {
-    rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
-    watch.lap();
-    result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false, gates.failure);
-    if (round >= ap.rematch_rounds || result.kind != ResultKind::nonrigid) break;
-    earlier_passes_seconds += watch.lap();
-    // Re-match: the preop carried by the non-rigid estimate, a narrower prior.
-    LabelImage rematched = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
-    auto next = segment(rematched, ap.prior_width_nonrigid_mm, 0.0);
+  rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
+  for (int round = 1; round <= ap.rematch_rounds && result.kind == ResultKind::nonrigid; ++round) {
+    const double pass_seconds = watch.lap();
+    // Re-match: the preop carried by the non-rigid estimate (the pass's own
+    // warped labels), a narrower prior, a smaller box.
+    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0);
     SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
     segment_seconds += watch.lap();
-    if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the first pass stands
+    if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the previous pass stands
       rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
                         {"refusal", next.refusal}, {"kept", false}});
       break;
     }
+    earlier_passes_seconds += pass_seconds;
     seg = std::move(next);
     gates = std::move(next_gates);
+    result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false);
+    rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
   }
   seg_metrics["classifier"] = seg.report;
   seg_metrics["gates"] = gates.metrics;
@@ -235,6 +243,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   Stopwatch watch;
   double check_seconds = 0;
   auto check = std::async(std::launch::async, [&] {
+    SerialOnThisThread beside_the_stages;
     Stopwatch w;
     segmentation::LabelImageCheckParameters p = params.auto_segmentation.label_image_check;
     p.classifier.max_filled_hole_ml = params.min_resection_cavity_ml;

@@ -40,7 +40,9 @@ struct SegmentationParameters {
   double prior_floor = 1e-3;
   // The classification runs in the carried outline's bounding box grown by
   // this margin: wider than the largest brain shift measured at the cortex
-  // (about 25 mm, docs/DESIGN.md "Automatic intraop segmentation").
+  // (about 25 mm, docs/DESIGN.md "Automatic intraop segmentation"). The
+  // image-only rounds set it to where their prior meets the floor
+  // (prior_reach_mm, tissue_prior.h).
   double margin_mm = 30;
   EmParameters em;
   // Enclosed holes of the segmented brain smaller than this (ml) are noise

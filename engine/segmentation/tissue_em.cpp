@@ -6,6 +6,7 @@
 #include <numeric>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "segmentation/bias_field.h"
 #include "segmentation/potts.h"
 
@@ -277,6 +278,13 @@ void fit_bias(const Samples& s, const std::vector<std::vector<double>>& gamma, c
   bias = next;
 }
 
+// log b at every sample (each on its own: both cores, the same result).
+void refresh_log_bias(const Samples& s, const LogBiasField& bias, std::vector<double>& log_b) {
+  parallel_halves(log_b.size(), 8192, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t n = begin; n < end; ++n) log_b[n] = bias.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
+  });
+}
+
 }  // namespace
 
 EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const EmParameters& params) {
@@ -312,19 +320,23 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     LogBiasField before_bias = bias;
     bool bias_moved = false, bias_frozen = params.bias_degree == 0;
     for (int it = 0; it < budget; ++it) {
-      double ll = 0;
       const ClassTerms terms = class_terms(classes);
-      for (std::size_t n = 0; n < N; ++n) {
-        corrected[n] = s.intensity[n] * std::exp(-log_b[n]);
-        ll += responsibilities(corrected[n], s.log_prior[n], terms, gamma[n]) - log_b[n];
-      }
-      ll /= static_cast<double>(N);
+      // The two halves of the samples side by side, always summed as two
+      // partial sums: the same likelihood on one core or two.
+      std::array<double, 2> partial{0, 0};
+      on_two_halves(N, [&](std::size_t begin, std::size_t end, std::size_t half) {
+        for (std::size_t n = begin; n < end; ++n) {
+          corrected[n] = s.intensity[n] * std::exp(-log_b[n]);
+          partial[half] += responsibilities(corrected[n], s.log_prior[n], terms, gamma[n]) - log_b[n];
+        }
+      });
+      const double ll = (partial[0] + partial[1]) / static_cast<double>(N);
       out.iterations += 1;
       if (bias_moved && ll < previous) {
         bias = before_bias;
         bias_frozen = true;
         bias_moved = false;
-        for (std::size_t n = 0; n < N; ++n) log_b[n] = bias.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
+        refresh_log_bias(s, bias, log_b);
         continue;
       }
       out.mean_log_likelihood = ll;
@@ -337,7 +349,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
         before_bias = bias;
         fit_bias(s, gamma, corrected, classes, bias);
         bias_moved = true;
-        for (std::size_t n = 0; n < N; ++n) log_b[n] = bias.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
+        refresh_log_bias(s, bias, log_b);
       }
     }
   }
@@ -352,8 +364,10 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
   // class and voxel, no logarithm (a voxel far from every class still has
   // its nearest class's term at 1, so the sum never vanishes).
   const ClassTerms terms = class_terms(classes);
+  // Each voxel on its own: the two halves side by side, the same result.
+  parallel_halves(V, 1 << 16, [&](std::size_t begin, std::size_t end) {
   std::vector<double> l(classes.size());
-  for (std::size_t v = 0; v < V; ++v) {
+  for (std::size_t v = begin; v < end; ++v) {
     out.bias[v] = std::exp(log_bias[v]);
     const double x = image.voxels[v] / scale / out.bias[v];
     double m = -std::numeric_limits<double>::infinity();
@@ -368,6 +382,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     for (int t = 0; t < kTissues; ++t) top = std::max(top, e[t] *= std::max<double>(prior.p[t][v], 1e-30));
     for (int t = 0; t < kTissues; ++t) evidence[t][v] = static_cast<float>(e[t] / top);
   }
+  });
   out.posterior = potts_mean_field(evidence, image.grid, params.mrf_beta, params.mrf_sweeps);
   for (auto& g : classes) {
     g.mean *= scale;

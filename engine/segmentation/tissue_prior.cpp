@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "image/distance_map.h"
 #include "image/image_stats.h"
 
@@ -28,6 +29,12 @@ float inside_probability(float signed_distance_mm, double width_mm) {
 
 }  // namespace
 
+double prior_reach_mm(double outline_mm, double floor) {
+  if (!(outline_mm > 0) || !(floor > 0 && floor < 0.25))
+    throw InputError("tissue prior: the reach needs a width > 0 and a floor in (0, 0.25)");
+  return outline_mm * std::log((1 - 3 * floor) / floor);
+}
+
 TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const PriorWidths& widths, double floor) {
   if (!(widths.ventricle_shift_mm >= 0)) throw InputError("tissue prior: the ventricles' shift must be >= 0");
   if (!(widths.outline_mm > 0) || !(widths.inward_mm > 0) || !(widths.ventricle_mm > 0))
@@ -46,7 +53,8 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const Prio
   // logistic's tail covers), while fluid outside the brain looks exactly like
   // them.
   const float keep = static_cast<float>(1.0 - 2 * floor), f = static_cast<float>(floor);
-  for (std::size_t v = 0; v < n; ++v) {
+  parallel_halves(n, 1 << 16, [&](std::size_t begin, std::size_t end) {  // each voxel on its own
+  for (std::size_t v = begin; v < end; ++v) {
     const float d = d_outline.voxels[v];
     const float in = inside_probability(d, d < 0 ? widths.inward_mm : widths.outline_mm);
     const float vent =
@@ -58,6 +66,7 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const Prio
     prior.p[1][v] = keep * in * vent;
     prior.p[2][v] = f + keep * (1 - in);
   }
+  });
   return prior;
 }
 

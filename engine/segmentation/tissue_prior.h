@@ -47,4 +47,10 @@ struct PriorWidths {
 };
 TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const PriorWidths& widths, double floor);
 
+// How far outside the carried outline the prior of width outline_mm still
+// says more than its floor: where the logistic's share of the brain,
+// (1 - 2 floor) s(-d / w), has fallen to the floor, d = w ln((1 - 3 floor) / floor).
+// Beyond it only the floor and the image decide.
+double prior_reach_mm(double outline_mm, double floor);
+
 }  // namespace brainshift::segmentation

@@ -153,6 +153,16 @@ TEST(Morphology, FillHolesAgreesWithTheDefinitionOnRandomMasks) {
       EXPECT_EQ(filled.voxels, holes_filled_by_definition(m).voxels)
           << dims[0] << "x" << dims[1] << "x" << dims[2] << " at " << percent << " %";
     }
+  // Masks inside a part of the grid (fill_holes floods only the mask's
+  // bounding box): holes on the box's faces, background around it.
+  for (const unsigned percent : {30u, 55u, 70u}) {
+    Mask m(grid({19, 15, 12}), 0);
+    for (int k = 3; k <= 9; ++k)
+      for (int j = 2; j <= 11; ++j)
+        for (int i = 5; i <= 13; ++i) m.at(i, j, k) = (next() >> 8) % 100 < percent;
+    EXPECT_EQ(fill_holes(m).voxels, holes_filled_by_definition(m).voxels) << "sub-box at " << percent << " %";
+  }
+  EXPECT_EQ(count_nonzero(fill_holes(Mask(grid({4, 5, 6}), 0))), 0u);
 }
 
 TEST(Morphology, LabelsThresholdAndStats) {

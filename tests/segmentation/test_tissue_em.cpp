@@ -278,3 +278,33 @@ TEST(TissueEm, BadInputIsAnInputError) {
   EXPECT_THROW(segment_intraop(ImageF(other, 1.f), head.truth, 1, {2}, params_for_test()), std::exception);
   EXPECT_THROW(LogBiasField(head.truth.grid, 7), std::exception);
 }
+
+TEST(TissuePrior, ReachIsWhereTheOutlinesPriorMeetsTheFloor) {
+  Grid3 g;
+  g.dims = {48, 6, 6};
+  g.world_from_voxel = Eigen::Matrix4d::Identity();  // 1 mm voxels
+  Mask outline(g, 0), ventricles(g, 0);
+  for (int k = 0; k < 6; ++k)
+    for (int j = 0; j < 6; ++j)
+      for (int i = 0; i < 8; ++i) outline.at(i, j, k) = 1;
+  ventricles.at(2, 3, 3) = 1;
+  const double floor = 1e-3;
+  PriorWidths w;
+  w.outline_mm = 3.0;
+  const double reach = prior_reach_mm(w.outline_mm, floor);
+  EXPECT_NEAR(reach, 3.0 * std::log(997.0), 1e-12);
+  const TissuePrior prior = tissue_prior(outline, ventricles, w, floor);
+  // The parenchyma's prior is the floor plus the logistic's share: that
+  // share equals the floor at the reach, more nearer, less beyond.
+  for (int i = 8; i < 48; ++i) {
+    const double beyond_mm = i - 7.5;  // from the outline's face, between voxel centres
+    const double p = prior.p[0][g.index(i, 3, 3)];
+    if (beyond_mm < reach - 1.0) {
+      EXPECT_GT(p, 2 * floor) << i;
+    } else if (beyond_mm > reach + 1.0) {
+      EXPECT_LT(p, 2 * floor) << i;
+    }
+  }
+  EXPECT_THROW(prior_reach_mm(0.0, floor), std::exception);
+  EXPECT_THROW(prior_reach_mm(1.0, 0.0), std::exception);
+}
