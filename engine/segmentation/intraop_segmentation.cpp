@@ -157,7 +157,7 @@ Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::
 // cap. The cortex beneath the gap and gyri rising into it look inward into
 // brain; a lobe beyond a cistern is thicker than a cap.
 void drop_beyond_open_fluid(Mask& brain, const Mask& ventricle, const Mask& moved, const Eigen::Vector3d& centre_voxel,
-                            double max_cap_mm) {
+                            double max_cap_mm, double max_sulcus_half_width_mm) {
   const Grid3& g = brain.grid;
   const Eigen::Vector3d spacing = g.spacing_mm();
   const double step_mm = 0.5 * spacing.minCoeff();
@@ -194,6 +194,14 @@ void drop_beyond_open_fluid(Mask& brain, const Mask& ventricle, const Mask& move
       }
   for (std::size_t v = 0; v < brain.voxels.size(); ++v)
     if (beyond.voxels[v]) brain.voxels[v] = 0;
+  // What is left of the cap where the gap thins out at its rim, and the falx
+  // and sinus hanging into it: strands of "brain" next to the moved fluid
+  // thinner than a sulcus is wide (a gyrus is thicker). The outer surface
+  // would follow them into spikes.
+  const Mask solid = open(brain, max_sulcus_half_width_mm);
+  const Mask next_to_moved = dilate(moved, max_sulcus_half_width_mm + spacing.maxCoeff());
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+    if (brain.voxels[v] && !ventricle.voxels[v] && !solid.voxels[v] && next_to_moved.voxels[v]) brain.voxels[v] = 0;
 }
 
 // Brain = the largest 6-connected component of parenchyma and ventricles;
@@ -272,7 +280,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     open_fluid_ml = volume_ml(moved_out);
     if (open_fluid_ml > 0) {
       Mask before = brain;
-      drop_beyond_open_fluid(brain, ventricle, moved_out, centroid_voxel(outline_box), params.max_cap_mm);
+      drop_beyond_open_fluid(brain, ventricle, moved_out, centroid_voxel(outline_box), params.max_cap_mm,
+                             params.max_sulcus_half_width_mm);
       for (std::size_t v = 0; v < brain.voxels.size(); ++v)
         if (before.voxels[v] && !brain.voxels[v]) {
           moved_out.voxels[v] = 1;
