@@ -117,7 +117,7 @@ double log_density(const GaussianClass& g, double x) {
 // explains the fluid as well as the fluid class does: the image alone does
 // not move it out, its shape does. Returns the voxels moved out.
 Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
-                const Mask& brain, const Mask& ventricle, double max_sulcus_half_width_mm) {
+                const Mask& brain, const Mask& ventricle, double max_sulcus_half_width_mm, double max_cap_mm) {
   // Fluid: a bias-corrected intensity likelier under the ventricles' class
   // than under any parenchyma class (each class's density alone, not its
   // share: however rare a tissue of the brain, the intensity is compared
@@ -135,8 +135,12 @@ Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::
     }
     fluid.voxels[v] = best_fluid > best_tissue;
   }
-  const Mask thick = open(fluid, max_sulcus_half_width_mm);
-  const Mask near_outside = dilate(outside, max_sulcus_half_width_mm + brain.grid.spacing_mm().maxCoeff());
+  // Noise makes single voxels of a fluid layer look like tissue (a few per
+  // cent at the lowest SNR), and each such hole would erode the opening by
+  // its radius: holes of one voxel are closed first.
+  const Mask thick = open(close(fluid, brain.grid.spacing_mm().minCoeff()), max_sulcus_half_width_mm);
+  // Open: with at most a cap (drop_beyond_open_fluid) between it and the outside.
+  const Mask near_outside = dilate(outside, max_sulcus_half_width_mm + max_cap_mm);
   int count = 0;
   const auto components = connected_components(thick, 6, &count);
   std::vector<bool> open_to_outside(static_cast<std::size_t>(count) + 1, false);
@@ -144,7 +148,7 @@ Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::
     if (thick.voxels[v] && near_outside.voxels[v]) open_to_outside[static_cast<std::size_t>(components.voxels[v])] = true;
   Mask out(brain.grid, 0);
   for (std::size_t v = 0; v < thick.voxels.size(); ++v)
-    out.voxels[v] = thick.voxels[v] && fluid.voxels[v] && open_to_outside[static_cast<std::size_t>(components.voxels[v])];
+    out.voxels[v] = thick.voxels[v] && brain.voxels[v] && !ventricle.voxels[v] && open_to_outside[static_cast<std::size_t>(components.voxels[v])];
   return out;
 }
 
@@ -202,6 +206,13 @@ void drop_beyond_open_fluid(Mask& brain, const Mask& ventricle, const Mask& move
   const Mask next_to_moved = dilate(moved, max_sulcus_half_width_mm + spacing.maxCoeff());
   for (std::size_t v = 0; v < brain.voxels.size(); ++v)
     if (brain.voxels[v] && !ventricle.voxels[v] && !solid.voxels[v] && next_to_moved.voxels[v]) brain.voxels[v] = 0;
+  // The gap's floor is the cortex with its sulci opening into the gap; the
+  // brain's outline is their hull (every outline counts the sulci in):
+  // concavities narrower than a sulcus is wide are closed there, so that the
+  // outer surface does not follow each sulcus into a fold.
+  const Mask hull = close(brain, max_sulcus_half_width_mm);
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+    if (hull.voxels[v] && next_to_moved.voxels[v]) brain.voxels[v] = 1;
 }
 
 // Brain = the largest 6-connected component of parenchyma and ventricles;
@@ -269,7 +280,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   Mask moved_out(g, 0);
   double open_fluid_ml = 0;
   if (params.max_sulcus_half_width_mm > 0) {
-    moved_out = open_fluid(image_box, em.bias, em.classes, brain, ventricle, params.max_sulcus_half_width_mm);
+    moved_out = open_fluid(image_box, em.bias, em.classes, brain, ventricle, params.max_sulcus_half_width_mm,
+                           params.max_cap_mm);
     for (std::size_t v = 0; v < moved_out.voxels.size(); ++v) {
       if (!moved_out.voxels[v]) continue;
       brain.voxels[v] = 0;
