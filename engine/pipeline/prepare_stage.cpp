@@ -198,10 +198,22 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
 
   ScanResult result;
   nlohmann::json rounds = nlohmann::json::array();
+  segmentation::IntraopSegmentation previous_seg;
+  SegmentationGates previous_gates;
   for (int round = 0;; ++round) {
     rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
     watch.lap();
-    result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false, gates.failure);
+    ScanResult pass = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false,
+                                  gates.failure);
+    if (round > 0 && pass.kind != ResultKind::nonrigid) {  // a re-match the stages refuse: the pass before stands
+      rounds.back()["kept"] = false;
+      rounds.back()["fallback_reason"] = pass.fallback_reason;
+      earlier_passes_seconds += watch.lap();
+      seg = std::move(previous_seg);
+      gates = std::move(previous_gates);
+      break;
+    }
+    result = std::move(pass);
     if (round >= ap.rematch_rounds || result.kind != ResultKind::nonrigid) break;
     earlier_passes_seconds += watch.lap();
     // Re-match: the preop carried by the non-rigid estimate, a narrower prior.
@@ -218,6 +230,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
       break;
     }
     next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
+    previous_seg = std::move(seg);
+    previous_gates = std::move(gates);
     seg = std::move(next);
     gates = std::move(next_gates);
   }
