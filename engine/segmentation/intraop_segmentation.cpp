@@ -89,19 +89,6 @@ void keep_carried_ventricles(Mask& brain, Mask& ventricle, const Mask& carried_v
     }
 }
 
-Eigen::Vector3d centroid_voxel(const Mask& m) {
-  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
-  double n = 0;
-  for (int k = 0; k < m.grid.dims[2]; ++k)
-    for (int j = 0; j < m.grid.dims[1]; ++j)
-      for (int i = 0; i < m.grid.dims[0]; ++i)
-        if (m.at(i, j, k)) {
-          sum += Eigen::Vector3d(i, j, k);
-          n += 1;
-        }
-  return n > 0 ? Eigen::Vector3d(sum / n) : Eigen::Vector3d(0.5 * (m.grid.dims[0] - 1), 0.5 * (m.grid.dims[1] - 1), 0.5 * (m.grid.dims[2] - 1));
-}
-
 // A Gaussian class's log density, its share left out.
 double log_density(const GaussianClass& g, double x) {
   const double z = (x - g.mean) / g.sd;
@@ -110,7 +97,8 @@ double log_density(const GaussianClass& g, double x) {
 
 // Fluid labelled parenchyma that is thicker than any sulcus (it survives an
 // opening of radius max_sulcus_half_width_mm) and lies open to what is
-// outside the brain (within that radius of it) is not in the brain: the gap
+// outside the brain (at most a cap, drop_beyond_open_fluid, between) is not
+// in the brain: the gap
 // a sunken cortex leaves under the craniotomy, a cavity open to the surface.
 // The prior, carried from where the brain was, holds brain there, and a
 // parenchyma class stretched over the sulci's fluid and partial volume
@@ -131,7 +119,8 @@ Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::
     double best_fluid = -std::numeric_limits<double>::infinity(), best_tissue = best_fluid;
     for (std::size_t c = 0; c < classes.size(); ++c) {
       if (classes[c].tissue == Tissue::ventricle) best_fluid = std::max(best_fluid, log_density(classes[c], x));
-      else if (classes[c].tissue == Tissue::parenchyma) best_tissue = std::max(best_tissue, log_density(classes[c], x));
+      else if (classes[c].tissue == Tissue::parenchyma)
+        best_tissue = std::max(best_tissue, log_density(classes[c], x));
     }
     fluid.voxels[v] = best_fluid > best_tissue;
   }
@@ -148,7 +137,8 @@ Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::
     if (thick.voxels[v] && near_outside.voxels[v]) open_to_outside[static_cast<std::size_t>(components.voxels[v])] = true;
   Mask out(brain.grid, 0);
   for (std::size_t v = 0; v < thick.voxels.size(); ++v)
-    out.voxels[v] = thick.voxels[v] && brain.voxels[v] && !ventricle.voxels[v] && open_to_outside[static_cast<std::size_t>(components.voxels[v])];
+    out.voxels[v] = thick.voxels[v] && brain.voxels[v] && !ventricle.voxels[v] &&
+                    open_to_outside[static_cast<std::size_t>(components.voxels[v])];
   return out;
 }
 
@@ -291,8 +281,9 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     }
     open_fluid_ml = volume_ml(moved_out);
     if (open_fluid_ml > 0) {
+      const Eigen::Vector3d centre_voxel = (g.voxel_from_world() * centroid_mm(outline_box).homogeneous()).head<3>();
       Mask before = brain;
-      drop_beyond_open_fluid(brain, ventricle, moved_out, centroid_voxel(outline_box), params.max_cap_mm,
+      drop_beyond_open_fluid(brain, ventricle, moved_out, centre_voxel, params.max_cap_mm,
                              params.max_sulcus_half_width_mm);
       for (std::size_t v = 0; v < brain.voxels.size(); ++v)
         if (before.voxels[v] && !brain.voxels[v]) {
