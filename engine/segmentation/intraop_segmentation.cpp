@@ -105,7 +105,8 @@ double log_density(const GaussianClass& g, double x) {
 // explains the fluid as well as the fluid class does: the image alone does
 // not move it out, its shape does. Returns the voxels moved out.
 Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
-                const Mask& brain, const Mask& ventricle, double max_sulcus_half_width_mm, double max_cap_mm) {
+                const Mask& brain, const Mask& ventricle, double max_sulcus_half_width_mm, double max_cap_mm,
+                double min_gap_ml) {
   // Fluid: a bias-corrected intensity likelier under the ventricles' class
   // than under any parenchyma class (each class's density alone, not its
   // share: however rare a tissue of the brain, the intensity is compared
@@ -133,8 +134,17 @@ Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::
   int count = 0;
   const auto components = connected_components(thick, 6, &count);
   std::vector<bool> open_to_outside(static_cast<std::size_t>(count) + 1, false);
-  for (std::size_t v = 0; v < thick.voxels.size(); ++v)
-    if (thick.voxels[v] && near_outside.voxels[v]) open_to_outside[static_cast<std::size_t>(components.voxels[v])] = true;
+  std::vector<std::size_t> size(static_cast<std::size_t>(count) + 1, 0);
+  for (std::size_t v = 0; v < thick.voxels.size(); ++v) {
+    const auto c = static_cast<std::size_t>(components.voxels[v]);
+    ++size[c];
+    if (thick.voxels[v] && near_outside.voxels[v]) open_to_outside[c] = true;
+  }
+  // A gap, not a cistern: the basal and sylvian cisterns are thick fluid
+  // open to the outside too, but hold a few ml each.
+  const double voxel_ml = std::abs(brain.grid.world_from_voxel.topLeftCorner<3, 3>().determinant()) / 1000.0;
+  for (std::size_t c = 1; c < size.size(); ++c)
+    if (static_cast<double>(size[c]) * voxel_ml < min_gap_ml) open_to_outside[c] = false;
   Mask out(brain.grid, 0);
   for (std::size_t v = 0; v < thick.voxels.size(); ++v)
     out.voxels[v] = thick.voxels[v] && brain.voxels[v] && !ventricle.voxels[v] &&
@@ -271,7 +281,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   double open_fluid_ml = 0;
   if (params.max_sulcus_half_width_mm > 0) {
     moved_out = open_fluid(image_box, em.bias, em.classes, brain, ventricle, params.max_sulcus_half_width_mm,
-                           params.max_cap_mm);
+                           params.max_cap_mm, params.min_gap_ml);
     for (std::size_t v = 0; v < moved_out.voxels.size(); ++v) {
       if (!moved_out.voxels[v]) continue;
       brain.voxels[v] = 0;

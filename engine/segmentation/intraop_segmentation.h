@@ -59,6 +59,12 @@ struct SegmentationParameters {
   // and spread it over three or four slices, while every lobe is more than
   // 20 mm across.
   double max_cap_mm = 10;
+  // And that fluid holds at least this much (ml): the smallest gap that moves
+  // the outline, a sinking deeper than a sulcus is wide (5 mm) under the
+  // smallest craniotomy (about 5 cm across), a dome of about 5 ml; the basal
+  // and sylvian cisterns, thick fluid open to the outside as well, hold a
+  // few ml each and stay in the brain's outline as every outline counts them.
+  double min_gap_ml = 5;
   // The ventricular fluid class must stand this many pooled sd's from the
   // farthest major parenchyma class, or the image cannot show the ventricles
   // (a contrast with no fluid/tissue difference, or noise far beyond any
