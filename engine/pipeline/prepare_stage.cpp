@@ -112,7 +112,7 @@ Mask inner_surface_band(const Mask& outline) {
 
 SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
                                      const LabelImage& carried_preop, const LabelTable& table,
-                                     const AutoSegmentationParameters& params) {
+                                     const AutoSegmentationParameters& params, double open_fluid_ml) {
   SegmentationGates g;
   const Mask outline = outline_mask(segmentation);
   const Mask preop_outline = outline_mask(carried_preop);
@@ -122,8 +122,12 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
   for (auto v : table.resectable_labels()) resectable_ml += volume_ml(mask_of_labels(carried_preop, {v}));
   const double seg_ml = volume_ml(outline), preop_ml = volume_ml(preop_outline);
   const double change = preop_ml > 0 ? seg_ml / preop_ml - 1 : -1;
-  const double lowest = -params.max_brain_volume_change - (preop_ml > 0 ? resectable_ml / preop_ml : 0);
+  // Smaller by what may be resected, and by the fluid found in the gap a
+  // sinking left (fluid by its intensity: a lost lobe is tissue).
+  const double lowest =
+      -params.max_brain_volume_change - (preop_ml > 0 ? (resectable_ml + open_fluid_ml) / preop_ml : 0);
   g.metrics["brain_volume"] = {{"segmented_ml", seg_ml}, {"preop_ml", preop_ml}, {"change", change},
+                               {"open_fluid_ml", open_fluid_ml},
                                {"allowed", {lowest, params.max_brain_volume_change}}};
   if (change < lowest || change > params.max_brain_volume_change)
     g.failure = "automatic segmentation: the brain's volume differs from the preop's by " +
@@ -192,7 +196,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
   if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
-  SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap);
+  SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap, seg.open_fluid_ml);
   segment_seconds += watch.lap();
   if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
 
@@ -206,19 +210,30 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   for (int round = 1; round <= ap.rematch_rounds && result.kind == ResultKind::nonrigid; ++round) {
     const double pass_seconds = watch.lap();
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
-    // warped labels), a narrower prior, a smaller box.
+    // warped labels), a narrower prior, a smaller box. The gap a sinking left
+    // was found against the head's placement, as the gates measure: the
+    // first round's finding stands for the next.
     auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0);
-    SegmentationGates next_gates = check_segmentation(next.labels, next.confidence, carried, table, ap);
+    next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
+    SegmentationGates next_gates =
+        check_segmentation(next.labels, next.confidence, carried, table, ap, next.open_fluid_ml);
     segment_seconds += watch.lap();
     if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the previous pass stands
       rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
                         {"refusal", next.refusal}, {"kept", false}});
       break;
     }
+    ScanResult pass = run_intraop(warm, IntraopInput{next.labels, image, read_seconds}, params, progress, false);
+    if (pass.kind != ResultKind::nonrigid) {  // a re-match the stages refuse (a fold): the previous pass stands
+      rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
+                        {"fallback_reason", pass.fallback_reason}, {"kept", false}});
+      earlier_passes_seconds += watch.lap();
+      break;
+    }
     earlier_passes_seconds += pass_seconds;
     seg = std::move(next);
     gates = std::move(next_gates);
-    result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false);
+    result = std::move(pass);
     rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
   }
   seg_metrics["classifier"] = seg.report;

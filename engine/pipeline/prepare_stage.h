@@ -31,13 +31,15 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
                                       const ProgressFn& progress, bool with_quality_metrics);
 
 // The gates of the automatic path on one segmentation: metrics (values and
-// limits) and the first reason not to trust it ("" when none).
+// limits) and the first reason not to trust it ("" when none). open_fluid_ml:
+// the fluid the segmentation found where sunken cortex was
+// (IntraopSegmentation::open_fluid_ml), by which the brain is smaller.
 struct SegmentationGates {
   nlohmann::json metrics;
   std::string failure;
 };
 SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
                                      const LabelImage& carried_preop, const LabelTable& table,
-                                     const AutoSegmentationParameters& params);
+                                     const AutoSegmentationParameters& params, double open_fluid_ml = 0);
 
 }  // namespace brainshift

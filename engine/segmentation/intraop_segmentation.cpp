@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "core/errors.h"
 #include "image/image_stats.h"
@@ -88,6 +89,132 @@ void keep_carried_ventricles(Mask& brain, Mask& ventricle, const Mask& carried_v
     }
 }
 
+// A Gaussian class's log density, its share left out.
+double log_density(const GaussianClass& g, double x) {
+  const double z = (x - g.mean) / g.sd;
+  return -std::log(g.sd) - 0.5 * z * z;
+}
+
+// Fluid labelled parenchyma that is thicker than any sulcus (it survives an
+// opening of radius max_sulcus_half_width_mm) and lies open to what is
+// outside the brain (at most a cap, drop_beyond_open_fluid, between) is not
+// in the brain: the gap
+// a sunken cortex leaves under the craniotomy, a cavity open to the surface.
+// The prior, carried from where the brain was, holds brain there, and a
+// parenchyma class stretched over the sulci's fluid and partial volume
+// explains the fluid as well as the fluid class does: the image alone does
+// not move it out, its shape does. Returns the voxels moved out.
+Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
+                const Mask& brain, const Mask& ventricle, double max_sulcus_half_width_mm, double max_cap_mm,
+                double min_gap_ml) {
+  // Fluid: a bias-corrected intensity likelier under the ventricles' class
+  // than under any parenchyma class (each class's density alone, not its
+  // share: however rare a tissue of the brain, the intensity is compared
+  // with it). The same cerebrospinal fluid fills the ventricles, the sulci,
+  // the gap under a craniotomy and a cavity.
+  Mask fluid(brain.grid, 0), outside(brain.grid, 0);
+  for (std::size_t v = 0; v < fluid.voxels.size(); ++v) {
+    outside.voxels[v] = !brain.voxels[v];
+    if (!brain.voxels[v] || ventricle.voxels[v]) continue;
+    const double x = image.voxels[v] / bias[v];
+    double best_fluid = -std::numeric_limits<double>::infinity(), best_tissue = best_fluid;
+    for (std::size_t c = 0; c < classes.size(); ++c) {
+      if (classes[c].tissue == Tissue::ventricle) best_fluid = std::max(best_fluid, log_density(classes[c], x));
+      else if (classes[c].tissue == Tissue::parenchyma)
+        best_tissue = std::max(best_tissue, log_density(classes[c], x));
+    }
+    fluid.voxels[v] = best_fluid > best_tissue;
+  }
+  // Noise makes single voxels of a fluid layer look like tissue (a few per
+  // cent at the lowest SNR), and each such hole would erode the opening by
+  // its radius: holes of one voxel are closed first.
+  const Mask thick = open(close(fluid, brain.grid.spacing_mm().minCoeff()), max_sulcus_half_width_mm);
+  // Open: with at most a cap (drop_beyond_open_fluid) between it and the outside.
+  const Mask near_outside = dilate(outside, max_sulcus_half_width_mm + max_cap_mm);
+  int count = 0;
+  const auto components = connected_components(thick, 6, &count);
+  std::vector<bool> open_to_outside(static_cast<std::size_t>(count) + 1, false);
+  std::vector<std::size_t> size(static_cast<std::size_t>(count) + 1, 0);
+  for (std::size_t v = 0; v < thick.voxels.size(); ++v) {
+    const auto c = static_cast<std::size_t>(components.voxels[v]);
+    ++size[c];
+    if (thick.voxels[v] && near_outside.voxels[v]) open_to_outside[c] = true;
+  }
+  // A gap, not a cistern: the basal and sylvian cisterns are thick fluid
+  // open to the outside too, but hold a few ml each.
+  const double voxel_ml = std::abs(brain.grid.world_from_voxel.topLeftCorner<3, 3>().determinant()) / 1000.0;
+  for (std::size_t c = 1; c < size.size(); ++c)
+    if (static_cast<double>(size[c]) * voxel_ml < min_gap_ml) open_to_outside[c] = false;
+  Mask out(brain.grid, 0);
+  for (std::size_t v = 0; v < thick.voxels.size(); ++v)
+    out.voxels[v] = thick.voxels[v] && brain.voxels[v] && !ventricle.voxels[v] &&
+                    open_to_outside[static_cast<std::size_t>(components.voxels[v])];
+  return out;
+}
+
+// Tissue on the far side of that fluid, between it and the skull (the dura,
+// the inner table and their partial volume, cut obliquely by thick slices),
+// is not brain either: the brain lies beneath the gap a sinking leaves, never
+// beyond it. Along the ray through a brain voxel toward the carried brain's
+// centre: fluid moved out on the inner side and what is outside the brain on
+// the outer side, with less than max_cap_mm of brain between them, is such a
+// cap. The cortex beneath the gap and gyri rising into it look inward into
+// brain; a lobe beyond a cistern is thicker than a cap.
+void drop_beyond_open_fluid(Mask& brain, const Mask& ventricle, const Mask& moved, const Eigen::Vector3d& centre_voxel,
+                            double max_cap_mm, double max_sulcus_half_width_mm) {
+  const Grid3& g = brain.grid;
+  const Eigen::Vector3d spacing = g.spacing_mm();
+  const double step_mm = 0.5 * spacing.minCoeff();
+  const int steps = static_cast<int>(std::ceil(max_cap_mm / step_mm));
+  const Mask candidates = dilate(moved, max_cap_mm);
+  // Steps along dir (voxels per step) until the ray leaves brain tissue for
+  // what `stop` marks (or the grid); -1 when it does not within `steps`.
+  const auto run = [&](const Eigen::Vector3d& p, const Eigen::Vector3d& dir, int limit, const auto& stop) {
+    for (int s = 1; s <= limit; ++s) {
+      const Eigen::Vector3d q = p + s * dir;
+      const int a = static_cast<int>(std::lround(q.x())), b = static_cast<int>(std::lround(q.y())),
+                c = static_cast<int>(std::lround(q.z()));
+      if (!g.contains(a, b, c)) return s;
+      if (stop(g.index(a, b, c))) return s;
+      if (!brain.at(a, b, c) && !moved.at(a, b, c)) return -1;  // another way out of the brain
+    }
+    return -1;
+  };
+  Mask beyond(g, 0);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const std::size_t v = g.index(i, j, k);
+        if (!brain.voxels[v] || ventricle.voxels[v] || !candidates.voxels[v]) continue;
+        const Eigen::Vector3d p(i, j, k);
+        const Eigen::Vector3d to_centre = centre_voxel - p;
+        const double length_mm = to_centre.cwiseProduct(spacing).norm();
+        if (length_mm < step_mm) continue;
+        const Eigen::Vector3d dir = to_centre * (step_mm / length_mm);
+        const int in = run(p, dir, steps, [&](std::size_t u) { return moved.voxels[u] != 0; });
+        if (in < 0) continue;
+        const int out = run(p, -dir, steps - in, [&](std::size_t u) { return !brain.voxels[u] && !moved.voxels[u]; });
+        if (out >= 0) beyond.voxels[v] = 1;
+      }
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+    if (beyond.voxels[v]) brain.voxels[v] = 0;
+  // What is left of the cap where the gap thins out at its rim, and the falx
+  // and sinus hanging into it: strands of "brain" next to the moved fluid
+  // thinner than a sulcus is wide (a gyrus is thicker). The outer surface
+  // would follow them into spikes.
+  const Mask solid = open(brain, max_sulcus_half_width_mm);
+  const Mask next_to_moved = dilate(moved, max_sulcus_half_width_mm + spacing.maxCoeff());
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+    if (brain.voxels[v] && !ventricle.voxels[v] && !solid.voxels[v] && next_to_moved.voxels[v]) brain.voxels[v] = 0;
+  // The gap's floor is the cortex with its sulci opening into the gap; the
+  // brain's outline is their hull (every outline counts the sulci in):
+  // concavities narrower than a sulcus is wide are closed there, so that the
+  // outer surface does not follow each sulcus into a fold.
+  const Mask hull = close(brain, max_sulcus_half_width_mm);
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+    if (hull.voxels[v] && next_to_moved.voxels[v]) brain.voxels[v] = 1;
+}
+
 // Brain = the largest 6-connected component of parenchyma and ventricles;
 // small enclosed holes are noise and take the likelier of the two tissues.
 void clean_brain(Mask& brain, const std::array<std::vector<float>, kTissues>& q, Mask& ventricle,
@@ -149,7 +276,34 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     ventricle.voxels[v] = vent > p && vent > out;
   }
   keep_carried_ventricles(brain, ventricle, ventricle_box);
-  clean_brain(brain, em.posterior, ventricle, params.max_filled_hole_ml);
+  std::array<std::vector<float>, kTissues> posterior = em.posterior;
+  Mask moved_out(g, 0);
+  double open_fluid_ml = 0;
+  if (params.max_sulcus_half_width_mm > 0) {
+    moved_out = open_fluid(image_box, em.bias, em.classes, brain, ventricle, params.max_sulcus_half_width_mm,
+                           params.max_cap_mm, params.min_gap_ml);
+    for (std::size_t v = 0; v < moved_out.voxels.size(); ++v) {
+      if (!moved_out.voxels[v]) continue;
+      brain.voxels[v] = 0;
+      // The parenchyma's share was the fluid's, which is outside here.
+      posterior[2][v] += posterior[0][v];
+      posterior[0][v] = 0;
+    }
+    open_fluid_ml = volume_ml(moved_out);
+    if (open_fluid_ml > 0) {
+      const Eigen::Vector3d centre_voxel = (g.voxel_from_world() * centroid_mm(outline_box).homogeneous()).head<3>();
+      Mask before = brain;
+      drop_beyond_open_fluid(brain, ventricle, moved_out, centre_voxel, params.max_cap_mm,
+                             params.max_sulcus_half_width_mm);
+      for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+        if (before.voxels[v] && !brain.voxels[v]) {
+          moved_out.voxels[v] = 1;
+          posterior[2][v] += posterior[0][v];
+          posterior[0][v] = 0;
+        }
+    }
+  }
+  clean_brain(brain, posterior, ventricle, params.max_filled_hole_ml);
 
   IntraopSegmentation result;
   result.labels = LabelImage(image.grid, 0);
@@ -163,9 +317,10 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
         const std::size_t w = image.grid.index(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
         const int chosen = ventricle.voxels[v] ? 1 : brain.voxels[v] ? 0 : 2;
         result.labels.voxels[w] = chosen == 1 ? ventricle_value : chosen == 0 ? brain_label : 0;
-        result.confidence.voxels[w] = em.posterior[chosen][v];
+        result.confidence.voxels[w] = posterior[chosen][v];
         result.bias.voxels[w] = em.bias[v];
       }
+  result.open_fluid_ml = open_fluid_ml;
   result.classes = em.classes;
   result.report = describe(em);
   const double class_contrast = fluid_contrast_sd(em.classes);
@@ -177,6 +332,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["ventricle_shift_mm"] = params.ventricle_shift_mm;
   result.report["prior_inward_width_mm"] = widths.inward_mm;
   result.report["brain_ml"] = volume_ml(brain);
+  result.report["open_fluid_ml"] = open_fluid_ml;
+  result.report["beyond_open_fluid_ml"] = volume_ml(moved_out) - open_fluid_ml;
   result.report["ventricles_ml"] = volume_ml(ventricle);
   const bool classes_apart = !std::isfinite(class_contrast) || class_contrast >= params.min_fluid_contrast_sd;
   const bool wall_apart = !std::isfinite(wall_contrast) || wall_contrast >= params.min_wall_contrast_sd;

@@ -49,6 +49,24 @@ struct SegmentationParameters {
   // and filled; larger ones are kept as cavities (the pipeline passes its
   // min_resection_cavity_ml, so what is filled here would be ignored there).
   double max_filled_hole_ml = 0.1;
+  // Fluid labelled brain that is thicker than twice this (mm) and open to the
+  // outside is moved out of the brain (intraop_segmentation.cpp open_fluid):
+  // sulci are 1-3 mm wide, up to about 4 with atrophy, while the gap under a
+  // sunken cortex is as deep as the sinking (5-25 mm) and a cavity as wide as
+  // what was resected. 0: off.
+  double max_sulcus_half_width_mm = 2.5;
+  // What lies beyond that fluid (between it and the outside) and is thinner
+  // than this (mm) is the dura and inner table's partial volume, not brain:
+  // slices up to 3 mm thick cut the inner table obliquely over the vertex
+  // and spread it over three or four slices, while every lobe is more than
+  // 20 mm across.
+  double max_cap_mm = 10;
+  // And that fluid holds at least this much (ml): the smallest gap that moves
+  // the outline, a sinking deeper than a sulcus is wide (5 mm) under the
+  // smallest craniotomy (about 5 cm across), a dome of about 5 ml; the basal
+  // and sylvian cisterns, thick fluid open to the outside as well, hold a
+  // few ml each and stay in the brain's outline as every outline counts them.
+  double min_gap_ml = 5;
   // The ventricular fluid class must stand this many pooled sd's from the
   // farthest major parenchyma class, or the image cannot show the ventricles
   // (a contrast with no fluid/tissue difference, or noise far beyond any
@@ -70,6 +88,9 @@ struct IntraopSegmentation {
   std::vector<GaussianClass> classes;
   std::string refusal;  // why the image cannot be segmented; empty when it can
   nlohmann::json report;  // classes, iterations, volumes, contrast
+  // Fluid moved out of the brain as thicker than a sulcus and open to the
+  // outside (SegmentationParameters::max_sulcus_half_width_mm), ml.
+  double open_fluid_ml = 0;
 };
 
 // carried_labels: the preop labels on the image's grid. brain_label is the

@@ -245,6 +245,9 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
     EXPECT_DOUBLE_EQ(c->prior_floor, code.classifier.prior_floor);
     EXPECT_DOUBLE_EQ(c->margin_mm, code.classifier.margin_mm);
     EXPECT_DOUBLE_EQ(c->min_fluid_contrast_sd, code.classifier.min_fluid_contrast_sd);
+    EXPECT_DOUBLE_EQ(c->max_sulcus_half_width_mm, code.classifier.max_sulcus_half_width_mm);
+    EXPECT_DOUBLE_EQ(c->max_cap_mm, code.classifier.max_cap_mm);
+    EXPECT_DOUBLE_EQ(c->min_gap_ml, code.classifier.min_gap_ml);
     EXPECT_EQ(c->em.bias_degree, code.classifier.em.bias_degree);
     EXPECT_EQ(c->em.max_iterations, code.classifier.em.max_iterations);
     EXPECT_DOUBLE_EQ(c->em.tolerance, code.classifier.em.tolerance);

@@ -166,5 +166,43 @@ TEST(IndependentLabels, KeepTheHornsTheAtlasLeavesOut) {
   EXPECT_THROW(build_independent_labels(t1, "/nonexistent"), InputError);
 }
 
+// The share of the voxels just outside the ventricles (a voxel's shell) that
+// are more than half fluid: the wall's partial volume left out of them.
+double half_fluid_share_outside(const ImageF& t1, const IndependentLabels& l, double half_fluid_t1) {
+  const Mask vent = mask_of_labels(l.labels, {2});
+  const Mask around = dilate(vent, 1.01);
+  std::size_t shell = 0, fluid = 0;
+  for (std::size_t v = 0; v < vent.voxels.size(); ++v) {
+    if (!around.voxels[v] || vent.voxels[v] || l.labels.voxels[v] == 0) continue;
+    ++shell;
+    fluid += t1.voxels[v] < half_fluid_t1;
+  }
+  return shell ? static_cast<double>(fluid) / static_cast<double>(shell) : 1.0;
+}
+
+TEST(IndependentLabels, TheVentricleWallIsWhereAVoxelIsHalfFluid) {
+  const std::filesystem::path dir = "/usr/share/mricron/templates";
+  const ImageF t1 = read_scalar_image(dir / "ch2.nii.gz");
+  const IndependentLabels alt = build_independent_labels(t1, dir);
+  // ch2: CSF about 30, the tissue around the ventricles about 90.
+  EXPECT_GT(alt.fluid_t1, 20);
+  EXPECT_LT(alt.fluid_t1, 45);
+  EXPECT_GT(alt.tissue_t1, 75);
+  EXPECT_NEAR(alt.wall_t1, 0.5 * (alt.fluid_t1 + alt.tissue_t1), 1e-9);
+  const double now = half_fluid_share_outside(t1, alt, alt.wall_t1);
+  IndependentLabelParameters at_csf_max;
+  at_csf_max.wall_at_half_fluid = false;
+  const IndependentLabels before = build_independent_labels(t1, dir, at_csf_max);
+  const double then = half_fluid_share_outside(t1, before, alt.wall_t1);
+  // On ch2: 0.17 now (left out where the midline and floor rules cut the
+  // growth, and along horns whose sure core is thinner than the wall's reach),
+  // 0.73 with the wall at csf_max.
+  EXPECT_LT(now, 0.25) << "half-fluid voxels left outside the wall; at csf_max " << then;
+  EXPECT_GT(then, 2 * now) << "the wall at csf_max should leave the partial volume out";
+  EXPECT_GT(alt.ventricles_ml, before.ventricles_ml);
+  EXPECT_LT(alt.ventricles_ml, 2 * before.ventricles_ml);
+  EXPECT_LT(alt.ventricle_components, 3 * std::max(before.ventricle_components, 1)) << "the wall must not grow into new structures";
+}
+
 }  // namespace
 }  // namespace brainshift

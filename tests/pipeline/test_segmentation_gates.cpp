@@ -63,3 +63,25 @@ TEST(SegmentationGates, AnUncertainOuterSurfaceIsRefused) {
   const auto g = gates(head(1.0, true), 0.5f);
   EXPECT_NE(g.failure.find("uncertain"), std::string::npos) << g.failure << g.metrics.dump();
 }
+
+// A sinking replaces brain by the fluid found in its gap: a brain 15 % smaller
+// than the preop's passes when that fluid was found (its volume given), and
+// is refused when it was not (a lost lobe is tissue, never that fluid).
+TEST(SegmentationGates, TheGapOfASinkingIsAllowedForByTheFluidFound) {
+  const LabelImage preop = head(1.0, true), sunk = head(0.95, true);  // 0.95^3: -14 %
+  double preop_ml = 0, sunk_ml = 0;
+  for (std::size_t v = 0; v < preop.voxels.size(); ++v) {
+    preop_ml += preop.voxels[v] != 0;
+    sunk_ml += sunk.voxels[v] != 0;
+  }
+  const double gap_ml = (preop_ml - sunk_ml) * 8.0 / 1000;
+  const auto check = [&](double open_fluid_ml) {
+    return check_segmentation(sunk, ImageF(sunk.grid, 0.95f), preop, table(), AutoSegmentationParameters{},
+                              open_fluid_ml);
+  };
+  const auto without = check(0);
+  EXPECT_NE(without.failure.find("volume"), std::string::npos) << without.metrics.dump();
+  const auto with_gap = check(gap_ml);
+  EXPECT_TRUE(with_gap.failure.empty()) << with_gap.failure << with_gap.metrics.dump();
+  EXPECT_DOUBLE_EQ(with_gap.metrics["brain_volume"]["open_fluid_ml"].get<double>(), gap_ml);
+}

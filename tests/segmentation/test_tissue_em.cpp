@@ -5,6 +5,7 @@
 // and the bias must come back.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <random>
 
@@ -35,9 +36,12 @@ double ellipsoid(const Eigen::Vector3d& p, const Eigen::Vector3d& centre, const 
 // grey nuclei; ventricles:
 // two ellipsoids beside the midline; 3 mm of fluid, 5 mm of skull and 5 mm of
 // scalp around it; air beyond. cavity_mm > 0: a fluid ball of that radius
-// just under the brain's top (a resection).
+// just under the brain's top (a resection). sink_mm > 0: the brain's top
+// sunk under a craniotomy, by sink_mm at its centre falling to 0 at 35 mm
+// from it; fluid fills the gap, and its top 3 mm, under the skull, are dura
+// and inner-table partial volume as bright as grey matter.
 Synthetic make_head(const Intensities& in, double noise_sd, double bias_amplitude, double cavity_mm = 0,
-                    Eigen::Vector3d spacing = {1.2, 1.2, 2.0}) {
+                    Eigen::Vector3d spacing = {1.2, 1.2, 2.0}, double sink_mm = 0) {
   Grid3 g;
   g.dims = {static_cast<int>(170 / spacing[0]), static_cast<int>(190 / spacing[1]), static_cast<int>(150 / spacing[2])};
   g.world_from_voxel.diagonal().head<3>() = spacing;
@@ -49,8 +53,18 @@ Synthetic make_head(const Intensities& in, double noise_sd, double bias_amplitud
   for (int k = 0; k < g.dims[2]; ++k)
     for (int j = 0; j < g.dims[1]; ++j)
       for (int i = 0; i < g.dims[0]; ++i) {
-        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        const Eigen::Vector3d at = g.world_mm(i, j, k);
+        // Tissue here came from sink down above it; the gap is where the
+        // brain was and no longer is.
+        // Falling off with depth, from the sunken surface (48 - sink_mm
+        // above the centre) to the ventricles' top (16): deep structures
+        // move little.
+        const double lateral = std::max(0.0, 1 - at.head<2>().squaredNorm() / (35.0 * 35.0));
+        const double dent = sink_mm * lateral * std::clamp((at.z() - 16) / (48 - sink_mm - 16), 0.0, 1.0);
+        const Eigen::Vector3d p = at + Eigen::Vector3d(0, 0, dent);
         const double r = ellipsoid(p, c, brain);
+        const double r_before = ellipsoid(at, c, brain);
+        const bool gap = r >= 1 && r_before < 1 + 3.0 / 50;
         const double depth_mm = (1 - r) * 50;  // about mm below the brain surface
         // Deep grey matter (basal ganglia, thalami) beside the ventricles, as
         // in every brain: grey matter is not only a rind.
@@ -62,11 +76,12 @@ Synthetic make_head(const Intensities& in, double noise_sd, double bias_amplitud
         if (r < 1 && !cavity) {
           label = vent ? 2 : 1;
           v = vent ? in.ventricle : (depth_mm < 3 || deep_grey) ? in.gm : in.wm;
-        } else if (cavity || r < 1 + 3.0 / 50) v = in.fluid;
-        else if (r < 1 + 8.0 / 50) v = in.skull;
-        else if (r < 1 + 13.0 / 50) v = in.scalp;
+        } else if (gap) v = r_before > 1 - 3.0 / 50 && dent > 6 ? in.gm : in.fluid;
+        else if (cavity || r_before < 1 + 3.0 / 50) v = in.fluid;  // the skull and scalp stay
+        else if (r_before < 1 + 8.0 / 50) v = in.skull;
+        else if (r_before < 1 + 13.0 / 50) v = in.scalp;
         else v = in.air;
-        const Eigen::Vector3d q = p.array() / Eigen::Vector3d(85, 95, 75).array();
+        const Eigen::Vector3d q = at.array() / Eigen::Vector3d(85, 95, 75).array();
         const float b = static_cast<float>(std::exp(bias_amplitude * (0.8 * q.x() + 0.5 * q.y() * q.y() - 0.4 * q.z())));
         s.truth.at(i, j, k) = label;
         s.true_bias.at(i, j, k) = b;
@@ -211,6 +226,45 @@ TEST(TissueEm, ACavityOfFluidWhereThePriorHasBrainBecomesBackground) {
   ASSERT_GT(cavity, 1000u);
   EXPECT_GT(static_cast<double>(labelled_zero) / static_cast<double>(cavity), 0.9);
   EXPECT_GE(outline_dice(seg.labels, head.truth), 0.97) << seg.report.dump();
+}
+
+// A cortex sunk 15 mm under a craniotomy (the prior: the brain before it
+// sank, a few mm off): the gap is fluid, with dura and inner-table partial
+// volume as bright as grey matter under the skull. Grey matter at half the
+// way from fluid to white matter (a low-field T1): the parenchyma's grey
+// class stretches over the fluid, and the prior holds brain in the gap.
+// Without the open-fluid rule (max_sulcus_half_width_mm = 0) the gap is
+// labelled brain.
+TEST(TissueEm, FluidUnderASunkenCortexIsOutsideTheBrain) {
+  Intensities in;
+  in.gm = 50;
+  const Synthetic head = make_head(in, 5.0, 0.2, 0.0, {1.2, 1.2, 2.0}, 15.0);
+  const Synthetic before = make_head(in, 5.0, 0.2);
+  const LabelImage prior = misregistered(before.truth, {2, -2, 1}, 1.0);
+  std::size_t gap = 0;
+  for (std::size_t v = 0; v < head.truth.voxels.size(); ++v) gap += before.truth.voxels[v] != 0 && head.truth.voxels[v] == 0;
+  const double gap_ml = static_cast<double>(gap) * 1.2 * 1.2 * 2.0 / 1000;
+  ASSERT_GT(gap_ml, 20.0) << "the gap must be tens of ml";
+  const auto labelled_zero_share = [&](const IntraopSegmentation& seg) {
+    std::size_t zero = 0;
+    for (std::size_t v = 0; v < head.truth.voxels.size(); ++v)
+      zero += before.truth.voxels[v] != 0 && head.truth.voxels[v] == 0 && seg.labels.voxels[v] == 0;
+    return static_cast<double>(zero) / static_cast<double>(gap);
+  };
+  SegmentationParameters p = params_for_test();
+  const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, p);
+  ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+  p.max_sulcus_half_width_mm = 0;
+  const IntraopSegmentation without = segment_intraop(head.image, prior, 1, {2}, p);
+  ASSERT_TRUE(without.refusal.empty()) << without.refusal;
+  EXPECT_LT(labelled_zero_share(without), 0.5) << "the failure the rule fixes no longer reproduces";
+  EXPECT_GT(labelled_zero_share(seg), 0.9) << seg.report.dump();
+  EXPECT_GT(seg.open_fluid_ml, 0.5 * gap_ml);
+  // The outline's remaining error is the grey class's leak into the 3 mm of
+  // fluid around the brain, which the rule leaves (thinner than a sulcus).
+  const double with_dice = outline_dice(seg.labels, head.truth), without_dice = outline_dice(without.labels, head.truth);
+  EXPECT_GT(with_dice, without_dice + 0.02) << with_dice << " vs " << without_dice;
+  EXPECT_GT(with_dice, 0.9);
 }
 
 // Ventricles that moved farther than they are thick (the brain's deep shift
