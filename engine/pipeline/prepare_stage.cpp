@@ -181,8 +181,9 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
-  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm) {
+  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true) {
     segmentation::SegmentationParameters sp = ap.classifier;
+    if (!open_fluid_rule) sp.max_sulcus_half_width_mm = 0;
     // The classified box ends where the prior meets its floor (docs/DESIGN.md
     // "Automatic intraop segmentation", item 7).
     sp.margin_mm = segmentation::prior_reach_mm(width_mm, sp.prior_floor);
@@ -207,13 +208,44 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
                                   gates.failure);
   nlohmann::json rounds = nlohmann::json::array();
   rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
+  // The open-fluid rule reshapes the outline by shape, not by intensity
+  // (docs/DESIGN.md "Automatic intraop segmentation", item 7); where the
+  // stages refuse the field its outline gives (a fold: the cortex over a
+  // resection cavity taken for the cap of a gap), the segmentation by the
+  // image alone is tried once, and kept only if the stages accept it.
+  bool open_fluid_rule = true;
+  if (result.kind != ResultKind::nonrigid && gates.failure.empty() && seg.open_fluid_ml > 0) {
+    const double pass_seconds = watch.lap();
+    auto plain = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, false);
+    SegmentationGates plain_gates = check_segmentation(plain.labels, plain.confidence, carried, table, ap, 0.0);
+    segment_seconds += watch.lap();
+    rounds.push_back({{"prior_width_mm", plain.report["prior_width_mm"]}, {"gates", plain_gates.metrics},
+                      {"open_fluid_rule", false}, {"refusal", plain.refusal}});
+    if (plain.refusal.empty() && plain_gates.failure.empty()) {
+      ScanResult pass = run_intraop(warm, IntraopInput{plain.labels, image, read_seconds}, params, progress, false);
+      if (pass.kind == ResultKind::nonrigid) {
+        rounds.front()["kept"] = false;
+        rounds.front()["fallback_reason"] = result.fallback_reason;
+        earlier_passes_seconds += pass_seconds;
+        open_fluid_rule = false;
+        seg = std::move(plain);
+        gates = std::move(plain_gates);
+        result = std::move(pass);
+      } else {
+        rounds.back()["kept"] = false;
+        earlier_passes_seconds += watch.lap();
+      }
+    } else {
+      rounds.back()["kept"] = false;
+    }
+  }
   for (int round = 1; round <= ap.rematch_rounds && result.kind == ResultKind::nonrigid; ++round) {
     const double pass_seconds = watch.lap();
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
     // warped labels), a narrower prior, a smaller box. The gap a sinking left
     // was found against the head's placement, as the gates measure: the
     // first round's finding stands for the next.
-    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0);
+    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule);
     next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates =
         check_segmentation(next.labels, next.confidence, carried, table, ap, next.open_fluid_ml);
