@@ -54,6 +54,13 @@ LabelImageCheck check_labels_against_image(const ImageF& full_image, const Label
   // Only the outline is compared: how well the image shows the ventricles
   // does not matter here.
   sp.min_fluid_contrast_sd = 0;
+  // The open-fluid rule (intraop_segmentation.h) edits the outline by its
+  // shape, for the image-only path's gap under a sunken cortex. The check
+  // asks what the image's intensities show: a leak into that gap is fluid
+  // by intensity and is found without the rule, and with it a T2-like image
+  // (bright sulcal fluid) had 40 ml of true brain called fluid, a false
+  // refusal (hospital suite atlas_midline6_T2_oblique25).
+  sp.max_sulcus_half_width_mm = 0;
   const IntraopSegmentation seg = segment_intraop(image, labels, brain_label, ventricle_labels, sp);
   const Mask given = outline_mask(labels);
   const Mask seen = outline_mask(seg.labels);
