@@ -54,12 +54,20 @@ struct StageSamples {
   }
 };
 
+// A stage reported again within one scan (the image-only path runs the
+// stages two or three times) is keyed "<stage>#2", "<stage>#3": each pass's
+// share stays apart. The wall seconds are the answer's pass (the timings).
 void register_once(EngineSession& session, const ScanInput& scan, StageSamples& s, std::string& kind) {
   std::map<std::string, double> started;
+  std::map<std::string, int> seen;
   const ProgressFn progress = [&](const std::string& stage, double fraction, double) {
     const double now = cpu_seconds(CLOCK_PROCESS_CPUTIME_ID);
-    if (fraction == 0.0) started[stage] = now;
-    else if (fraction == 1.0 && started.count(stage)) s.cpu[stage].push_back(now - started[stage]);
+    if (fraction == 0.0) {
+      started[stage] = now;
+    } else if (fraction == 1.0 && started.count(stage)) {
+      const int n = ++seen[stage];
+      s.cpu[n == 1 ? stage : stage + "#" + std::to_string(n)].push_back(now - started[stage]);
+    }
   };
   Stopwatch wall;
   const double cpu0 = cpu_seconds(CLOCK_PROCESS_CPUTIME_ID);
