@@ -180,6 +180,11 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   check.read("band_mm", c.band_mm, Interval::at_least(0));
   check.read("max_disagreement_fraction", c.max_disagreement_fraction, Interval::open(0, 1));
   check.reject_unknown_keys();
+  TomlSection passes = s.table("passes");
+  passes.read("prior_refine", p.passes.prior_refine);
+  passes.read("prior_surface_max_iterations", p.passes.prior_surface_max_iterations, 0, 1000);
+  passes.read("warm_start_affine", p.passes.warm_start_affine);
+  passes.reject_unknown_keys();
   s.reject_unknown_keys();
 }
 

@@ -123,10 +123,23 @@ void solve_with_resection(WarmState& warm, const IntraopInput& input, const Mask
   metrics["resection"] = std::move(resection.metrics);
 }
 
+// The answer's parameters with the prior-only pass's shortcuts
+// (PassShortcuts): fewer membrane iterations per stiffness level.
+PipelineParameters prior_pass_parameters(const PipelineParameters& params) {
+  PipelineParameters p = params;
+  const int iterations = params.auto_segmentation.passes.prior_surface_max_iterations;
+  if (iterations > 0) {
+    p.outer_surface.max_iterations = std::min(p.outer_surface.max_iterations, iterations);
+    p.ventricle_surface.max_iterations = std::min(p.ventricle_surface.max_iterations, iterations);
+  }
+  return p;
+}
+
 }  // namespace
 
 ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                       const ProgressFn& progress, bool with_quality_metrics, const std::string& forced_fallback) {
+                       const ProgressFn& progress, bool with_quality_metrics, const std::string& forced_fallback,
+                       const PassOptions& pass) {
   const LabelTable& table = params.label_table;
   Stopwatch total;
   ScanResult result;
@@ -152,14 +165,14 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
 
   clock.start(stages::kAffine);
   const IntraopDistanceMaps maps = prepare_intraop_maps(input.labels, brain_region, table.brain_label(), ventricle);
-  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine);
+  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine, pass.affine_start);
   const Eigen::Matrix4d A = affine.intraop_from_preop;
   result.intraop_from_preop = A;
   metrics["affine"] = {{"converged", affine.converged}, {"iterations", affine.iterations},
                        {"rms_surface_distance_mm", affine.rms_surface_distance_mm},
                        {"inlier_fraction", affine.inlier_fraction}, {"tolerance_met", affine.tolerance_met}, {"affine_kept", affine.affine_kept},
                        {"residual_sigma_mm", affine.residual_sigma_mm}, {"robust_scale_mm", affine.robust_scale_mm},
-                       {"message", affine.message}};
+                       {"warm_start", pass.affine_start != nullptr}, {"message", affine.message}};
   clock.done(stages::kAffine);
 
   std::string failure = forced_fallback;
@@ -173,7 +186,10 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
 
   clock.start(stages::kSurface);
   std::vector<Eigen::Vector3d> fixed_values;
-  if (failure.empty()) fixed_values = match_surfaces(warm, maps, A, input, params, metrics, &failure);
+  std::optional<PipelineParameters> prior_params;
+  if (pass.prior_only) prior_params = prior_pass_parameters(params);
+  if (failure.empty())
+    fixed_values = match_surfaces(warm, maps, A, input, prior_params ? *prior_params : params, metrics, &failure);
   clock.done(stages::kSurface);
 
   clock.start(stages::kSolve);
@@ -199,9 +215,12 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.start(stages::kField);
   FieldStats field_stats;
   result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
-  clock.nested(stages::kRefine, [&] {
-    metrics["refine"] = refine_interior(result.pullback_field_mm, warm, input, maps, params, failure);
-  });
+  if (pass.prior_only && !params.auto_segmentation.passes.prior_refine)
+    metrics["refine"] = {{"applied", false}, {"skipped", "a pass for the re-match's prior"}};
+  else
+    clock.nested(stages::kRefine, [&] {
+      metrics["refine"] = refine_interior(result.pullback_field_mm, warm, input, maps, params, failure);
+    });
   if (failure.empty()) {
     failure = check_image_plausibility(warm, input, brain_region, result.pullback_field_mm, A, params, plausibility);
     if (!failure.empty()) {
@@ -232,18 +251,23 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.done(stages::kField);
 
   clock.start(stages::kWarp);
-  // The two warps are independent: the labels on the second core.
-  auto warped_labels = std::async(std::launch::async, [&] {
-    return warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
-  });
-  result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
-  result.warped_labels = warped_labels.get();
+  if (pass.prior_only) {
+    result.warped_labels = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
+  } else {
+    // The two warps are independent: the labels on the second core.
+    auto warped_labels = std::async(std::launch::async, [&] {
+      return warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
+    });
+    result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
+    result.warped_labels = warped_labels.get();
+  }
   clock.done(stages::kWarp);
 
   result.nonrigid_node_mm = deformation.nonrigid_mm;
   clock.start(stages::kModels);
-  for (const auto& [name, model] : warm.models)
-    result.models[name] = carry(model.surface, model.binding, deformation);
+  if (!pass.prior_only)
+    for (const auto& [name, model] : warm.models)
+      result.models[name] = carry(model.surface, model.binding, deformation);
   clock.done(stages::kModels);
 
   // "total" is the registration itself: the stages the issue lists (read,
@@ -257,6 +281,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
     result.fallback_reason = failure;
   }
   metrics["result"] = std::string(protocol::to_string(result.kind));
+  if (pass.prior_only) metrics["pass"] = "prior only: no warped T1, no models";
   if (!failure.empty()) metrics["fallback_reason"] = failure;
   result.metrics = std::move(metrics);
   result.timings = {{"intraop", timings},

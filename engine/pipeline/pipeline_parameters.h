@@ -42,6 +42,25 @@ struct QualityGates {
   double min_intraop_brain_fraction = 0.5;
 };
 
+// The image-only path's passes of the stages (docs/DESIGN.md "Automatic
+// intraop segmentation", item 9). A pass a re-match follows only carries the
+// preop labels for the re-match's prior, which is 1.5 mm wide and which the
+// image overrules where tissue moved: shortcuts that change that prior by
+// much less than its width; the gates (folds, motion beyond the data) still
+// decide whether the pass is non-rigid, and a light pass they refuse is run
+// again in full.
+struct PassShortcuts {
+  // The prior-only pass: the T1 refinement of the interior (about 0.5 mm,
+  // capped at 3), which the re-match's image decides again.
+  bool prior_refine = false;
+  // The prior-only pass: membrane iterations per stiffness level of the
+  // outer and ventricle matches (0 = as the answer's).
+  int prior_surface_max_iterations = 0;
+  // A re-match's pass: the affine starts from the previous pass's, whose
+  // segmentation differs by about a voxel at the outline (finest level only).
+  bool warm_start_affine = true;
+};
+
 // The automatic path: a scan given as an image alone (pipeline/prepare_stage.h;
 // docs/DESIGN.md "Automatic intraop segmentation" says why each value).
 struct AutoSegmentationParameters {
@@ -71,6 +90,7 @@ struct AutoSegmentationParameters {
   double ventricle_prior_width_mm = 1.5;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
+  PassShortcuts passes;
   // Gates. Brain volume (the outline, after the affine's volume change is
   // divided out) against the preop's: brain shift changes it by a few per
   // cent (fluid drained, oedema), a resection by the resectable structures'

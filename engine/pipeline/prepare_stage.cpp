@@ -1,6 +1,7 @@
 #include "pipeline/prepare_stage.h"
 #include "protocol/stage_names.h"
 
+#include <algorithm>
 #include <cmath>
 #include <future>
 
@@ -176,8 +177,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   for (float v : image.voxels)
     if (!std::isfinite(v)) throw InputError("intraop image: contains non-finite values");
 
-  Stopwatch watch;
-  double segment_seconds = 0, earlier_passes_seconds = 0;
+  Stopwatch watch, scan_watch;
+  double segment_seconds = 0;
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
@@ -204,8 +205,28 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   // The gates are checked before the stages, not beside them: every stage
   // already splits its work over both cores (the affine in every iteration),
   // and a third thread slowed them by more than the check costs.
-  ScanResult result = run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false,
-                                  gates.failure);
+  // A pass a re-match follows only makes the re-match's prior: it runs light
+  // (PassOptions::prior_only). A light pass the stages refuse is run again in
+  // full, so that the shortcuts never decide a refusal (nor its reason); a
+  // light pass that ends up the answer (its re-match refused) is completed.
+  // A re-match's pass starts its affine from the pass before it (item 9).
+  auto run_pass = [&](const LabelImage& labels, bool rematch_follows, bool& prior_only,
+                      const Eigen::Matrix4d* affine_start = nullptr) {
+    const IntraopInput input{labels, image, read_seconds};
+    if (!ap.passes.warm_start_affine) affine_start = nullptr;
+    prior_only = false;
+    if (rematch_follows) {
+      ScanResult light = run_intraop(warm, input, params, progress, false, "", PassOptions{true, affine_start});
+      prior_only = light.kind == ResultKind::nonrigid;
+      if (prior_only) return light;
+    }
+    return run_intraop(warm, input, params, progress, false, "", PassOptions{false, affine_start});
+  };
+  bool result_prior_only = false;
+  ScanResult result = gates.failure.empty()
+                          ? run_pass(seg.labels, ap.rematch_rounds > 0, result_prior_only)
+                          : run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false,
+                                        gates.failure);
   nlohmann::json rounds = nlohmann::json::array();
   rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
   // The open-fluid rule reshapes the outline by shape, not by intensity
@@ -215,36 +236,36 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   // image alone is tried once, and kept only if the stages accept it.
   bool open_fluid_rule = true;
   if (result.kind != ResultKind::nonrigid && gates.failure.empty() && seg.open_fluid_ml > 0) {
-    const double pass_seconds = watch.lap();
+    watch.lap();
     auto plain = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, false);
     SegmentationGates plain_gates = check_segmentation(plain.labels, plain.confidence, carried, table, ap, 0.0);
     segment_seconds += watch.lap();
     rounds.push_back({{"prior_width_mm", plain.report["prior_width_mm"]}, {"gates", plain_gates.metrics},
                       {"open_fluid_rule", false}, {"refusal", plain.refusal}});
     if (plain.refusal.empty() && plain_gates.failure.empty()) {
-      ScanResult pass = run_intraop(warm, IntraopInput{plain.labels, image, read_seconds}, params, progress, false);
+      bool pass_prior_only = false;
+      ScanResult pass = run_pass(plain.labels, ap.rematch_rounds > 0, pass_prior_only);
       if (pass.kind == ResultKind::nonrigid) {
         rounds.front()["kept"] = false;
         rounds.front()["fallback_reason"] = result.fallback_reason;
-        earlier_passes_seconds += pass_seconds;
         open_fluid_rule = false;
         seg = std::move(plain);
         gates = std::move(plain_gates);
         result = std::move(pass);
+        result_prior_only = pass_prior_only;
       } else {
         rounds.back()["kept"] = false;
-        earlier_passes_seconds += watch.lap();
       }
     } else {
       rounds.back()["kept"] = false;
     }
   }
   for (int round = 1; round <= ap.rematch_rounds && result.kind == ResultKind::nonrigid; ++round) {
-    const double pass_seconds = watch.lap();
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
     // warped labels), a narrower prior, a smaller box. The gap a sinking left
     // was found against the head's placement, as the gates measure: the
     // first round's finding stands for the next.
+    watch.lap();
     auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule);
     next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates =
@@ -255,18 +276,23 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
                         {"refusal", next.refusal}, {"kept", false}});
       break;
     }
-    ScanResult pass = run_intraop(warm, IntraopInput{next.labels, image, read_seconds}, params, progress, false);
+    bool pass_prior_only = false;
+    ScanResult pass = run_pass(next.labels, round < ap.rematch_rounds, pass_prior_only, &result.intraop_from_preop);
     if (pass.kind != ResultKind::nonrigid) {  // a re-match the stages refuse (a fold): the previous pass stands
       rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
                         {"fallback_reason", pass.fallback_reason}, {"kept", false}});
-      earlier_passes_seconds += watch.lap();
       break;
     }
-    earlier_passes_seconds += pass_seconds;
     seg = std::move(next);
     gates = std::move(next_gates);
     result = std::move(pass);
+    result_prior_only = pass_prior_only;
     rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
+  }
+  if (result_prior_only) {  // the answer: the full pass on the segmentation that stands
+    const Eigen::Matrix4d same_labels_affine = result.intraop_from_preop;
+    bool unused = false;
+    result = run_pass(seg.labels, false, unused, &same_labels_affine);
   }
   seg_metrics["classifier"] = seg.report;
   seg_metrics["gates"] = gates.metrics;
@@ -274,8 +300,11 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   result.metrics["segmentation"] = seg_metrics;
   auto& t = result.timings["intraop"];
   t[std::string(stages::kSegment)] = segment_seconds;
-  t["earlier_passes"] = earlier_passes_seconds;
-  t["total"] = t.value("total", 0.0) + segment_seconds + earlier_passes_seconds;
+  // Everything but the segmentation and the answer's own pass (whose total
+  // includes the read) was an earlier pass.
+  const double scan_seconds = scan_watch.seconds(), answer_pass_seconds = t.value("total", 0.0) - read_seconds;
+  t["earlier_passes"] = std::max(0.0, scan_seconds - segment_seconds - answer_pass_seconds);
+  t["total"] = scan_seconds + read_seconds;
   result.intraop_labels = std::move(seg.labels);
   result.segmentation_confidence = std::move(seg.confidence);
   if (with_quality_metrics)

@@ -63,6 +63,20 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
                                             const ProgressFn& progress,
                                             std::optional<TetMesh> stored_mesh);
 
+// What a pass of the stages is for, and where it may start. The answer needs
+// everything; the image-only path's pass a re-match follows only carries the
+// preop labels for the re-match's prior (prepare_stage.h): its field, its
+// gates and its warped labels, no warped T1, no models, and the shortcuts of
+// AutoSegmentationParameters::passes (docs/DESIGN.md "Automatic intraop
+// segmentation", item 9). Such a result is never the answer: the caller runs
+// the full pass when it would be.
+struct PassOptions {
+  bool prior_only = false;
+  // The affine's warm start (register_affine): a previous pass's, on a
+  // nearly identical segmentation; nullptr: the full search.
+  const Eigen::Matrix4d* affine_start = nullptr;
+};
+
 // The intraop stages on rank 0. Without quality metrics, result.metrics holds
 // only what the registration itself reports (affine, surfaces, solve,
 // Jacobian, result kind); add_quality_metrics() completes it later.
@@ -70,7 +84,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
 // segmentation) to return the affine-only result; empty for the normal path.
 ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                        const ProgressFn& progress, bool with_quality_metrics = true,
-                       const std::string& forced_fallback = "");
+                       const std::string& forced_fallback = "", const PassOptions& pass = {});
 void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                          ScanResult& result, const ProgressFn& progress);
 

@@ -324,54 +324,17 @@ Eigen::Matrix4d to_matrix(const AffineState& s, const Eigen::Vector3d& centre, d
   return m;
 }
 
-}  // namespace
-
-AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
-                                         const IntraopDistanceMaps& intraop,
-                                         const AffineRegistrationParameters& p) {
-  if (p.levels < 1 || p.coarse_points < 12 || p.fine_points < 12 || !(p.robust_scale_mm > 0) ||
-      p.iterations_per_level < 1 || !(p.min_robust_scale_mm > 0) || p.min_robust_scale_mm > p.robust_scale_mm ||
-      !(p.data_scale_factor > 0)) {
-    throw InputError("affine registration: invalid parameters (levels, point counts, "
-                     "iterations must be positive; 0 < min_robust_scale_mm <= robust_scale_mm; data_scale_factor > 0)");
-  }
+// The full affine from the finest similarity, and the result's report.
+// initial_state: where the search started (its cost is reported).
+AffineRegistrationResult finish_affine(const std::vector<Term>& fine_terms, const AffineRegistrationParameters& p,
+                                       const Eigen::Vector3d& centre, double radius, LevelOutcome best,
+                                       int iterations, const AffineState& initial_state) {
   AffineRegistrationResult result;
-  if (preop.outer_mm.size() < 12 || intraop.outer_sdf_mm.voxels.empty() ||
-      !(preop.outer_moments.volume_ml > 0) || !(intraop.outer_moments.volume_ml > 0)) {
-    throw InputError("affine registration: empty brain outline in the preop or intraop label map");
-  }
-  const Eigen::Vector3d centre = preop.outer_moments.centroid_mm;
-  const double radius = std::sqrt(preop.outer_moments.covariance_mm2.trace());
-
-  // Similarity, coarse to fine: the coarse level from every candidate start
-  // (lowest cost wins), then more points and a tighter robust scale.
-  const auto level_c = [&](int level) {
-    return p.robust_scale_mm * std::pow(p.coarse_scale_factor, p.levels - 1 - level);
-  };
-  const auto level_tolerance = [&](int level) {
-    return level == p.levels - 1 ? p.tolerance_mm : p.coarse_tolerance_mm;
-  };
-  const std::vector<Term> coarse_terms = make_terms(preop, intraop, p, 0, centre, radius);
-  const auto candidates = initial_candidates(preop, intraop, p, radius);
-  LevelOutcome best;
-  double best_cost = std::numeric_limits<double>::infinity();
-  for (const AffineState& start : candidates) {
-    LevelOutcome o = run_level(coarse_terms, start, level_c(0), Model::similarity, p.iterations_per_level,
-                               level_tolerance(0));
-    if (o.eval.cost < best_cost) best_cost = o.eval.cost, best = std::move(o);
-  }
-  int iterations = best.iterations;
-  for (int level = 1; level < p.levels; ++level) {
-    best = run_level(make_terms(preop, intraop, p, level, centre, radius), best.state, level_c(level),
-                     Model::similarity, p.iterations_per_level, level_tolerance(level));
-    iterations += best.iterations;
-  }
   // Then the full affine from the similarity, at the finest level, with the
   // robust scale the data give: c = data_scale_factor x the MAD sigma of the
   // residuals (segmentation noise), between min_robust_scale_mm and
   // robust_scale_mm. Points beyond ~2c (the sunken or dented part) then
   // weigh < 4 % and cannot shear the fit toward them.
-  const auto fine_terms = make_terms(preop, intraop, p, p.levels - 1, centre, radius);
   const double sigma_mm = mad_sigma_mm(fine_terms, best.state);
   const double fit_c = std::clamp(p.data_scale_factor * sigma_mm, p.min_robust_scale_mm, p.robust_scale_mm);
   // The affine's five extra parameters (anisotropic scale, shear) may be
@@ -390,7 +353,7 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
   }
   const bool tolerance_met = best.converged;
 
-  const Evaluation initial = evaluate(fine_terms, candidates.front(), p.robust_scale_mm);
+  const Evaluation initial = evaluate(fine_terms, initial_state, p.robust_scale_mm);
   const Evaluation final_eval = evaluate(fine_terms, best.state, p.robust_scale_mm);
   result.intraop_from_preop = to_matrix(best.state, centre, radius);
   result.iterations = iterations;
@@ -430,6 +393,63 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
       << (result.affine_kept ? "kept" : "not kept: the similarity is the result") << "), robust scale " << fit_c << " mm";
   result.message = msg.str();
   return result;
+}
+
+}  // namespace
+
+AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
+                                         const IntraopDistanceMaps& intraop,
+                                         const AffineRegistrationParameters& p,
+                                         const Eigen::Matrix4d* start) {
+  if (p.levels < 1 || p.coarse_points < 12 || p.fine_points < 12 || !(p.robust_scale_mm > 0) ||
+      p.iterations_per_level < 1 || !(p.min_robust_scale_mm > 0) || p.min_robust_scale_mm > p.robust_scale_mm ||
+      !(p.data_scale_factor > 0)) {
+    throw InputError("affine registration: invalid parameters (levels, point counts, "
+                     "iterations must be positive; 0 < min_robust_scale_mm <= robust_scale_mm; data_scale_factor > 0)");
+  }
+  if (preop.outer_mm.size() < 12 || intraop.outer_sdf_mm.voxels.empty() ||
+      !(preop.outer_moments.volume_ml > 0) || !(intraop.outer_moments.volume_ml > 0)) {
+    throw InputError("affine registration: empty brain outline in the preop or intraop label map");
+  }
+  const Eigen::Vector3d centre = preop.outer_moments.centroid_mm;
+  const double radius = std::sqrt(preop.outer_moments.covariance_mm2.trace());
+  if (start) {
+    // A warm start is within a voxel or two: the coarse levels and the
+    // candidate starts exist for capture range, which it does not need.
+    AffineState from{start->topLeftCorner<3, 3>() * radius,
+                     start->topRightCorner<3, 1>() + start->topLeftCorner<3, 3>() * centre};
+    const auto fine_terms = make_terms(preop, intraop, p, p.levels - 1, centre, radius);
+    LevelOutcome best = run_level(fine_terms, from, p.robust_scale_mm, Model::similarity, p.iterations_per_level,
+                                  p.tolerance_mm);
+    const int iterations = best.iterations;
+    return finish_affine(fine_terms, p, centre, radius, std::move(best), iterations, from);
+  }
+
+  // Similarity, coarse to fine: the coarse level from every candidate start
+  // (lowest cost wins), then more points and a tighter robust scale.
+  const auto level_c = [&](int level) {
+    return p.robust_scale_mm * std::pow(p.coarse_scale_factor, p.levels - 1 - level);
+  };
+  const auto level_tolerance = [&](int level) {
+    return level == p.levels - 1 ? p.tolerance_mm : p.coarse_tolerance_mm;
+  };
+  const std::vector<Term> coarse_terms = make_terms(preop, intraop, p, 0, centre, radius);
+  const auto candidates = initial_candidates(preop, intraop, p, radius);
+  LevelOutcome best;
+  double best_cost = std::numeric_limits<double>::infinity();
+  for (const AffineState& candidate : candidates) {
+    LevelOutcome o = run_level(coarse_terms, candidate, level_c(0), Model::similarity, p.iterations_per_level,
+                               level_tolerance(0));
+    if (o.eval.cost < best_cost) best_cost = o.eval.cost, best = std::move(o);
+  }
+  int iterations = best.iterations;
+  for (int level = 1; level < p.levels; ++level) {
+    best = run_level(make_terms(preop, intraop, p, level, centre, radius), best.state, level_c(level),
+                     Model::similarity, p.iterations_per_level, level_tolerance(level));
+    iterations += best.iterations;
+  }
+  return finish_affine(make_terms(preop, intraop, p, p.levels - 1, centre, radius), p, centre, radius,
+                       std::move(best), iterations, candidates.front());
 }
 
 AffineRegistrationResult register_affine(const LabelImage& preop_labels,

@@ -98,9 +98,15 @@ AffineRegistrationResult register_affine(const LabelImage& preop_labels,
                                          std::uint16_t brain_label = 1,
                                          std::uint16_t ventricle_label = 2);
 
-// The same on prepared inputs (see boundary_samples.h).
+// The same on prepared inputs (see boundary_samples.h). start (optional): a
+// warm start, the answer of a registration of a nearly identical intraop
+// segmentation (the image-only path's re-match, docs/DESIGN.md "Automatic
+// intraop segmentation" item 9), within a voxel or two of this one: only the
+// finest level runs, from it (the coarse levels and the moment candidates
+// are there for capture range), then the full affine as usual.
 AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
                                          const IntraopDistanceMaps& intraop,
-                                         const AffineRegistrationParameters& params);
+                                         const AffineRegistrationParameters& params,
+                                         const Eigen::Matrix4d* start = nullptr);
 
 }  // namespace brainshift

@@ -1,0 +1,138 @@
+// The image-only path's passes of the stages (pipeline/warm_state.h
+// PassOptions, docs/DESIGN.md "Automatic intraop segmentation" item 9): a
+// pass a re-match follows only makes the re-match's prior and runs light; the
+// answer is always a full pass. On the small synthetic head (coarse mesh).
+#include <gtest/gtest.h>
+#include <mpi.h>
+
+#include <cstring>
+
+#include "coarse_parameters.h"  // tests/support
+#include "image/resample.h"
+#include "pipeline/engine_session.h"
+#include "pipeline/warm_state.h"
+#include "synthetic_head.h"
+
+using namespace brainshift;
+
+namespace {
+
+// The synthetic head on an iMRI-like grid (1.4 x 1.4 x 2.8 mm), moved by a
+// translation; with sink_mm > 0 the top of the brain is cut away over a
+// 30 mm disc (a sinking under a craniotomy), so the non-rigid stages work.
+IntraopInput moved_scan(const PreopInput& preop, const Eigen::Vector3d& shift_mm, double sink_mm) {
+  Grid3 g;
+  g.dims = {100, 110, 44};
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  g.world_from_voxel.diagonal().head<3>() = Eigen::Vector3d(1.4, 1.4, 2.8);
+  g.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-70, -77, -62);
+  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
+  preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
+  IntraopInput scan{resample_nearest(preop.labels, g, preop_from_intraop),
+                    resample_linear(preop.t1, g, preop_from_intraop)};
+  for (auto& v : scan.labels.voxels)
+    if (v == 4) v = 1;
+  double top = -1e9;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        if (scan.labels.at(i, j, k)) top = std::max(top, g.world_mm(i, j, k).z());
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        if (p.z() > top - sink_mm && p.head<2>().norm() < 30.0) scan.labels.at(i, j, k) = 0;
+      }
+  return scan;
+}
+
+class ImageOnlyPasses : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    test::SyntheticHead h = test::synthetic_head();
+    preop_ = new PreopInput{std::move(h.t1), std::move(h.labels)};
+  }
+  static void TearDownTestSuite() { delete preop_; }
+  static PreopInput* preop_;
+};
+PreopInput* ImageOnlyPasses::preop_ = nullptr;
+
+TEST_F(ImageOnlyPasses, APriorOnlyPassCarriesTheSameLabelsWithoutTheAnswersOutputs) {
+  PipelineParameters p = test::coarse_parameters();
+  // Without the shortcuts the prior-only pass computes the same field.
+  p.auto_segmentation.passes.prior_refine = true;
+  p.auto_segmentation.passes.prior_surface_max_iterations = 0;
+  auto warm = build_warm_state(MPI_COMM_WORLD, *preop_, p, nullptr, std::nullopt);
+  ASSERT_FALSE(warm->models.empty());
+  const IntraopInput scan = moved_scan(*preop_, {1.0, -1.0, 0.5}, 6.0);
+  const ScanResult full = run_intraop(*warm, scan, p, nullptr, false);
+  const ScanResult light = run_intraop(*warm, scan, p, nullptr, false, "", PassOptions{true});
+  ASSERT_EQ(full.kind, ResultKind::nonrigid) << full.fallback_reason;
+  ASSERT_EQ(light.kind, ResultKind::nonrigid) << light.fallback_reason;
+  const auto& a = full.pullback_field_mm.vectors;
+  const auto& b = light.pullback_field_mm.vectors;
+  ASSERT_EQ(a.size(), b.size());
+  EXPECT_EQ(std::memcmp(a.data(), b.data(), a.size() * sizeof(a[0])), 0) << "not the same field";
+  EXPECT_EQ(light.warped_labels.voxels, full.warped_labels.voxels);
+  EXPECT_FALSE(full.warped_t1.voxels.empty());
+  EXPECT_TRUE(light.warped_t1.voxels.empty()) << "no warped T1 for a prior";
+  EXPECT_EQ(full.models.size(), warm->models.size());
+  EXPECT_TRUE(light.models.empty()) << "no models for a prior";
+  EXPECT_FALSE(full.metrics.contains("pass"));
+  EXPECT_TRUE(light.metrics.contains("pass"));
+
+  // With the shortcuts: the refinement skipped and said so, the membrane
+  // stopped early at each stiffness level.
+  p.auto_segmentation.passes.prior_refine = false;
+  p.auto_segmentation.passes.prior_surface_max_iterations = 1;
+  const ScanResult shortcut = run_intraop(*warm, scan, p, nullptr, false, "", PassOptions{true});
+  ASSERT_EQ(shortcut.kind, ResultKind::nonrigid) << shortcut.fallback_reason;
+  EXPECT_EQ(shortcut.metrics["refine"]["applied"], false);
+  EXPECT_EQ(full.metrics["refine"]["applied"], true);
+  const int levels = p.outer_surface.stiffness_levels;
+  // One iteration per level; a full match needs convergence_iterations (2)
+  // quiet ones at each level at least.
+  EXPECT_EQ(shortcut.metrics["surfaces"]["outer"]["iterations"].get<int>(), levels);
+  EXPECT_GE(full.metrics["surfaces"]["outer"]["iterations"].get<int>(), 2 * levels);
+  EXPECT_FALSE(shortcut.warped_labels.voxels.empty());
+}
+
+TEST_F(ImageOnlyPasses, TheAnswerOfAnImageOnlyScanIsAFullPassWarmStartedFromTheLightOne) {
+  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
+  session.load_preop(*preop_, nullptr);
+  const Eigen::Vector3d shift(3.0, -2.0, 2.0);
+  ScanInput scan;
+  scan.image = test::scanner_image(*moved_scan(*preop_, shift, 0.0).t1);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
+  const auto& rounds = r.metrics["segmentation"]["rounds"];
+  ASSERT_EQ(rounds.size(), 2u) << rounds.dump();
+  for (const auto& round : rounds) EXPECT_FALSE(round.contains("kept")) << round.dump();
+  EXPECT_FALSE(r.metrics.contains("pass")) << "the answer is not a prior-only pass";
+  EXPECT_FALSE(r.warped_t1.voxels.empty());
+  EXPECT_FALSE(r.models.empty());
+  EXPECT_EQ(r.metrics["affine"]["warm_start"], true);
+  const auto& t = r.timings["intraop"];
+  EXPECT_GT(t["earlier_passes"].get<double>(), 0.0);
+  EXPECT_GE(t["total"].get<double>(), t["segment"].get<double>() + t["earlier_passes"].get<double>());
+  // The recovered translation, from the image alone, as with one full pass.
+  const IntraopInput truth = moved_scan(*preop_, shift, 0.0);
+  double sum = 0;
+  std::size_t n = 0;
+  for (std::size_t v = 0; v < truth.labels.voxels.size(); ++v)
+    if (truth.labels.voxels[v] != 0) sum += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm(), ++n;
+  EXPECT_LT(sum / static_cast<double>(n), 0.5);
+
+  // Without a re-match the only pass is the answer: full, from the full search.
+  PipelineParameters one_round = test::coarse_parameters();
+  one_round.auto_segmentation.rematch_rounds = 0;
+  EngineSession single(MPI_COMM_WORLD, one_round);
+  single.load_preop(*preop_, nullptr, session.mesh());
+  const ScanResult s = single.register_scan(scan, nullptr);
+  ASSERT_EQ(s.kind, ResultKind::nonrigid) << s.fallback_reason;
+  EXPECT_FALSE(s.metrics.contains("pass"));
+  EXPECT_EQ(s.metrics["affine"]["warm_start"], false);
+  EXPECT_FALSE(s.warped_t1.voxels.empty());
+}
+
+}  // namespace
