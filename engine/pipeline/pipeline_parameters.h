@@ -51,10 +51,13 @@ struct QualityGates {
 // again in full.
 struct PassShortcuts {
   // The prior-only pass: the T1 refinement of the interior (about 0.5 mm,
-  // capped at 3), which the re-match's image decides again.
-  bool prior_refine = false;
+  // capped at 3). On by default: without it (and with 10 membrane iterations
+  // per level) the re-match's brain Dice fell by 0.003-0.005 and the TRE rose
+  // by 0.03-0.05 mm on the robustness cases measured (docs/PERFORMANCE.md
+  // 12.7): the prior is worth its refinement.
+  bool prior_refine = true;
   // The prior-only pass: membrane iterations per stiffness level of the
-  // outer and ventricle matches (0 = as the answer's).
+  // outer and ventricle matches (0 = as the answer's; see prior_refine).
   int prior_surface_max_iterations = 0;
   // A re-match's pass: the affine starts from the previous pass's, whose
   // segmentation differs by about a voxel at the outline (finest level only).
