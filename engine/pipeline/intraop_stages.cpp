@@ -291,6 +291,27 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   return result;
 }
 
+void complete_prior_pass(const WarmState& warm, ScanResult& result, const ProgressFn& progress) {
+  nlohmann::json& timings = result.timings["intraop"];
+  Stopwatch watch;
+  if (progress) progress(std::string(stages::kWarp), 0.0, 0.0);
+  result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
+  const double warp_s = watch.lap();
+  if (progress) progress(std::string(stages::kWarp), 1.0, warp_s);
+  if (progress) progress(std::string(stages::kModels), 0.0, 0.0);
+  const MeshDeformation deformation{result.intraop_from_preop, result.nonrigid_node_mm};
+  for (const auto& [name, model] : warm.models) result.models[name] = carry(model.surface, model.binding, deformation);
+  const double models_s = watch.lap();
+  if (progress) progress(std::string(stages::kModels), 1.0, models_s);
+  const auto add = [&](std::string_view key, double s) {
+    timings[std::string(key)] = timings.value(std::string(key), 0.0) + s;
+  };
+  add(stages::kWarp, warp_s);
+  add(stages::kModels, models_s);
+  add(stages::kTotal, warp_s + models_s);
+  result.metrics.erase("pass");
+}
+
 // Dice and surface distances of the warped preop labels against the intraop
 // labels, after the non-rigid step and through the affine alone, and the
 // affine-only warped T1 the report compares against. The three pieces are

@@ -207,9 +207,12 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   // and a third thread slowed them by more than the check costs.
   // A pass a re-match follows only makes the re-match's prior: it runs light
   // (PassOptions::prior_only). A light pass the stages refuse is run again in
-  // full, so that the shortcuts never decide a refusal (nor its reason); a
-  // light pass that ends up the answer (its re-match refused) is completed.
+  // full when a shortcut changed its field, so that the shortcuts never
+  // decide a refusal (nor its reason); a light pass that ends up the answer
+  // (refused, or its re-match refused) is completed: by the outputs it
+  // skipped when its field is a full pass's, else by the full pass.
   // A re-match's pass starts its affine from the pass before it (item 9).
+  const bool light_field_is_full = ap.passes.prior_refine && ap.passes.prior_surface_max_iterations == 0;
   auto run_pass = [&](const LabelImage& labels, bool rematch_follows, bool& prior_only,
                       const Eigen::Matrix4d* affine_start = nullptr) {
     const IntraopInput input{labels, image, read_seconds};
@@ -219,6 +222,10 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
       ScanResult light = run_intraop(warm, input, params, progress, false, "", PassOptions{true, affine_start});
       prior_only = light.kind == ResultKind::nonrigid;
       if (prior_only) return light;
+      if (light_field_is_full) {
+        complete_prior_pass(warm, light, progress);
+        return light;
+      }
     }
     return run_intraop(warm, input, params, progress, false, "", PassOptions{false, affine_start});
   };
@@ -289,7 +296,9 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     result_prior_only = pass_prior_only;
     rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
   }
-  if (result_prior_only) {  // the answer: the full pass on the segmentation that stands
+  if (result_prior_only && light_field_is_full) {  // the answer: the outputs the light pass skipped
+    complete_prior_pass(warm, result, progress);
+  } else if (result_prior_only) {  // the answer: the full pass on the segmentation that stands
     const Eigen::Matrix4d same_labels_affine = result.intraop_from_preop;
     bool unused = false;
     result = run_pass(seg.labels, false, unused, &same_labels_affine);

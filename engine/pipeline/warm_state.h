@@ -87,6 +87,11 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
                        const std::string& forced_fallback = "", const PassOptions& pass = {});
 void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                          ScanResult& result, const ProgressFn& progress);
+// A prior-only pass (PassOptions) made the answer: adds what it skipped, the
+// warped T1 and the models, from its own field and nodal displacements. Only
+// for a pass whose field is a full pass's (no field-changing shortcut of
+// AutoSegmentationParameters::passes); otherwise run the full pass.
+void complete_prior_pass(const WarmState& warm, ScanResult& result, const ProgressFn& progress);
 
 // Checks shared by both phases (InputError with a clear message).
 void validate_preop_input(const PreopInput& input, const LabelTable& table);

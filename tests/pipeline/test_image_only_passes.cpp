@@ -80,6 +80,14 @@ TEST_F(ImageOnlyPasses, APriorOnlyPassCarriesTheSameLabelsWithoutTheAnswersOutpu
   EXPECT_TRUE(light.models.empty()) << "no models for a prior";
   EXPECT_FALSE(full.metrics.contains("pass"));
   EXPECT_TRUE(light.metrics.contains("pass"));
+  // Made the answer, the light pass gets what it skipped: the full pass's outputs.
+  ScanResult completed = light;
+  complete_prior_pass(*warm, completed, nullptr);
+  EXPECT_FALSE(completed.metrics.contains("pass"));
+  EXPECT_EQ(completed.warped_t1.voxels, full.warped_t1.voxels);
+  ASSERT_EQ(completed.models.size(), full.models.size());
+  for (const auto& [name, model] : full.models)
+    EXPECT_EQ(completed.models.at(name).vertices_mm, model.vertices_mm) << name;
 
   // With the shortcuts: the refinement skipped and said so, the membrane
   // stopped early at each stiffness level.
