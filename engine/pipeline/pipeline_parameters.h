@@ -71,6 +71,12 @@ struct AutoSegmentationParameters {
   double ventricle_prior_width_mm = 1.5;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
+  // A re-match classifies the same image as the round before it: the same
+  // scanner, coil and tissues, so that round's fitted classes and bias are
+  // reused and only the prior (narrower, from the non-rigid estimate) is new
+  // (docs/DESIGN.md "Automatic intraop segmentation", item 9). false: the
+  // EM is fitted again in every round.
+  bool rematch_reuses_fit = true;
   // Gates. Brain volume (the outline, after the affine's volume change is
   // divided out) against the preop's: brain shift changes it by a few per
   // cent (fluid drained, oedema), a resection by the resectable structures'

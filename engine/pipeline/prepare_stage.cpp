@@ -181,7 +181,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
-  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true) {
+  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true,
+                     const segmentation::IntraopSegmentation* fitted = nullptr) {
     segmentation::SegmentationParameters sp = ap.classifier;
     if (!open_fluid_rule) sp.max_sulcus_half_width_mm = 0;
     // The classified box ends where the prior meets its floor (docs/DESIGN.md
@@ -192,7 +193,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     sp.ventricle_shift_mm = ventricle_shift_mm;
     if (ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
+    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp, fitted);
   };
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
@@ -244,8 +245,10 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
     // warped labels), a narrower prior, a smaller box. The gap a sinking left
     // was found against the head's placement, as the gates measure: the
-    // first round's finding stands for the next.
-    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule);
+    // first round's finding stands for the next. The same image: the classes
+    // and bias fitted before are reused (rematch_reuses_fit).
+    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule,
+                        ap.rematch_reuses_fit ? &seg : nullptr);
     next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates =
         check_segmentation(next.labels, next.confidence, carried, table, ap, next.open_fluid_ml);
