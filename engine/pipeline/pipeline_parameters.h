@@ -71,12 +71,14 @@ struct AutoSegmentationParameters {
   double ventricle_prior_width_mm = 1.5;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
-  // A re-match classifies the same image as the round before it: the same
-  // scanner, coil and tissues, so that round's fitted classes and bias are
-  // reused and only the prior (narrower, from the non-rigid estimate) is new
-  // (docs/DESIGN.md "Automatic intraop segmentation", item 9). false: the
-  // EM is fitted again in every round.
-  bool rematch_reuses_fit = true;
+  // true: a re-match reuses the round before's fitted classes and bias (the
+  // same image: scanner, coil, tissues) and only the prior is new, no EM fit
+  // (about 0.3 s of CPU). Off: measured less accurate (docs/PERFORMANCE.md
+  // 12.8: brain Dice lower on 5 of the 6 robustness cases run, TRE p95 2.1
+  // and 2.0 mm instead of 0.85 and 1.02 on two): the first round's classes
+  // were fitted under the wide prior of the head placement, over fluid and
+  // dura that the re-match's narrow prior no longer gives to the brain.
+  bool rematch_reuses_fit = false;
   // Gates. Brain volume (the outline, after the affine's volume change is
   // divided out) against the preop's: brain shift changes it by a few per
   // cent (fluid drained, oedema), a resection by the resectable structures'

@@ -245,8 +245,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
     // warped labels), a narrower prior, a smaller box. The gap a sinking left
     // was found against the head's placement, as the gates measure: the
-    // first round's finding stands for the next. The same image: the classes
-    // and bias fitted before are reused (rematch_reuses_fit).
+    // first round's finding stands for the next. rematch_reuses_fit: the
+    // classes and bias fitted before are reused (off by default).
     auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule,
                         ap.rematch_reuses_fit ? &seg : nullptr);
     next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
