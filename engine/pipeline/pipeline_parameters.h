@@ -94,6 +94,14 @@ struct AutoSegmentationParameters {
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
   PassShortcuts passes;
+  // true: a re-match reuses the round before's fitted classes and bias (the
+  // same image: scanner, coil, tissues) and only the prior is new, no EM fit
+  // (about 0.3 s of CPU). Off: measured less accurate (docs/PERFORMANCE.md
+  // 12.8: brain Dice lower on 5 of the 6 robustness cases run, TRE p95 2.1
+  // and 2.0 mm instead of 0.85 and 1.02 on two): the first round's classes
+  // were fitted under the wide prior of the head placement, over fluid and
+  // dura that the re-match's narrow prior no longer gives to the brain.
+  bool rematch_reuses_fit = false;
   // Gates. Brain volume (the outline, after the affine's volume change is
   // divided out) against the preop's: brain shift changes it by a few per
   // cent (fluid drained, oedema), a resection by the resectable structures'

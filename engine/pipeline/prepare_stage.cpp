@@ -109,19 +109,29 @@ Mask inner_surface_band(const Mask& outline) {
   return band;
 }
 
-}  // namespace
+// What the gates measure of the preop carried by the head placement: the
+// same for every round of a scan, so measured once.
+struct CarriedPreopVolumes {
+  double brain_ml = 0, resectable_ml = 0, ventricles_ml = 0;
+};
 
-SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
-                                     const LabelImage& carried_preop, const LabelTable& table,
-                                     const AutoSegmentationParameters& params, double open_fluid_ml) {
-  SegmentationGates g;
-  const Mask outline = outline_mask(segmentation);
-  const Mask preop_outline = outline_mask(carried_preop);
+CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table) {
   // The carried preop is already on the intraop grid through the placement,
   // so its volume there includes the affine's scale and the field of view.
-  double resectable_ml = 0;
-  for (auto v : table.resectable_labels()) resectable_ml += volume_ml(mask_of_labels(carried_preop, {v}));
-  const double seg_ml = volume_ml(outline), preop_ml = volume_ml(preop_outline);
+  CarriedPreopVolumes c;
+  c.brain_ml = volume_ml(outline_mask(carried_preop));
+  for (auto v : table.resectable_labels()) c.resectable_ml += volume_ml(mask_of_labels(carried_preop, {v}));
+  c.ventricles_ml = volume_ml(mask_of_labels(carried_preop, ventricle_labels(table)));
+  return c;
+}
+
+SegmentationGates check_against(const LabelImage& segmentation, const ImageF& confidence,
+                                const CarriedPreopVolumes& preop, const LabelTable& table,
+                                const AutoSegmentationParameters& params, double open_fluid_ml) {
+  SegmentationGates g;
+  const Mask outline = outline_mask(segmentation);
+  const double resectable_ml = preop.resectable_ml;
+  const double seg_ml = volume_ml(outline), preop_ml = preop.brain_ml;
   const double change = preop_ml > 0 ? seg_ml / preop_ml - 1 : -1;
   // Smaller by what may be resected, and by the fluid found in the gap a
   // sinking left (fluid by its intensity: a lost lobe is tissue).
@@ -137,7 +147,7 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
 
   const auto vent = ventricle_labels(table);
   const double seg_vent = volume_ml(mask_of_labels(segmentation, vent));
-  const double preop_vent = volume_ml(mask_of_labels(carried_preop, vent));
+  const double preop_vent = preop.ventricles_ml;
   const double fraction = preop_vent > 0 ? seg_vent / preop_vent : 1.0;
   g.metrics["ventricles"] = {{"segmented_ml", seg_vent}, {"preop_ml", preop_vent}, {"fraction", fraction},
                              {"min_fraction", params.min_ventricle_fraction}};
@@ -169,6 +179,15 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
   return g;
 }
 
+}  // namespace
+
+SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
+                                     const LabelImage& carried_preop, const LabelTable& table,
+                                     const AutoSegmentationParameters& params, double open_fluid_ml) {
+  return check_against(segmentation, confidence, carried_preop_volumes(carried_preop, table), table, params,
+                       open_fluid_ml);
+}
+
 ScanResult register_image_only(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
                                const ProgressFn& progress, bool with_quality_metrics) {
   const LabelTable& table = params.label_table;
@@ -182,7 +201,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
-  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true) {
+  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true,
+                     const segmentation::IntraopSegmentation* fitted = nullptr) {
     segmentation::SegmentationParameters sp = ap.classifier;
     if (!open_fluid_rule) sp.max_sulcus_half_width_mm = 0;
     // The classified box ends where the prior meets its floor (docs/DESIGN.md
@@ -193,12 +213,13 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     sp.ventricle_shift_mm = ventricle_shift_mm;
     if (ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp);
+    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp, fitted);
   };
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
   if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
-  SegmentationGates gates = check_segmentation(seg.labels, seg.confidence, carried, table, ap, seg.open_fluid_ml);
+  const CarriedPreopVolumes carried_volumes = carried_preop_volumes(carried, table);
+  SegmentationGates gates = check_against(seg.labels, seg.confidence, carried_volumes, table, ap, seg.open_fluid_ml);
   segment_seconds += watch.lap();
   if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
 
@@ -245,7 +266,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   if (result.kind != ResultKind::nonrigid && gates.failure.empty() && seg.open_fluid_ml > 0) {
     watch.lap();
     auto plain = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, false);
-    SegmentationGates plain_gates = check_segmentation(plain.labels, plain.confidence, carried, table, ap, 0.0);
+    SegmentationGates plain_gates = check_against(plain.labels, plain.confidence, carried_volumes, table, ap, 0.0);
     segment_seconds += watch.lap();
     rounds.push_back({{"prior_width_mm", plain.report["prior_width_mm"]}, {"gates", plain_gates.metrics},
                       {"open_fluid_rule", false}, {"refusal", plain.refusal}});
@@ -271,12 +292,14 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     // Re-match: the preop carried by the non-rigid estimate (the pass's own
     // warped labels), a narrower prior, a smaller box. The gap a sinking left
     // was found against the head's placement, as the gates measure: the
-    // first round's finding stands for the next.
+    // first round's finding stands for the next. rematch_reuses_fit: the
+    // classes and bias fitted before are reused (off by default).
     watch.lap();
-    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule);
+    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule,
+                        ap.rematch_reuses_fit ? &seg : nullptr);
     next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates =
-        check_segmentation(next.labels, next.confidence, carried, table, ap, next.open_fluid_ml);
+        check_against(next.labels, next.confidence, carried_volumes, table, ap, next.open_fluid_ml);
     segment_seconds += watch.lap();
     if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the previous pass stands
       rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},

@@ -39,20 +39,23 @@ double LogBiasField::log_bias(int i, int j, int k) const {
   return s;
 }
 
-std::vector<float> LogBiasField::log_bias_image() const {
-  const auto& n = grid_.dims;
+std::vector<float> LogBiasField::log_bias_image() const { return log_bias_box({0, 0, 0}, grid_.dims); }
+
+std::vector<float> LogBiasField::log_bias_box(const std::array<int, 3>& origin, const std::array<int, 3>& n) const {
   // Separable: per-axis power tables, then the sum per voxel.
   std::array<std::vector<double>, 3> pw;
   for (int a = 0; a < 3; ++a) {
-    pw[a].resize(static_cast<std::size_t>(n[a]) * (degree_ + 1));
+    pw[a].resize(static_cast<std::size_t>(std::max(n[a], 0)) * (degree_ + 1));
     for (int v = 0; v < n[a]; ++v) {
       double p = 1;
-      for (int e = 0; e <= degree_; ++e, p *= scaled(a, v)) pw[a][static_cast<std::size_t>(v) * (degree_ + 1) + e] = p;
+      for (int e = 0; e <= degree_; ++e, p *= scaled(a, origin[a] + v))
+        pw[a][static_cast<std::size_t>(v) * (degree_ + 1) + e] = p;
     }
   }
-  std::vector<float> out(grid_.voxel_count());
+  std::vector<float> out(static_cast<std::size_t>(std::max(n[0], 0)) * std::max(n[1], 0) * std::max(n[2], 0));
   const auto at = [&](int a, int v, int e) { return pw[a][static_cast<std::size_t>(v) * (degree_ + 1) + e]; };
   std::vector<double> yz(powers_.size());
+  std::size_t index = 0;
   for (int k = 0; k < n[2]; ++k)
     for (int j = 0; j < n[1]; ++j) {
       for (std::size_t t = 0; t < powers_.size(); ++t)
@@ -60,7 +63,7 @@ std::vector<float> LogBiasField::log_bias_image() const {
       for (int i = 0; i < n[0]; ++i) {
         double s = 0;
         for (std::size_t t = 0; t < powers_.size(); ++t) s += yz[t] * at(0, i, powers_[t][0]);
-        out[grid_.index(i, j, k)] = static_cast<float>(s);
+        out[index++] = static_cast<float>(s);
       }
     }
   return out;

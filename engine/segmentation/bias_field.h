@@ -7,6 +7,7 @@
 // coil-scale oscillations a head coil or a surface coil puts over a brain
 // (wavelength of tens of cm at 1.5 T and below) and cannot follow anatomy.
 #include <Eigen/Dense>
+#include <array>
 #include <cstddef>
 #include <vector>
 
@@ -23,6 +24,11 @@ class LogBiasField {
   double log_bias(int i, int j, int k) const;
   // log b on every voxel of the grid (grid order).
   std::vector<float> log_bias_image() const;
+  // log b on a box of voxels given in this field's voxel indices (origin may
+  // be negative, the box may reach past the grid: the polynomial extends
+  // smoothly), box order. A later round that classifies another box of the
+  // same image reuses the fitted field there.
+  std::vector<float> log_bias_box(const std::array<int, 3>& origin, const std::array<int, 3>& dims) const;
   // Weighted least squares of the coefficients on (voxel, log-ratio, weight)
   // samples; the weighted mean of log b over `weights` is then removed, so the
   // bias does not trade its level for the tissue means. False (coefficients

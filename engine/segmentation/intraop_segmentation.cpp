@@ -236,6 +236,25 @@ void clean_brain(Mask& brain, const std::array<std::vector<float>, kTissues>& q,
   for (std::size_t v = 0; v < brain.voxels.size(); ++v) ventricle.voxels[v] = ventricle.voxels[v] && brain.voxels[v];
 }
 
+// An earlier round's log bias on this round's box: its fitted polynomial
+// where it has one (it extends smoothly beyond the box it was fitted in),
+// else the log of its bias image.
+std::vector<float> earlier_log_bias(const IntraopSegmentation& fitted, const VoxelBox& box, const Grid3& g) {
+  if (fitted.bias_field) {
+    std::array<int, 3> origin{};
+    for (int a = 0; a < 3; ++a) origin[a] = box.lo[a] - fitted.bias_origin[a];
+    return fitted.bias_field->log_bias_box(origin, g.dims);
+  }
+  if (!fitted.bias.grid.same_geometry(fitted.labels.grid) || fitted.bias.voxels.empty())
+    throw InputError("segmentation: the earlier round has no bias to reuse");
+  std::vector<float> out(g.voxel_count());
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        out[g.index(i, j, k)] = std::log(fitted.bias.at(i + box.lo[0], j + box.lo[1], k + box.lo[2]));
+  return out;
+}
+
 nlohmann::json describe(const EmResult& em) {
   nlohmann::json classes = nlohmann::json::array();
   for (const auto& g : em.classes)
@@ -248,7 +267,7 @@ nlohmann::json describe(const EmResult& em) {
 
 IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carried_labels,
                                     std::uint16_t brain_label, const std::vector<std::uint16_t>& ventricle_labels,
-                                    const SegmentationParameters& params) {
+                                    const SegmentationParameters& params, const IntraopSegmentation* fitted) {
   if (!image.grid.same_geometry(carried_labels.grid))
     throw InputError("segmentation: the image and the carried labels are on different grids");
   const Mask outline = outline_mask(carried_labels);
@@ -267,7 +286,9 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   const TissuePrior prior = tissue_prior(outline_box, ventricle_box, widths, params.prior_floor);
   EmParameters em_params = params.em;
   em_params.fixed_ventricle_class = params.ventricle_shift_mm > 0;
-  const EmResult em = fit_tissue_mixture(image_box, prior, em_params);
+  const EmResult em = fitted ? classify_with_classes(image_box, prior, fitted->classes,
+                                                     earlier_log_bias(*fitted, box, g), em_params)
+                             : fit_tissue_mixture(image_box, prior, em_params);
 
   Mask brain(g, 0), ventricle(g, 0);
   for (std::size_t v = 0; v < g.voxel_count(); ++v) {
@@ -322,7 +343,15 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
       }
   result.open_fluid_ml = open_fluid_ml;
   result.classes = em.classes;
+  if (fitted) {
+    result.bias_field = fitted->bias_field;
+    result.bias_origin = fitted->bias_origin;
+  } else {
+    result.bias_field = em.bias_field;
+    result.bias_origin = box.lo;
+  }
   result.report = describe(em);
+  result.report["classes_from_earlier_round"] = fitted != nullptr;
   const double class_contrast = fluid_contrast_sd(em.classes);
   result.report["fluid_contrast_sd"] = std::isfinite(class_contrast) ? class_contrast : -1.0;
   const double wall_contrast = ventricle_wall_contrast_sd(image_box, em.bias, ventricle, brain);

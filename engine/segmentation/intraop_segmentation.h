@@ -6,7 +6,9 @@
 // (everything inside the brain but the ventricles), the ventricle label for
 // the lateral ventricles, 0 outside the brain and in a resection cavity; and
 // per voxel the posterior of the tissue chosen (the confidence).
+#include <array>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -85,7 +87,11 @@ struct IntraopSegmentation {
   LabelImage labels;   // image grid, table values
   ImageF confidence;   // posterior of the chosen tissue, [0, 1]
   ImageF bias;         // multiplicative bias fitted (1 outside the classified box)
-  std::vector<GaussianClass> classes;
+  std::vector<GaussianClass> classes;  // image units
+  // The fitted log bias on the grid of the box it was fitted in, and that
+  // box's first voxel on the image grid: a later round reuses it anywhere.
+  std::optional<LogBiasField> bias_field;
+  std::array<int, 3> bias_origin{0, 0, 0};
   std::string refusal;  // why the image cannot be segmented; empty when it can
   nlohmann::json report;  // classes, iterations, volumes, contrast
   // Fluid moved out of the brain as thicker than a sulcus and open to the
@@ -96,8 +102,10 @@ struct IntraopSegmentation {
 // carried_labels: the preop labels on the image's grid. brain_label is the
 // parenchyma value written; ventricle_labels the cavity values (the first is
 // written). InputError on mismatched grids or an empty carried brain.
+// fitted: an earlier round's segmentation of the same image; its classes and
+// bias are reused (classify_with_classes, no EM fit) under the new prior.
 IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carried_labels,
                                     std::uint16_t brain_label, const std::vector<std::uint16_t>& ventricle_labels,
-                                    const SegmentationParameters& params);
+                                    const SegmentationParameters& params, const IntraopSegmentation* fitted = nullptr);
 
 }  // namespace brainshift::segmentation

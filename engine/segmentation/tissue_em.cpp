@@ -285,7 +285,57 @@ void refresh_log_bias(const Samples& s, const LogBiasField& bias, std::vector<do
   });
 }
 
+// Every voxel: tissue evidence prior_t * sum_c pi_c N(x) (x the intensity
+// over `scale` and the bias; classes in those units), then the Potts
+// smoothing: out.posterior and out.bias.
+void classify_voxels(const ImageF& image, const TissuePrior& prior, double scale,
+                     const std::vector<GaussianClass>& classes, const std::vector<float>& log_bias,
+                     const EmParameters& params, EmResult& out) {
+  const std::size_t V = image.grid.voxel_count();
+  std::array<std::vector<float>, kTissues> evidence;
+  for (auto& e : evidence) e.resize(V);
+  out.bias.resize(V);
+  // In the linear domain, scaled by the largest class term: one exp per
+  // class and voxel, no logarithm (a voxel far from every class still has
+  // its nearest class's term at 1, so the sum never vanishes).
+  const ClassTerms terms = class_terms(classes);
+  // Each voxel on its own: the two halves side by side, the same result.
+  parallel_halves(V, 1 << 16, [&](std::size_t begin, std::size_t end) {
+    std::vector<double> l(classes.size());
+    for (std::size_t v = begin; v < end; ++v) {
+      out.bias[v] = std::exp(log_bias[v]);
+      const double x = image.voxels[v] / scale / out.bias[v];
+      double m = -std::numeric_limits<double>::infinity();
+      for (std::size_t c = 0; c < l.size(); ++c) {
+        const double z = (x - terms.mean[c]) * terms.inv_sd[c];
+        l[c] = terms.log_scale[c] - 0.5 * z * z;
+        m = std::max(m, l[c]);
+      }
+      std::array<double, kTissues> e{};
+      for (std::size_t c = 0; c < l.size(); ++c) e[terms.tissue[c]] += std::exp(l[c] - m);
+      double top = 0;
+      for (int t = 0; t < kTissues; ++t) top = std::max(top, e[t] *= std::max<double>(prior.p[t][v], 1e-30));
+      for (int t = 0; t < kTissues; ++t) evidence[t][v] = static_cast<float>(e[t] / top);
+    }
+  });
+  out.posterior = potts_mean_field(evidence, image.grid, params.mrf_beta, params.mrf_sweeps);
+}
+
 }  // namespace
+
+EmResult classify_with_classes(const ImageF& image, const TissuePrior& prior, const std::vector<GaussianClass>& classes,
+                               const std::vector<float>& log_bias, const EmParameters& params) {
+  if (!image.grid.same_geometry(prior.grid)) throw InputError("segmentation: image and prior on different grids");
+  if (log_bias.size() != image.grid.voxel_count()) throw InputError("segmentation: the bias does not fit the image");
+  if (classes.empty()) throw InputError("segmentation: no classes to classify with");
+  for (const auto& g : classes)
+    if (!(g.sd > 0) || !(g.weight > 0)) throw InputError("segmentation: a class without spread or weight");
+  EmResult out;
+  classify_voxels(image, prior, 1.0, classes, log_bias, params, out);
+  out.classes = classes;
+  out.converged = true;
+  return out;
+}
 
 EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const EmParameters& params) {
   if (!image.grid.same_geometry(prior.grid)) throw InputError("segmentation: image and prior on different grids");
@@ -354,36 +404,8 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     }
   }
 
-  // Every voxel: tissue evidence prior_t * sum_c pi_c N(x), scaled per voxel.
-  const std::size_t V = image.grid.voxel_count();
-  const std::vector<float> log_bias = bias.log_bias_image();
-  std::array<std::vector<float>, kTissues> evidence;
-  for (auto& e : evidence) e.resize(V);
-  out.bias.resize(V);
-  // In the linear domain, scaled by the largest class term: one exp per
-  // class and voxel, no logarithm (a voxel far from every class still has
-  // its nearest class's term at 1, so the sum never vanishes).
-  const ClassTerms terms = class_terms(classes);
-  // Each voxel on its own: the two halves side by side, the same result.
-  parallel_halves(V, 1 << 16, [&](std::size_t begin, std::size_t end) {
-  std::vector<double> l(classes.size());
-  for (std::size_t v = begin; v < end; ++v) {
-    out.bias[v] = std::exp(log_bias[v]);
-    const double x = image.voxels[v] / scale / out.bias[v];
-    double m = -std::numeric_limits<double>::infinity();
-    for (std::size_t c = 0; c < l.size(); ++c) {
-      const double z = (x - terms.mean[c]) * terms.inv_sd[c];
-      l[c] = terms.log_scale[c] - 0.5 * z * z;
-      m = std::max(m, l[c]);
-    }
-    std::array<double, kTissues> e{};
-    for (std::size_t c = 0; c < l.size(); ++c) e[terms.tissue[c]] += std::exp(l[c] - m);
-    double top = 0;
-    for (int t = 0; t < kTissues; ++t) top = std::max(top, e[t] *= std::max<double>(prior.p[t][v], 1e-30));
-    for (int t = 0; t < kTissues; ++t) evidence[t][v] = static_cast<float>(e[t] / top);
-  }
-  });
-  out.posterior = potts_mean_field(evidence, image.grid, params.mrf_beta, params.mrf_sweeps);
+  classify_voxels(image, prior, scale, classes, bias.log_bias_image(), params, out);
+  out.bias_field = bias;
   for (auto& g : classes) {
     g.mean *= scale;
     g.sd *= scale;

@@ -18,9 +18,11 @@
 // is then computed on every voxel. Every loop is bounded.
 #include <array>
 #include <cstddef>
+#include <optional>
 #include <vector>
 
 #include "core/image.h"
+#include "segmentation/bias_field.h"
 #include "segmentation/tissue_prior.h"
 
 namespace brainshift::segmentation {
@@ -55,6 +57,9 @@ struct EmResult {
   std::vector<GaussianClass> classes;
   std::array<std::vector<float>, kTissues> posterior;  // per voxel, after the smoothing; sum to 1
   std::vector<float> bias;  // multiplicative, per voxel (mean log 1 over the brain)
+  // The fitted log bias itself, on the fitted image's grid (absent when the
+  // classes were given, classify_with_classes).
+  std::optional<LogBiasField> bias_field;
   int iterations = 0;
   bool converged = false;
   double mean_log_likelihood = 0;
@@ -63,5 +68,14 @@ struct EmResult {
 // image and prior on the same grid. InputError when the prior has no brain or
 // the image is constant.
 EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const EmParameters& params);
+
+// The posterior (evidence and Potts smoothing, as after a fit) of classes
+// already fitted to the same image (image units: fit_tissue_mixture's
+// classes) under another prior, with log_bias the log of the fitted bias per
+// voxel of image's grid: no fit. A re-match round (the prior narrowed once
+// the non-rigid estimate carries the labels) sees the same scanner, coil and
+// tissues as the round that fitted them. iterations 0.
+EmResult classify_with_classes(const ImageF& image, const TissuePrior& prior, const std::vector<GaussianClass>& classes,
+                               const std::vector<float>& log_bias, const EmParameters& params);
 
 }  // namespace brainshift::segmentation

@@ -236,6 +236,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.prior_inward_width_affine_mm, code.prior_inward_width_affine_mm);
   EXPECT_DOUBLE_EQ(file.ventricle_prior_width_mm, code.ventricle_prior_width_mm);
   EXPECT_EQ(file.rematch_rounds, code.rematch_rounds);
+  EXPECT_EQ(file.rematch_reuses_fit, code.rematch_reuses_fit);
   EXPECT_DOUBLE_EQ(file.max_brain_volume_change, code.max_brain_volume_change);
   EXPECT_DOUBLE_EQ(file.min_ventricle_fraction, code.min_ventricle_fraction);
   EXPECT_DOUBLE_EQ(file.min_surface_confidence, code.min_surface_confidence);

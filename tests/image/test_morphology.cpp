@@ -165,6 +165,55 @@ TEST(Morphology, FillHolesAgreesWithTheDefinitionOnRandomMasks) {
   EXPECT_EQ(count_nonzero(fill_holes(Mask(grid({4, 5, 6}), 0))), 0u);
 }
 
+// Dilation and erosion by the definition: a voxel is within r of the mask
+// (of the background, for the erosion) when some such voxel of the grid lies
+// within r of it; off the grid is neither.
+Mask by_definition(const Mask& m, double r, bool dilation) {
+  const auto& d = m.grid.dims;
+  const Eigen::Vector3d sp = m.grid.spacing_mm();
+  std::vector<std::array<int, 3>> features;
+  for (int k = 0; k < d[2]; ++k)
+    for (int j = 0; j < d[1]; ++j)
+      for (int i = 0; i < d[0]; ++i)
+        if ((m.at(i, j, k) != 0) == dilation) features.push_back({i, j, k});
+  Mask out(m.grid, 0);
+  for (int k = 0; k < d[2]; ++k)
+    for (int j = 0; j < d[1]; ++j)
+      for (int i = 0; i < d[0]; ++i) {
+        bool near = false;
+        for (const auto& f : features)
+          if (Eigen::Vector3d((f[0] - i) * sp[0], (f[1] - j) * sp[1], (f[2] - k) * sp[2]).norm() <= r + 1e-9) {
+            near = true;
+            break;
+          }
+        out.at(i, j, k) = dilation ? near : (m.at(i, j, k) && !near);
+      }
+  return out;
+}
+
+// Masks that fill a small part of their grid (dilate and erode work on the
+// mask's box grown by the radius), at its edge and away from it, and masks
+// that fill the grid.
+TEST(Morphology, DilateAndErodeAgreeWithTheDefinitionOnMasksInAPartOfTheGrid) {
+  std::uint32_t state = 777;
+  auto next = [&state] { return state = state * 1664525u + 1013904223u; };
+  const Eigen::Vector3d sp(0.9, 1.1, 2.5);
+  struct Part { std::array<int, 3> lo, hi; };
+  for (const Part part : {Part{{8, 6, 3}, {13, 10, 6}}, Part{{0, 2, 0}, {5, 7, 2}}, Part{{0, 0, 0}, {19, 15, 9}}})
+    for (const unsigned percent : {40u, 80u})
+      for (const double r : {1.0, 2.6, 4.0}) {
+        Mask m(grid({20, 16, 10}, sp), 0);
+        for (int k = part.lo[2]; k <= part.hi[2]; ++k)
+          for (int j = part.lo[1]; j <= part.hi[1]; ++j)
+            for (int i = part.lo[0]; i <= part.hi[0]; ++i) m.at(i, j, k) = (next() >> 8) % 100 < percent;
+        EXPECT_EQ(dilate(m, r).voxels, by_definition(m, r, true).voxels) << part.lo[0] << " " << percent << " " << r;
+        EXPECT_EQ(erode(m, r).voxels, by_definition(m, r, false).voxels) << part.lo[0] << " " << percent << " " << r;
+      }
+  const Mask empty(grid({6, 5, 4}), 0);
+  EXPECT_EQ(count_nonzero(dilate(empty, 2.0)), 0u);
+  EXPECT_EQ(count_nonzero(erode(empty, 2.0)), 0u);
+}
+
 TEST(Morphology, LabelsThresholdAndStats) {
   LabelImage lab(grid({5, 4, 3}, {2, 1, 1}), 0);
   lab.at(1, 1, 1) = 2;

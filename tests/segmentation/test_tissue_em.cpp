@@ -11,7 +11,9 @@
 
 #include "image/morphology.h"
 #include "segmentation/intraop_segmentation.h"
+#include "registration/boundary_samples.h"
 #include "segmentation/bias_field.h"
+#include "segmentation/tissue_em.h"
 
 using namespace brainshift;
 using namespace brainshift::segmentation;
@@ -361,4 +363,91 @@ TEST(TissuePrior, ReachIsWhereTheOutlinesPriorMeetsTheFloor) {
   }
   EXPECT_THROW(prior_reach_mm(0.0, floor), std::exception);
   EXPECT_THROW(prior_reach_mm(1.0, 0.0), std::exception);
+}
+
+// The fit's own classes and bias, given back under the same prior, give the
+// fit's posterior: classify_with_classes is the fit's last step alone.
+TEST(TissueEm, ClassifyingWithTheFittedClassesReproducesTheFitsPosterior) {
+  const Synthetic head = make_head(Intensities{}, 5.0, 0.3);
+  const LabelImage carried = misregistered(head.truth, {2, -1, 1}, 1.02);
+  const TissuePrior prior = tissue_prior(outline_mask(carried), mask_of_labels(carried, {2}), PriorWidths{}, 1e-3);
+  const EmParameters params;
+  const EmResult fit = fit_tissue_mixture(head.image, prior, params);
+  ASSERT_TRUE(fit.bias_field.has_value());
+  std::vector<float> log_bias(fit.bias.size());
+  for (std::size_t v = 0; v < log_bias.size(); ++v) log_bias[v] = std::log(fit.bias[v]);
+  const EmResult again = classify_with_classes(head.image, prior, fit.classes, log_bias, params);
+  EXPECT_EQ(again.iterations, 0);
+  float worst = 0;
+  for (int t = 0; t < kTissues; ++t)
+    for (std::size_t v = 0; v < log_bias.size(); ++v)
+      worst = std::max(worst, std::abs(again.posterior[t][v] - fit.posterior[t][v]));
+  EXPECT_LT(worst, 1e-3f);
+  EXPECT_THROW(classify_with_classes(head.image, prior, {}, log_bias, params), std::exception);
+  EXPECT_THROW(classify_with_classes(head.image, prior, fit.classes, {1.f}, params), std::exception);
+}
+
+// The fitted log bias on another box of the same image (the re-match's):
+// the same polynomial, extended beyond the grid it was fitted on.
+TEST(BiasField, ABoxOffTheFittedGridIsThePolynomialThere) {
+  Grid3 g;
+  g.dims = {20, 16, 10};
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  LogBiasField field(g, 2);
+  std::vector<std::array<int, 3>> voxels;
+  std::vector<double> ratio, weight;
+  for (int k = 0; k < 10; ++k)
+    for (int j = 0; j < 16; ++j)
+      for (int i = 0; i < 20; ++i) {
+        voxels.push_back({i, j, k});
+        ratio.push_back(0.02 * i - 0.001 * j * j + 0.01 * i * k / 10.0);
+        weight.push_back(1.0);
+      }
+  ASSERT_TRUE(field.fit(voxels, ratio, weight));
+  const std::array<int, 3> origin{-4, 3, 2}, dims{30, 9, 12};  // past the grid on two axes
+  const std::vector<float> box = field.log_bias_box(origin, dims);
+  ASSERT_EQ(box.size(), static_cast<std::size_t>(30 * 9 * 12));
+  std::size_t n = 0;
+  for (int k = 0; k < dims[2]; ++k)
+    for (int j = 0; j < dims[1]; ++j)
+      for (int i = 0; i < dims[0]; ++i, ++n)
+        ASSERT_NEAR(box[n], field.log_bias(origin[0] + i, origin[1] + j, origin[2] + k), 1e-5) << i << " " << j << " " << k;
+  const std::vector<float> whole = field.log_bias_image();
+  EXPECT_NEAR(whole[g.index(7, 5, 3)], field.log_bias(7, 5, 3), 1e-5);
+}
+
+// A re-match (a narrower prior from a better estimate, a smaller box) with
+// the first round's classes and bias: no EM fit, and the segmentation a refit
+// gives, to within partial-volume voxels; the bias carried onto the smaller
+// box is the first round's.
+TEST(TissueEm, ARematchWithTheFirstRoundsFitAgreesWithARefit) {
+  const Intensities in;
+  const Synthetic head = make_head(in, 5.0, 0.3);
+  SegmentationParameters first = params_for_test();
+  first.ventricle_shift_mm = 6.0;  // as the first image-only round: the ventricles' class held
+  const IntraopSegmentation round1 =
+      segment_intraop(head.image, misregistered(head.truth, {3, -2, 2}, 1.04), 1, {2}, first);
+  ASSERT_TRUE(round1.refusal.empty()) << round1.refusal;
+  ASSERT_TRUE(round1.bias_field.has_value());
+  SegmentationParameters second = params_for_test();
+  second.prior_width_mm = 1.5;
+  second.margin_mm = 10.4;
+  const LabelImage carried = misregistered(head.truth, {1, -0.5, 0.5}, 1.01);
+  const IntraopSegmentation reused = segment_intraop(head.image, carried, 1, {2}, second, &round1);
+  const IntraopSegmentation refit = segment_intraop(head.image, carried, 1, {2}, second);
+  ASSERT_TRUE(reused.refusal.empty()) << reused.refusal;
+  ASSERT_TRUE(refit.refusal.empty()) << refit.refusal;
+  EXPECT_EQ(reused.report["iterations"].get<int>(), 0);
+  EXPECT_TRUE(reused.report["classes_from_earlier_round"].get<bool>());
+  EXPECT_GT(refit.report["iterations"].get<int>(), 0);
+  EXPECT_GE(outline_dice(reused.labels, refit.labels), 0.99);
+  EXPECT_GE(outline_dice(reused.labels, head.truth), 0.97) << reused.report.dump();
+  EXPECT_GE(dice(reused.labels, head.truth, 2), dice(refit.labels, head.truth, 2) - 0.02) << reused.report.dump();
+  std::size_t compared = 0;
+  for (std::size_t v = 0; v < reused.bias.voxels.size(); ++v) {
+    if (reused.bias.voxels[v] == 1.f || round1.bias.voxels[v] == 1.f) continue;
+    ++compared;
+    ASSERT_NEAR(reused.bias.voxels[v] / round1.bias.voxels[v], 1.0, 1e-4) << v;
+  }
+  EXPECT_GT(compared, reused.bias.voxels.size() / 4);
 }
