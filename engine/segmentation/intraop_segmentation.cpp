@@ -156,18 +156,17 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
   const double voxel_ml = std::abs(brain.grid.world_from_voxel.topLeftCorner<3, 3>().determinant()) / 1000.0;
   for (std::size_t c = 1; c < size.size(); ++c)
     if (static_cast<double>(size[c]) * voxel_ml < min_gap_ml) open_to_outside[c] = false;
-  // Nor the ventricular system: fluid continuous with the ventricles (the
-  // horns and the third ventricle a coarse preop map lacks, and the basal
-  // cisterns they open into at thick slices) is within the opening's radius
-  // and a voxel of the ventricles, segmented or carried (the opening trims
-  // the fluid back from where the ventricles' label takes over by at most
-  // that much). A sinking's gap lies outside the cortex, the whole cerebral
-  // mantle (cortex and white matter, 15 mm and more over the lateral
-  // ventricles, thinner only in extreme hydrocephalus) away from them.
+  // Nor the ventricular system: thick fluid that touches the ventricles
+  // (segmented, or carried from the preop; within a voxel of them) is the
+  // same fluid, a horn or a third ventricle a coarse preop map lacks. The
+  // opening keeps thick fluid up to where the ventricles' label takes over.
+  // A sinking's gap lies outside the cortex, the whole cerebral mantle away
+  // from them (on the suite's 18 mm vertex sinking its gap came no nearer
+  // than 8 mm).
   Mask any_ventricle = ventricle;
   for (std::size_t v = 0; v < any_ventricle.voxels.size(); ++v)
     any_ventricle.voxels[v] = ventricle.voxels[v] || carried_ventricles.voxels[v];
-  const Mask near_ventricles = dilate(any_ventricle, max_sulcus_half_width_mm + brain.grid.spacing_mm().maxCoeff());
+  const Mask near_ventricles = dilate(any_ventricle, 1.01 * brain.grid.spacing_mm().maxCoeff());
   std::vector<bool> ventricular(size.size(), false);
   for (std::size_t v = 0; v < thick.voxels.size(); ++v)
     if (thick.voxels[v] && near_ventricles.voxels[v]) ventricular[static_cast<std::size_t>(components.voxels[v])] = true;

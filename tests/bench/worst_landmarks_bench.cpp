@@ -101,6 +101,7 @@ nlohmann::json segmentation_errors(const LabelImage& seg, const LabelImage& trut
 
 struct PreopMaps {
   ImageF truth_brain_sd, truth_ventricle_sd, preop_brain_sd;
+  const ImageF* preop_t1 = nullptr;  // the T1 the truth's intensities come from
 };
 
 struct ModeResult {
@@ -137,6 +138,8 @@ nlohmann::json landmark_record(std::size_t i, const PhantomCase& c, const LabelI
                       {"preop_map_depth_mm", -preop.linear(maps.preop_brain_sd.voxels, p, 1e3f)},
                       {"truth_ventricle_mm", preop.linear(maps.truth_ventricle_sd.voxels, p, 1e3f)},
                       {"slab_edge_mm", slab_edge_mm}, {"slice", ijk[2]},
+                      {"preop_t1_at_p", preop.linear(maps.preop_t1->voxels, p, 0.f)},
+                      {"intraop_t1_at_x", intraop.linear(c.intraop_t1.voxels, x, 0.f)},
                       {"truth_label", intraop.nearest(truth_intraop.voxels, x, 0)},
                       {"given_label", intraop.nearest(c.intraop_labels.voxels, x, 0)},
                       {"truth_brain_3mm", brain_fraction_near(truth_intraop, x, 3)},
@@ -186,7 +189,7 @@ int main(int argc, char** argv) {
     const LabelImage truth_intraop = warp_labels_nearest(anatomy.truth_labels, c.true_pullback_mm);
     PreopMaps maps{signed_distance_mm(outline_of(anatomy.truth_labels)),
                    signed_distance_mm(mask_of_labels(anatomy.truth_labels, {atlas_labels::ventricles})),
-                   signed_distance_mm(outline_of(anatomy.preop.labels))};
+                   signed_distance_mm(outline_of(anatomy.preop.labels)), &anatomy.preop.t1};
     std::vector<ModeResult> modes;
     for (const char* mode : {"labels+image", "labels", "image"}) modes.push_back(run_mode(session, c, mode));
     nlohmann::json out = {{"case", spec.phantom.name}, {"description", c.description}, {"modes", {}}, {"landmarks", {}}};
@@ -197,8 +200,16 @@ int main(int argc, char** argv) {
         worst = std::max(worst, e);
         over += e > over_mm;
       }
-      out["modes"][m.mode] = {{"kind", std::string(protocol::to_string(m.scan.kind))}, {"worst_mm", worst},
+      double sum = 0;
+      for (double e : m.nonrigid) sum += e;
+      out["modes"][m.mode] = {{"kind", std::string(protocol::to_string(m.scan.kind))},
+                              {"mean_mm", m.nonrigid.empty() ? 0.0 : sum / static_cast<double>(m.nonrigid.size())},
+                              {"p95_mm", percentile(m.nonrigid, 95.0)}, {"worst_mm", worst},
                               {"over", over}, {"metrics", m.scan.metrics}};
+      if (m.scan.intraop_labels)
+        out["modes"][m.mode]["segmentation_dice"] = evaluation::segmentation_dice(
+            *m.scan.intraop_labels, anatomy.truth_labels, c.true_pullback_mm, spec.phantom.resection.enabled,
+            spec.phantom.resection.tumor_label);
       if (m.scan.intraop_labels) out["modes"][m.mode]["segmentation_errors"] = segmentation_errors(*m.scan.intraop_labels, truth_intraop);
     }
     for (std::size_t i = 0; i < c.landmarks_intraop_preop_mm.size(); ++i) {
