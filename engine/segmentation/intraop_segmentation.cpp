@@ -5,6 +5,7 @@
 #include <limits>
 
 #include "core/errors.h"
+#include "image/distance_map.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "registration/boundary_samples.h"
@@ -104,17 +105,27 @@ double log_density(const GaussianClass& g, double x) {
 // parenchyma class stretched over the sulci's fluid and partial volume
 // explains the fluid as well as the fluid class does: the image alone does
 // not move it out, its shape does. Returns the voxels moved out.
-Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
-                const Mask& brain, const Mask& ventricle, double max_sulcus_half_width_mm, double max_cap_mm,
-                double min_gap_ml) {
+struct OpenFluid {
+  Mask moved;                          // the gap's fluid, moved out of the brain
+  double next_to_ventricles_ml = 0;    // thick fluid left in: continuous with the ventricles
+  nlohmann::json components = nlohmann::json::array();  // diagnostic: each open component >= min_gap_ml
+};
+OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
+                     const Mask& brain, const Mask& ventricle, const Mask& carried_ventricles,
+                     const Mask& carried_outline, double max_sulcus_half_width_mm, double max_cap_mm,
+                     double min_gap_ml) {
   // Fluid: a bias-corrected intensity likelier under the ventricles' class
   // than under any parenchyma class (each class's density alone, not its
   // share: however rare a tissue of the brain, the intensity is compared
   // with it). The same cerebrospinal fluid fills the ventricles, the sulci,
   // the gap under a craniotomy and a cavity.
-  Mask fluid(brain.grid, 0), outside(brain.grid, 0);
+  // The outside is what lies beyond the brain's outline: a hole inside it (a
+  // fluid pocket keep_carried_ventricles took out, a cavity) is not where a
+  // gap opens to. Counted as outside, it made the fluid around the posterior
+  // third ventricle 51 mm deep a "gap" (docs/PERFORMANCE.md 12.9).
+  Mask fluid(brain.grid, 0), outside = fill_holes(brain);
   for (std::size_t v = 0; v < fluid.voxels.size(); ++v) {
-    outside.voxels[v] = !brain.voxels[v];
+    outside.voxels[v] = !outside.voxels[v];
     if (!brain.voxels[v] || ventricle.voxels[v]) continue;
     const double x = image.voxels[v] / bias[v];
     double best_fluid = -std::numeric_limits<double>::infinity(), best_tissue = best_fluid;
@@ -145,10 +156,54 @@ Mask open_fluid(const ImageF& image, const std::vector<float>& bias, const std::
   const double voxel_ml = std::abs(brain.grid.world_from_voxel.topLeftCorner<3, 3>().determinant()) / 1000.0;
   for (std::size_t c = 1; c < size.size(); ++c)
     if (static_cast<double>(size[c]) * voxel_ml < min_gap_ml) open_to_outside[c] = false;
-  Mask out(brain.grid, 0);
+  // Nor the ventricular system: thick fluid that touches the ventricles
+  // (segmented, or carried from the preop; within a voxel of them) is the
+  // same fluid, a horn or a third ventricle a coarse preop map lacks. The
+  // opening keeps thick fluid up to where the ventricles' label takes over.
+  // A sinking's gap lies outside the cortex, the whole cerebral mantle away
+  // from them (on the suite's 18 mm vertex sinking its gap came no nearer
+  // than 8 mm).
+  Mask any_ventricle = ventricle;
+  for (std::size_t v = 0; v < any_ventricle.voxels.size(); ++v)
+    any_ventricle.voxels[v] = ventricle.voxels[v] || carried_ventricles.voxels[v];
+  const Mask near_ventricles = dilate(any_ventricle, 1.01 * brain.grid.spacing_mm().maxCoeff());
+  std::vector<bool> ventricular(size.size(), false);
   for (std::size_t v = 0; v < thick.voxels.size(); ++v)
-    out.voxels[v] = thick.voxels[v] && brain.voxels[v] && !ventricle.voxels[v] &&
-                    open_to_outside[static_cast<std::size_t>(components.voxels[v])];
+    if (thick.voxels[v] && near_ventricles.voxels[v]) ventricular[static_cast<std::size_t>(components.voxels[v])] = true;
+  OpenFluid out{Mask(brain.grid, 0), 0, nlohmann::json::array()};
+  {
+    const ImageF to_ventricles = distance_to_mask_mm(any_ventricle);
+    Mask carried_outside = carried_outline;
+    for (auto& v : carried_outside.voxels) v = !v;
+    const ImageF depth = distance_to_mask_mm(carried_outside);
+    std::vector<double> near(size.size(), 1e9), deep(size.size(), 0);
+    std::vector<Eigen::Vector3d> sum(size.size(), Eigen::Vector3d::Zero());
+    const Grid3& g = brain.grid;
+    for (int k = 0; k < g.dims[2]; ++k)
+      for (int j = 0; j < g.dims[1]; ++j)
+        for (int i = 0; i < g.dims[0]; ++i) {
+          const std::size_t v = g.index(i, j, k);
+          const auto c = static_cast<std::size_t>(components.voxels[v]);
+          if (c == 0 || !open_to_outside[c]) continue;
+          near[c] = std::min<double>(near[c], to_ventricles.voxels[v]);
+          deep[c] = std::max<double>(deep[c], depth.voxels[v]);
+          sum[c] += g.world_mm(i, j, k);
+        }
+    for (std::size_t c = 1; c < size.size(); ++c)
+      if (open_to_outside[c]) {
+        const Eigen::Vector3d m = sum[c] / static_cast<double>(size[c]);
+        out.components.push_back({{"ml", static_cast<double>(size[c]) * voxel_ml}, {"ventricles_mm", near[c]},
+                                  {"max_depth_mm", deep[c]}, {"centroid_mm", {m[0], m[1], m[2]}}});
+      }
+  }
+  for (std::size_t c = 1; c < size.size(); ++c)
+    if (open_to_outside[c] && ventricular[c]) {
+      out.next_to_ventricles_ml += static_cast<double>(size[c]) * voxel_ml;
+      open_to_outside[c] = false;
+    }
+  for (std::size_t v = 0; v < thick.voxels.size(); ++v)
+    out.moved.voxels[v] = thick.voxels[v] && brain.voxels[v] && !ventricle.voxels[v] &&
+                          open_to_outside[static_cast<std::size_t>(components.voxels[v])];
   return out;
 }
 
@@ -299,10 +354,14 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   keep_carried_ventricles(brain, ventricle, ventricle_box);
   std::array<std::vector<float>, kTissues> posterior = em.posterior;
   Mask moved_out(g, 0);
-  double open_fluid_ml = 0;
+  double open_fluid_ml = 0, ventricular_fluid_ml = 0;
+  nlohmann::json open_components = nlohmann::json::array();
   if (params.max_sulcus_half_width_mm > 0) {
-    moved_out = open_fluid(image_box, em.bias, em.classes, brain, ventricle, params.max_sulcus_half_width_mm,
-                           params.max_cap_mm, params.min_gap_ml);
+    OpenFluid found = open_fluid(image_box, em.bias, em.classes, brain, ventricle, ventricle_box, outline_box,
+                                 params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml);
+    open_components = found.components;
+    moved_out = std::move(found.moved);
+    ventricular_fluid_ml = found.next_to_ventricles_ml;
     for (std::size_t v = 0; v < moved_out.voxels.size(); ++v) {
       if (!moved_out.voxels[v]) continue;
       brain.voxels[v] = 0;
@@ -363,6 +422,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["brain_ml"] = volume_ml(brain);
   result.report["open_fluid_ml"] = open_fluid_ml;
   result.report["beyond_open_fluid_ml"] = volume_ml(moved_out) - open_fluid_ml;
+  result.report["open_fluid_next_to_ventricles_ml"] = ventricular_fluid_ml;
+  result.report["open_fluid_components"] = open_components;
   result.report["ventricles_ml"] = volume_ml(ventricle);
   const bool classes_apart = !std::isfinite(class_contrast) || class_contrast >= params.min_fluid_contrast_sd;
   const bool wall_apart = !std::isfinite(wall_contrast) || wall_contrast >= params.min_wall_contrast_sd;
