@@ -166,6 +166,7 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   s.read("ventricle_prior_width_mm", p.ventricle_prior_width_mm, Interval::above(0));
   s.read("rematch_rounds", p.rematch_rounds, 0, 5);
   s.read("rematch_reuses_fit", p.rematch_reuses_fit);
+  s.read("rematch_gaps_found_before", p.rematch_gaps_found_before);
   s.read("max_brain_volume_change", p.max_brain_volume_change, Interval::open(0, 1));
   s.read("min_ventricle_fraction", p.min_ventricle_fraction, Interval::closed(0, 1));
   s.read("min_surface_confidence", p.min_surface_confidence, Interval::closed(0, 1));

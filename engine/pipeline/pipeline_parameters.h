@@ -102,6 +102,11 @@ struct AutoSegmentationParameters {
   // were fitted under the wide prior of the head placement, over fluid and
   // dura that the re-match's narrow prior no longer gives to the brain.
   bool rematch_reuses_fit = false;
+  // true: a re-match moves out only open fluid touching the gap the round
+  // before found (segmentation/intraop_segmentation.h segment_intraop): the
+  // re-match's narrower prior exposed the basal cisterns under swellings as
+  // "gaps" (docs/DESIGN.md "Automatic intraop segmentation", item 7).
+  bool rematch_gaps_found_before = true;
   // Gates. Brain volume (the outline, after the affine's volume change is
   // divided out) against the preop's: brain shift changes it by a few per
   // cent (fluid drained, oedema), a resection by the resectable structures'

@@ -202,7 +202,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
   auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true,
-                     const segmentation::IntraopSegmentation* fitted = nullptr) {
+                     const segmentation::IntraopSegmentation* fitted = nullptr,
+                     const Mask* gap_found_before = nullptr) {
     segmentation::SegmentationParameters sp = ap.classifier;
     if (!open_fluid_rule) sp.max_sulcus_half_width_mm = 0;
     // The classified box ends where the prior meets its floor (docs/DESIGN.md
@@ -213,7 +214,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     sp.ventricle_shift_mm = ventricle_shift_mm;
     if (ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp, fitted);
+    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp, fitted,
+                                         gap_found_before);
   };
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
@@ -296,7 +298,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     // classes and bias fitted before are reused (off by default).
     watch.lap();
     auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule,
-                        ap.rematch_reuses_fit ? &seg : nullptr);
+                        ap.rematch_reuses_fit ? &seg : nullptr,
+                        ap.rematch_gaps_found_before ? &seg.open_fluid : nullptr);
     next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates =
         check_against(next.labels, next.confidence, carried_volumes, table, ap, next.open_fluid_ml);

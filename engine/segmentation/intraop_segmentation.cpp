@@ -207,6 +207,31 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
   return out;
 }
 
+// A re-match sees the same image as the round before, under a prior carried
+// by the non-rigid estimate instead of the head's placement. The gap a
+// sinking leaves is centimetres wide and open to the craniotomy: the first
+// round, under the wider prior, finds it too. What only the re-match calls
+// open fluid lies where its narrower prior moved the outline onto fluid the
+// brain borders anyway: the basal cisterns and the floor of the third
+// ventricle under a swelling (docs/PERFORMANCE.md 12.9, 12.10), whose
+// removal notched the outline and moved the field by up to 9 mm there. So a
+// component of open fluid stands in the re-match only where it touches the
+// gap found before, grown by a sulcus's half width (the same fluid, its
+// edge classified a voxel apart).
+void keep_gaps_found_before(Mask& moved, const Mask& found_before, const VoxelBox& box, double max_sulcus_half_width_mm) {
+  if (count_nonzero(moved) == 0) return;
+  Mask before(moved.grid, 0);
+  if (found_before.grid.voxel_count() > 0) before = crop_to_box(found_before, box);
+  const Mask near_before = dilate(before, max_sulcus_half_width_mm + moved.grid.spacing_mm().maxCoeff());
+  int count = 0;
+  const auto components = connected_components(moved, 6, &count);
+  std::vector<bool> keep(static_cast<std::size_t>(count) + 1, false);
+  for (std::size_t v = 0; v < moved.voxels.size(); ++v)
+    if (moved.voxels[v] && near_before.voxels[v]) keep[static_cast<std::size_t>(components.voxels[v])] = true;
+  for (std::size_t v = 0; v < moved.voxels.size(); ++v)
+    moved.voxels[v] = moved.voxels[v] && keep[static_cast<std::size_t>(components.voxels[v])];
+}
+
 // Tissue on the far side of that fluid, between it and the skull (the dura,
 // the inner table and their partial volume, cut obliquely by thick slices),
 // is not brain either: the brain lies beneath the gap a sinking leaves, never
@@ -322,7 +347,8 @@ nlohmann::json describe(const EmResult& em) {
 
 IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carried_labels,
                                     std::uint16_t brain_label, const std::vector<std::uint16_t>& ventricle_labels,
-                                    const SegmentationParameters& params, const IntraopSegmentation* fitted) {
+                                    const SegmentationParameters& params, const IntraopSegmentation* fitted,
+                                    const Mask* gap_found_before) {
   if (!image.grid.same_geometry(carried_labels.grid))
     throw InputError("segmentation: the image and the carried labels are on different grids");
   const Mask outline = outline_mask(carried_labels);
@@ -353,7 +379,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   }
   keep_carried_ventricles(brain, ventricle, ventricle_box);
   std::array<std::vector<float>, kTissues> posterior = em.posterior;
-  Mask moved_out(g, 0);
+  Mask moved_out(g, 0), gap_fluid(g, 0);
   double open_fluid_ml = 0, ventricular_fluid_ml = 0;
   nlohmann::json open_components = nlohmann::json::array();
   if (params.max_sulcus_half_width_mm > 0) {
@@ -361,6 +387,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
                                  params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml);
     open_components = found.components;
     moved_out = std::move(found.moved);
+    if (gap_found_before) keep_gaps_found_before(moved_out, *gap_found_before, box, params.max_sulcus_half_width_mm);
+    gap_fluid = moved_out;
     ventricular_fluid_ml = found.next_to_ventricles_ml;
     for (std::size_t v = 0; v < moved_out.voxels.size(); ++v) {
       if (!moved_out.voxels[v]) continue;
@@ -401,6 +429,13 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
         result.bias.voxels[w] = em.bias[v];
       }
   result.open_fluid_ml = open_fluid_ml;
+  if (params.max_sulcus_half_width_mm > 0) {
+    result.open_fluid = Mask(image.grid, 0);
+    for (int k = 0; k < g.dims[2]; ++k)
+      for (int j = 0; j < g.dims[1]; ++j)
+        for (int i = 0; i < g.dims[0]; ++i)
+          result.open_fluid.at(i + box.lo[0], j + box.lo[1], k + box.lo[2]) = gap_fluid.at(i, j, k);
+  }
   result.classes = em.classes;
   if (fitted) {
     result.bias_field = fitted->bias_field;

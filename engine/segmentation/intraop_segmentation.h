@@ -97,6 +97,9 @@ struct IntraopSegmentation {
   // Fluid moved out of the brain as thicker than a sulcus and open to the
   // outside (SegmentationParameters::max_sulcus_half_width_mm), ml.
   double open_fluid_ml = 0;
+  // Those voxels on the image grid (empty grid when the rule did not run):
+  // a re-match keeps only gaps the round before found (segment_intraop).
+  Mask open_fluid;
 };
 
 // carried_labels: the preop labels on the image's grid. brain_label is the
@@ -104,8 +107,13 @@ struct IntraopSegmentation {
 // written). InputError on mismatched grids or an empty carried brain.
 // fitted: an earlier round's segmentation of the same image; its classes and
 // bias are reused (classify_with_classes, no EM fit) under the new prior.
+// gap_found_before: the open fluid an earlier round of the same image moved
+// out (IntraopSegmentation::open_fluid); when given, only open fluid that
+// touches it is moved out now (docs/DESIGN.md "Automatic intraop
+// segmentation", item 7).
 IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carried_labels,
                                     std::uint16_t brain_label, const std::vector<std::uint16_t>& ventricle_labels,
-                                    const SegmentationParameters& params, const IntraopSegmentation* fitted = nullptr);
+                                    const SegmentationParameters& params, const IntraopSegmentation* fitted = nullptr,
+                                    const Mask* gap_found_before = nullptr);
 
 }  // namespace brainshift::segmentation

@@ -270,6 +270,32 @@ TEST(TissueEm, FluidUnderASunkenCortexIsOutsideTheBrain) {
   EXPECT_GT(with_dice, 0.9);
 }
 
+// A re-match keeps only the open fluid the round before found (the gap a
+// sinking leaves is seen under either prior; fluid only the re-match calls a
+// gap is a cistern its narrower prior exposed, docs/PERFORMANCE.md 12.10):
+// the same gap stays out when the first round found it, and stays in when
+// the first round found nothing there.
+TEST(TissueEm, ARematchMovesOutOnlyTheGapTheRoundBeforeFound) {
+  Intensities in;
+  in.gm = 50;
+  const Synthetic head = make_head(in, 5.0, 0.2, 0.0, {1.2, 1.2, 2.0}, 15.0);
+  const Synthetic before = make_head(in, 5.0, 0.2);
+  const LabelImage prior = misregistered(before.truth, {2, -2, 1}, 1.0);
+  const SegmentationParameters p = params_for_test();
+  const IntraopSegmentation first = segment_intraop(head.image, prior, 1, {2}, p);
+  ASSERT_TRUE(first.refusal.empty()) << first.refusal;
+  ASSERT_GT(first.open_fluid_ml, 10.0);
+  ASSERT_TRUE(first.open_fluid.grid.same_geometry(head.image.grid));
+  EXPECT_NEAR(volume_ml(first.open_fluid), first.open_fluid_ml, 1e-9);
+
+  const IntraopSegmentation found = segment_intraop(head.image, prior, 1, {2}, p, nullptr, &first.open_fluid);
+  EXPECT_NEAR(found.open_fluid_ml, first.open_fluid_ml, 1e-9) << "the gap found before stands";
+  const Mask nothing(head.image.grid, 0);
+  const IntraopSegmentation unseen = segment_intraop(head.image, prior, 1, {2}, p, nullptr, &nothing);
+  EXPECT_EQ(unseen.open_fluid_ml, 0.0) << "no gap found before: none now";
+  EXPECT_EQ(count_nonzero(unseen.open_fluid), 0u);
+}
+
 // A ventricular horn the preop map lacks (a coarse map's ventricles are the
 // bodies only; robustness suite, docs/PERFORMANCE.md 12.9): thick fluid
 // running from a ventricle down to within 8 mm of the brain's base, inside
