@@ -4,6 +4,7 @@
 #include <cmath>
 #include <functional>
 #include <random>
+#include <set>
 
 #include "core/errors.h"
 #include "image/distance_map.h"
@@ -304,6 +305,14 @@ std::vector<RobustnessSpec> robustness_suite() {
     r.image.bias_amplitude = 0.3;
     suite.push_back(r);
   }
+  return suite;
+}
+
+std::vector<RobustnessSpec> robustness_suite_cases(const std::vector<std::string>& names) {
+  std::vector<RobustnessSpec> suite = robustness_suite();
+  if (names.empty()) return suite;
+  const std::set<std::string> want(names.begin(), names.end());
+  std::erase_if(suite, [&](const RobustnessSpec& s) { return !want.count(s.phantom.name); });
   return suite;
 }
 

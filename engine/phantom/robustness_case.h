@@ -57,5 +57,7 @@ PhantomCase make_robustness_case(const ImageF& t1, const LabelImage& truth_label
 // resection. ci_subset: the few CI runs.
 std::vector<RobustnessSpec> robustness_suite();
 std::vector<RobustnessSpec> robustness_ci_subset();
+// The suite's cases named in `names`, in the suite's order (all when empty).
+std::vector<RobustnessSpec> robustness_suite_cases(const std::vector<std::string>& names);
 
 }  // namespace brainshift

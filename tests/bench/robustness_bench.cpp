@@ -79,11 +79,7 @@ int main(int argc, char** argv) {
   PipelineParameters params = bench::parameters(config_path);
   if (check_grid_mm >= 0) params.auto_segmentation.label_image_check.grid_spacing_mm = check_grid_mm;
   const evaluation::RobustnessInputs inputs = evaluation::load_robustness_inputs(atlas_cache);
-  std::vector<RobustnessSpec> suite = robustness_suite();
-  if (!only.empty()) {
-    const std::set<std::string> want(only.begin(), only.end());
-    std::erase_if(suite, [&](const RobustnessSpec& s) { return !want.count(s.phantom.name); });
-  }
+  std::vector<RobustnessSpec> suite = robustness_suite_cases(only);
   // Cases that share a preop run on one warm session.
   std::stable_sort(suite.begin(), suite.end(), [&](const RobustnessSpec& a, const RobustnessSpec& b) {
     return evaluation::case_anatomy(inputs, a).preop_key < evaluation::case_anatomy(inputs, b).preop_key;

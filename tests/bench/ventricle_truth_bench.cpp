@@ -110,11 +110,7 @@ int main(int argc, char** argv) {
   out["atlas_vs_truth_ventricle_dice"] =
       dice(mask_of_labels(inputs.atlas_labels, {atlas_labels::ventricles}), preop_truth);
   out["cases"] = nlohmann::json::array();
-  std::vector<RobustnessSpec> suite = robustness_suite();
-  if (!only.empty()) {
-    const std::set<std::string> want(only.begin(), only.end());
-    std::erase_if(suite, [&](const RobustnessSpec& s) { return !want.count(s.phantom.name); });
-  }
+  std::vector<RobustnessSpec> suite = robustness_suite_cases(only);
   for (const auto& spec : suite) {
     const evaluation::CaseAnatomy anatomy = evaluation::case_anatomy(inputs, spec);
     RobustnessSpec s = spec;

@@ -174,11 +174,7 @@ int main(int argc, char** argv) {
   if (!bench::drive_from_this_rank()) return 0;
   const PipelineParameters params = bench::parameters(config_path);
   const evaluation::RobustnessInputs inputs = evaluation::load_robustness_inputs(atlas_cache);
-  std::vector<RobustnessSpec> suite = robustness_suite();
-  if (!only.empty()) {
-    const std::set<std::string> want(only.begin(), only.end());
-    std::erase_if(suite, [&](const RobustnessSpec& s) { return !want.count(s.phantom.name); });
-  }
+  std::vector<RobustnessSpec> suite = robustness_suite_cases(only);
   for (const auto& spec : suite) {
     const evaluation::CaseAnatomy anatomy = evaluation::case_anatomy(inputs, spec);
     EngineSession session(MPI_COMM_WORLD, params);

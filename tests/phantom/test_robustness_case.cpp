@@ -204,5 +204,16 @@ TEST(IndependentLabels, TheVentricleWallIsWhereAVoxelIsHalfFluid) {
   EXPECT_LT(alt.ventricle_components, 3 * std::max(before.ventricle_components, 1)) << "the wall must not grow into new structures";
 }
 
+TEST(RobustnessSuite, CasesAreSelectedByNameInTheSuitesOrder) {
+  const auto suite = robustness_suite();
+  ASSERT_GE(suite.size(), 3u);
+  EXPECT_EQ(robustness_suite_cases({}).size(), suite.size());
+  const auto picked = robustness_suite_cases({suite[2].phantom.name, suite[0].phantom.name, "no_such_case"});
+  ASSERT_EQ(picked.size(), 2u);
+  EXPECT_EQ(picked[0].phantom.name, suite[0].phantom.name);
+  EXPECT_EQ(picked[1].phantom.name, suite[2].phantom.name);
+  EXPECT_TRUE(robustness_suite_cases({"no_such_case"}).empty());
+}
+
 }  // namespace
 }  // namespace brainshift
