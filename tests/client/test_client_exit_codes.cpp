@@ -81,6 +81,10 @@ TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
 
   // 4: the affine-only fallback, as register says it, known at scan.done:
   // the deferred metrics.json is held back until the command has exited.
+  // The hook is set once scan-ok's deferred outputs are made: set earlier, it
+  // held scan-ok's instead and the worker with them (a loaded machine's race).
+  for (int i = 0; i < 600 && *d.engine.deferred_renders < 1; ++i) std::this_thread::sleep_for(50ms);
+  ASSERT_GE(d.engine.deferred_renders->load(), 1) << "scan-ok's deferred outputs were never made";
   d.engine.fallback_next_scan = true;
   std::atomic<bool> client_exited{false}, metrics_held{false};
   d.engine.while_rendering_deferred = [&] {

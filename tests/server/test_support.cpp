@@ -153,10 +153,12 @@ const std::string FakeEngine::kReportPng(
 void FakeEngine::render_deferred(const std::string& /*scan_id*/, const DeferredOutputFn& add) {
   if (!deferred_files_.empty() && while_rendering_deferred) while_rendering_deferred();
   for (const auto& [name, bytes] : std::exchange(deferred_files_, {})) add(name, bytes);
-  if (!report_due_) return;
-  report_due_ = false;
-  if (while_rendering_report) while_rendering_report();
-  add("report.png", kReportPng);
+  if (report_due_) {
+    report_due_ = false;
+    if (while_rendering_report) while_rendering_report();
+    add("report.png", kReportPng);
+  }
+  ++*deferred_renders;
 }
 
 DaemonThread::DaemonThread(const server::DaemonOptions& options, server::EnginePort& engine) {

@@ -65,6 +65,10 @@ class FakeEngine : public server::EnginePort {
   std::function<void()> while_rendering_report;  // called inside render_deferred
   // Called inside render_deferred before the deferred files (metrics.json).
   std::function<void()> while_rendering_deferred;
+  // render_deferred calls finished: a test sets a hook once the scan before
+  // is done with it (the hook runs on the daemon's worker thread).
+  // (shared: tests move-assign a FakeEngine to reset it)
+  std::shared_ptr<std::atomic<int>> deferred_renders = std::make_shared<std::atomic<int>>(0);
 
   LabelTable table = config::default_label_table();  // the shipped labels.toml unless a test sets another
   bool fail_next_scan = false;   // ComputeError from the next register_scan
