@@ -17,7 +17,7 @@ constexpr float kInf = std::numeric_limits<float>::infinity();
 // First pass along x for a binary feature set: squared distance in mm^2 to the
 // nearest feature voxel in the same row, by two linear sweeps.
 template <class IsFeature>
-void row_pass(const Grid3& g, double sx, IsFeature&& is_feature, std::vector<float>& out) {
+void row_pass(const Grid3& g, double sx, IsFeature&& is_feature, std::vector<float>& out, double cap_mm2) {
   const int nx = g.dims[0];
   const int far = std::numeric_limits<int>::max() / 4;
   const std::size_t rows = static_cast<std::size_t>(g.dims[1]) * static_cast<std::size_t>(g.dims[2]);
@@ -34,7 +34,8 @@ void row_pass(const Grid3& g, double sx, IsFeature&& is_feature, std::vector<flo
       for (int i = nx - 1; i >= 0; --i) {
         if (is_feature(base + i)) last = i;
         const int d = std::min(gap[i], last - i);
-        out[base + i] = d >= far / 2 ? kInf : static_cast<float>(d * sx * d * sx);
+        const float d2 = static_cast<float>(d * sx * d * sx);
+        out[base + i] = d >= far / 2 || d2 > cap_mm2 ? kInf : d2;
       }
     }
   });
@@ -46,7 +47,8 @@ class LinePass {
  public:
   explicit LinePass(int n) : g_(n), v_(n), z_(n + 1) {}
 
-  void run(float* data, int n, double spacing) {
+  // Values above cap_mm2 become +infinity (see squared_edt).
+  void run(float* data, int n, double spacing, double cap_mm2) {
     // A line of feature voxels only (zeros) is its own answer: every point is
     // its own nearest, and the envelope would give back exactly 0. Most lines
     // of the background's transform (the inside of a signed distance) are
@@ -75,7 +77,8 @@ class LinePass {
     for (int q = 0; q < n; ++q) {
       while (z_[j + 1] < q) ++j;
       const int p = v_[j];
-      data[q] = static_cast<float>(g_[p] - s2 * p * p + s2 * (q - p) * (q - p));
+      const float d2 = static_cast<float>(g_[p] - s2 * p * p + s2 * (q - p) * (q - p));
+      data[q] = d2 > cap_mm2 ? kInf : d2;
     }
   }
 
@@ -97,12 +100,17 @@ void transpose(const float* src, std::size_t rows, std::size_t cols, std::size_t
     }
 }
 
+// cap_mm2: squared distances up to it are exact, larger ones +infinity. A
+// value above the cap after one pass stays above it after the next (each pass
+// adds a square), so dropping it changes no value up to the cap; lines left
+// all infinite cost nothing. Thresholding at the cap (a dilation, an erosion)
+// needs no more.
 template <class IsFeature>
-ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
+ImageF squared_edt(const Grid3& g, IsFeature&& is_feature, double cap_mm2 = kInf) {
   ImageF out(g);
   if (g.voxel_count() == 0) return out;
   const Eigen::Vector3d sp = g.spacing_mm();
-  row_pass(g, sp[0], is_feature, out.voxels);
+  row_pass(g, sp[0], is_feature, out.voxels, cap_mm2);
   const int nx = g.dims[0], ny = g.dims[1], nz = g.dims[2];
   float* d = out.voxels.data();
   // Lines along y and z are strided in memory; each slab is transposed into a
@@ -115,7 +123,7 @@ ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
     for (std::size_t k = k0; k < k1; ++k) {
       float* slice = d + k * slab;
       transpose(slice, sny, snx, snx, buf.data(), sny);  // buf: nx lines of ny
-      for (std::size_t i = 0; i < snx; ++i) along_y.run(buf.data() + i * sny, ny, sp[1]);
+      for (std::size_t i = 0; i < snx; ++i) along_y.run(buf.data() + i * sny, ny, sp[1], cap_mm2);
       transpose(buf.data(), snx, sny, sny, slice, snx);
     }
   });
@@ -127,7 +135,7 @@ ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
     for (std::size_t j = j0; j < j1; ++j) {
       float* plane = d + j * snx;
       transpose(plane, snz, snx, slab, buf.data(), snz);  // buf: nx lines of nz
-      for (std::size_t i = 0; i < snx; ++i) along_z.run(buf.data() + i * snz, nz, sp[2]);
+      for (std::size_t i = 0; i < snx; ++i) along_z.run(buf.data() + i * snz, nz, sp[2], cap_mm2);
       transpose(buf.data(), snx, snz, snz, plane, slab);
     }
   });
@@ -139,6 +147,11 @@ ImageF squared_edt(const Grid3& g, IsFeature&& is_feature) {
 ImageF squared_distance_to_mask_mm2(const Mask& mask) {
   const std::uint8_t* m = mask.voxels.data();
   return squared_edt(mask.grid, [m](std::size_t i) { return m[i] != 0; });
+}
+
+ImageF squared_distance_to_mask_mm2(const Mask& mask, double cap_mm2) {
+  const std::uint8_t* m = mask.voxels.data();
+  return squared_edt(mask.grid, [m](std::size_t i) { return m[i] != 0; }, cap_mm2);
 }
 
 ImageF distance_to_mask_mm(const Mask& mask) {

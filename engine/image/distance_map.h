@@ -16,6 +16,11 @@ ImageF distance_to_mask_mm(const Mask& mask);
 // thresholding without sqrt rounding.
 ImageF squared_distance_to_mask_mm2(const Mask& mask);
 
+// The same up to cap_mm2 (exact there); +infinity where it exceeds the cap.
+// For thresholds at or below the cap, at a fraction of the cost far from the
+// mask.
+ImageF squared_distance_to_mask_mm2(const Mask& mask, double cap_mm2);
+
 // Negative inside, positive outside. With d_out = distance to the nearest mask
 // voxel and d_in = distance to the nearest background voxel:
 //   outside: d_out - h/2,   inside: -(d_in - h/2),   h = smallest voxel spacing.

@@ -54,12 +54,6 @@ void flood(const Grid3& g, std::size_t seed, std::int32_t id, const std::vector<
   }
 }
 
-Mask from_predicate(const Grid3& g, const ImageF& values, bool (*keep)(float, double), double r2) {
-  Mask out(g, 0);
-  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = keep(values.voxels[i], r2) ? 1 : 0;
-  return out;
-}
-
 // Slack so that a voxel exactly at radius_mm is inside despite float rounding.
 double radius_squared(double radius_mm) {
   if (!(radius_mm >= 0.0)) throw InputError("morphology radius must be >= 0 mm, got " + std::to_string(radius_mm));
@@ -195,16 +189,44 @@ Mask within_reach(const Mask& mask, double radius_mm, Op op) {
   return out;
 }
 
-Mask dilate_whole(const Mask& mask, double r2) {
-  return from_predicate(mask.grid, squared_distance_to_mask_mm2(mask),
-                        [](float d2, double lim) { return d2 <= lim; }, r2);
+// The voxels of `features` with a 6-neighbour in the grid that is not one.
+// The nearest feature to any other voxel is such a voxel: from a feature all
+// of whose neighbours are features, one step toward the point is a feature
+// and nearer. So distances from them equal distances from all of `features`
+// everywhere but on the features themselves, and lines through the inside of
+// a large mask are left infinite below (no work).
+Mask feature_boundary(const Mask& features) {
+  Mask out(features.grid, 0);
+  const auto& n = features.grid.dims;
+  for (int k = 0; k < n[2]; ++k)
+    for (int j = 0; j < n[1]; ++j)
+      for (int i = 0; i < n[0]; ++i) {
+        if (!features.at(i, j, k)) continue;
+        const bool edge = (i > 0 && !features.at(i - 1, j, k)) || (i + 1 < n[0] && !features.at(i + 1, j, k)) ||
+                          (j > 0 && !features.at(i, j - 1, k)) || (j + 1 < n[1] && !features.at(i, j + 1, k)) ||
+                          (k > 0 && !features.at(i, j, k - 1)) || (k + 1 < n[2] && !features.at(i, j, k + 1));
+        out.at(i, j, k) = edge;
+      }
+  return out;
 }
 
+// Dilation: the mask, and every voxel within the radius of its boundary; the
+// distance map is needed only up to the radius (squared_distance_to_mask_mm2's cap).
+Mask dilate_whole(const Mask& mask, double r2) {
+  const ImageF d2 = squared_distance_to_mask_mm2(feature_boundary(mask), r2);
+  Mask out(mask.grid, 0);
+  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = mask.voxels[i] || d2.voxels[i] <= r2;
+  return out;
+}
+
+// Erosion: the mask less every voxel within the radius of the background.
 Mask erode_whole(const Mask& mask, double r2) {
   Mask background(mask.grid, 0);
   for (std::size_t i = 0; i < mask.voxels.size(); ++i) background.voxels[i] = mask.voxels[i] == 0;
-  return from_predicate(mask.grid, squared_distance_to_mask_mm2(background),
-                        [](float d2, double lim) { return d2 > lim; }, r2);
+  const ImageF d2 = squared_distance_to_mask_mm2(feature_boundary(background), r2);
+  Mask out(mask.grid, 0);
+  for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = mask.voxels[i] && d2.voxels[i] > r2;
+  return out;
 }
 
 }  // namespace

@@ -11,6 +11,7 @@
 #include <Eigen/SparseCholesky>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "core/timer.h"
 #include "registration/linear_sampler.h"
 #include "registration/surface_repair.h"
@@ -147,34 +148,41 @@ struct ForceField {
   std::vector<char> has_data;
 };
 
-ForceField compute_force(const TriSurface& s, const Points& x, const LinearSampler& target,
+void force_at(std::size_t v, const Points& x, const Points& normals, const LinearSampler& target,
+              const LinearSampler* image, const ActiveSurfaceParameters& p, ForceField& f) {
+  double d;
+  Eigen::Vector3d g;
+  if (!target.sample(x[v], &d, &g)) return;
+  const double len = g.norm();
+  // Near the medial axis of the distance map the gradient vanishes and its
+  // direction means nothing: no force there rather than a random one.
+  if (len < 0.2) return;
+  if (p.capture_range_mm > 0 && std::abs(d) > p.capture_range_mm) return;
+  f.has_data[v] = 1;
+  // Along the surface normal only, scaled by how well the normal agrees with
+  // the distance gradient: the trilinear gradient direction jumps from cell
+  // to cell, and letting those jumps push tangentially makes vertices drift
+  // and chatter without changing the matched shape.
+  const double alignment = std::max(0.0, normals[v].dot(g / len));
+  f.force[v] = -d * alignment * normals[v];
+  if (p.normal_search_mm > 0 && std::abs(d) > 0.5) {
+    const double t = normal_crossing_mm(target, x[v], normals[v], d, p.normal_search_mm);
+    if (std::isfinite(t) && std::abs(t) <= 3.0 * std::abs(d) + 1.0) f.force[v] = t * normals[v];
+  }
+  if (image && p.edge_weight > 0) {
+    f.force[v] += p.edge_weight * edge_offset_mm(*image, x[v], normals[v], p.edge_search_mm) * normals[v];
+  }
+}
+
+// Each vertex's force depends only on its own position and normal: the two
+// halves of the vertices run side by side (the outer surface's match is the
+// surface stage's critical path), with the same result on one core or two.
+ForceField compute_force(const Points& x, const Points& normals, const LinearSampler& target,
                          const LinearSampler* image, const ActiveSurfaceParameters& p) {
   ForceField f{Points(x.size(), Eigen::Vector3d::Zero()), std::vector<char>(x.size(), 0)};
-  const Points normals = area_weighted_normals(s, x);
-  for (std::size_t v = 0; v < x.size(); ++v) {
-    double d;
-    Eigen::Vector3d g;
-    if (!target.sample(x[v], &d, &g)) continue;
-    const double len = g.norm();
-    // Near the medial axis of the distance map the gradient vanishes and its
-    // direction means nothing: no force there rather than a random one.
-    if (len < 0.2) continue;
-    if (p.capture_range_mm > 0 && std::abs(d) > p.capture_range_mm) continue;
-    f.has_data[v] = 1;
-    // Along the surface normal only, scaled by how well the normal agrees with
-    // the distance gradient: the trilinear gradient direction jumps from cell
-    // to cell, and letting those jumps push tangentially makes vertices drift
-    // and chatter without changing the matched shape.
-    const double alignment = std::max(0.0, normals[v].dot(g / len));
-    f.force[v] = -d * alignment * normals[v];
-    if (p.normal_search_mm > 0 && std::abs(d) > 0.5) {
-      const double t = normal_crossing_mm(target, x[v], normals[v], d, p.normal_search_mm);
-      if (std::isfinite(t) && std::abs(t) <= 3.0 * std::abs(d) + 1.0) f.force[v] = t * normals[v];
-    }
-    if (image && p.edge_weight > 0) {
-      f.force[v] += p.edge_weight * edge_offset_mm(*image, x[v], normals[v], p.edge_search_mm) * normals[v];
-    }
-  }
+  parallel_halves(x.size(), 256, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t v = begin; v < end; ++v) force_at(v, x, normals, target, image, p, f);
+  });
   return f;
 }
 
@@ -195,6 +203,19 @@ void smooth_along_surface(Points* f, const std::vector<std::vector<int>>& nb, in
     }
     f->swap(tmp);
   }
+}
+
+// The three coordinates' membrane solves are independent (Eigen solves a
+// multi-column right-hand side column by column): two threads, the same result.
+Eigen::MatrixXd solve_columns(const Eigen::SimplicialLDLT<SpMat>& solver, const Eigen::MatrixXd& rhs) {
+  Eigen::MatrixXd out(rhs.rows(), rhs.cols());
+  parallel_halves(static_cast<std::size_t>(rhs.cols()), 1, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t c = begin; c < end; ++c) {
+      const auto col = static_cast<Eigen::Index>(c);
+      out.col(col) = solver.solve(rhs.col(col));
+    }
+  });
+  return out;
 }
 
 // Cuts back the approach of every facing-wall pair (see the header). Rows of
@@ -264,7 +285,9 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
     int quiet = 0;
     r.converged = false;
     for (int it = 0; it < p.max_iterations; ++it) {
-      ForceField f = compute_force(surface, x, target, image, p);
+      // The normals at x serve the forces and, below, the convergence test.
+      const Points normals = area_weighted_normals(surface, x);
+      ForceField f = compute_force(x, normals, target, image, p);
       smooth_along_surface(&f.force, neighbours, smoothing_passes);
       Eigen::MatrixXd rhs = u;
       for (std::size_t v = 0; v < n; ++v) {
@@ -275,7 +298,7 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
       }
       rhs = mass.asDiagonal() * rhs;
       if (level > 0) rhs += base_term;
-      Eigen::MatrixXd u_new = solver.solve(rhs);
+      Eigen::MatrixXd u_new = solve_columns(solver, rhs);
       if (contacts) keep_walls_apart(u_new, *contacts, p.contact_fraction);
       if (!u_new.allFinite()) {
         u = u_new;
@@ -293,7 +316,6 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
       // (normal forces give the membrane no tangential pull, so smooth tangential
       // modes decay only at the rate 1/(1 + alpha k^2)); it slides vertices along
       // the surface without changing it.
-      const Points normals = area_weighted_normals(surface, x);
       double update = 0;
       for (std::size_t v = 0; v < n; ++v)
         update = std::max(update, std::abs(normals[v].dot((u_new.row(v) - u.row(v)).transpose())));

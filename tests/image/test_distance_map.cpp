@@ -50,6 +50,28 @@ TEST(DistanceMap, MatchesBruteForceOnRandomAnisotropicMasks) {
   }
 }
 
+// The capped map is the full map up to the cap, and +infinity beyond it.
+TEST(DistanceMap, CappedSquaredDistanceIsExactUpToTheCapAndInfiniteBeyond) {
+  const Grid3 g = aniso_grid({23, 19, 11}, {0.9, 1.1, 2.5});
+  for (double fill : {0.003, 0.02, 0.3})
+    for (double cap_mm2 : {1.0, 6.76, 16.0}) {
+      const Mask m = random_mask(g, fill, 7);
+      const ImageF full = squared_distance_to_mask_mm2(m), capped = squared_distance_to_mask_mm2(m, cap_mm2);
+      std::size_t beyond = 0;
+      for (std::size_t v = 0; v < full.voxels.size(); ++v) {
+        if (full.voxels[v] <= cap_mm2) {
+          ASSERT_EQ(capped.voxels[v], full.voxels[v]) << v;
+        } else {
+          ASSERT_TRUE(std::isinf(capped.voxels[v])) << v;
+          ++beyond;
+        }
+      }
+      if (fill < 0.01) {
+        EXPECT_GT(beyond, 0u);
+      }
+    }
+}
+
 TEST(DistanceMap, EmptyMaskIsInfinite) {
   const Mask m(aniso_grid({4, 4, 4}, {1, 1, 1}), 0);
   for (float v : distance_to_mask_mm(m).voxels) EXPECT_TRUE(std::isinf(v));

@@ -214,6 +214,26 @@ TEST(Morphology, DilateAndErodeAgreeWithTheDefinitionOnMasksInAPartOfTheGrid) {
   EXPECT_EQ(count_nonzero(erode(empty, 2.0)), 0u);
 }
 
+// Solid masks (most voxels deep inside, whose distances the dilation and
+// erosion take from the mask's boundary alone): a ball and a slab with a
+// hole, against the definition.
+TEST(Morphology, DilateAndErodeOfSolidMasksAgreeWithTheDefinition) {
+  const Eigen::Vector3d sp(0.9, 1.1, 2.5);
+  Mask ball(grid({24, 20, 10}, sp), 0), slab(grid({24, 20, 10}, sp), 0);
+  for (int k = 0; k < 10; ++k)
+    for (int j = 0; j < 20; ++j)
+      for (int i = 0; i < 24; ++i) {
+        const Eigen::Vector3d x((i - 11.5) * sp[0], (j - 9.5) * sp[1], (k - 4.5) * sp[2]);
+        ball.at(i, j, k) = x.norm() < 9.0;
+        slab.at(i, j, k) = k >= 2 && k <= 7 && !(std::abs(i - 12) <= 2 && std::abs(j - 10) <= 2 && k == 4);
+      }
+  for (const Mask* m : {&ball, &slab})
+    for (const double r : {1.0, 2.6, 5.5}) {
+      EXPECT_EQ(dilate(*m, r).voxels, by_definition(*m, r, true).voxels) << r;
+      EXPECT_EQ(erode(*m, r).voxels, by_definition(*m, r, false).voxels) << r;
+    }
+}
+
 TEST(Morphology, LabelsThresholdAndStats) {
   LabelImage lab(grid({5, 4, 3}, {2, 1, 1}), 0);
   lab.at(1, 1, 1) = 2;
