@@ -253,7 +253,8 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
     if (covered[v]) rest[v] = (field.vectors[v].cast<double>() - affine(i, j, k)).cast<float>();
   });
   const Mask region = brain_region(grid, covered);
-  const ImageF distance = distance_to_mask_mm(region);
+  // Beyond the blend and the relaxed band the distance decides nothing.
+  const ImageF distance = distance_to_mask_mm(region, std::max(params.blend_distance_mm, params.relax_band_mm));
   std::vector<std::uint32_t> free_voxels, relax_voxels;
   std::vector<float> weight(grid.voxel_count(), 0.f);
   for (std::size_t v = 0; v < grid.voxel_count(); ++v) {

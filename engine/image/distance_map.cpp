@@ -160,6 +160,12 @@ ImageF distance_to_mask_mm(const Mask& mask) {
   return d;
 }
 
+ImageF distance_to_mask_mm(const Mask& mask, double cap_mm) {
+  ImageF d = squared_distance_to_mask_mm2(mask, cap_mm * cap_mm);
+  for (float& v : d.voxels) v = std::sqrt(v);
+  return d;
+}
+
 ImageF signed_distance_mm(const Mask& mask) {
   const std::uint8_t* m = mask.voxels.data();
   ImageF out = squared_edt(mask.grid, [m](std::size_t i) { return m[i] != 0; });

@@ -12,6 +12,10 @@ namespace brainshift {
 // +infinity everywhere when the mask is empty.
 ImageF distance_to_mask_mm(const Mask& mask);
 
+// The same up to cap_mm (exact there), +infinity beyond: for a caller that
+// needs the distance only that far.
+ImageF distance_to_mask_mm(const Mask& mask, double cap_mm);
+
 // Squared distances (mm^2), the same map before the square root; useful for
 // thresholding without sqrt rounding.
 ImageF squared_distance_to_mask_mm2(const Mask& mask);

@@ -69,6 +69,11 @@ TEST(DistanceMap, CappedSquaredDistanceIsExactUpToTheCapAndInfiniteBeyond) {
       if (fill < 0.01) {
         EXPECT_GT(beyond, 0u);
       }
+      const ImageF mm = distance_to_mask_mm(m), capped_mm = distance_to_mask_mm(m, std::sqrt(cap_mm2));
+      for (std::size_t v = 0; v < mm.voxels.size(); ++v)
+        if (full.voxels[v] <= cap_mm2) {
+          ASSERT_EQ(capped_mm.voxels[v], mm.voxels[v]) << v;
+        }
     }
 }
 
