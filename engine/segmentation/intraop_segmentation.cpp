@@ -148,7 +148,7 @@ struct OpenFluid {
 OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
                      const Mask& brain, const Mask& ventricle, const Mask& carried_ventricles,
                      const Mask& carried_outline, double max_sulcus_half_width_mm, double max_cap_mm,
-                     double min_gap_ml) {
+                     double min_gap_ml, double max_median_toward_turn) {
   // Fluid: a bias-corrected intensity likelier under the ventricles' class
   // than under any parenchyma class (each class's density alone, not its
   // share: however rare a tissue of the brain, the intensity is compared
@@ -237,7 +237,7 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
         out.components.push_back({{"ml", static_cast<double>(size[c]) * voxel_ml}, {"ventricles_mm", near[c]},
                                   {"max_depth_mm", deep[c]}, {"centroid_mm", {m[0], m[1], m[2]}},
                                   {"median_intensity", median}, {"median_toward_fluid_turn", toward_turn}});
-        if (toward_turn >= 0.5) {
+        if (toward_turn >= max_median_toward_turn) {
           out.partial_fluid_ml += static_cast<double>(size[c]) * voxel_ml;
           open_to_outside[c] = false;
         }
@@ -431,7 +431,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   nlohmann::json open_components = nlohmann::json::array();
   if (params.max_sulcus_half_width_mm > 0) {
     OpenFluid found = open_fluid(image_box, em.bias, em.classes, brain, ventricle, ventricle_box, outline_box,
-                                 params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml);
+                                 params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml,
+                                 params.max_gap_median_toward_fluid_turn);
     open_components = found.components;
     moved_out = std::move(found.moved);
     if (gap_found_before) keep_gaps_found_before(moved_out, *gap_found_before, box, params.max_sulcus_half_width_mm);

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <random>
 
 #include "image/image_stats.h"
@@ -405,6 +406,14 @@ TEST(TissueEm, PartialVolumeCortexIsNotASinkingsGap) {
   // The gap under the craniotomy still goes out.
   EXPECT_GT(static_cast<double>(gap_out) / static_cast<double>(gap), 0.9) << seg.report.dump();
   EXPECT_GT(seg.open_fluid_ml, 0.5 * static_cast<double>(gap) * voxel_ml);
+  // Without the body-of-fluid condition the layer goes out with the gap.
+  p.max_gap_median_toward_fluid_turn = std::numeric_limits<double>::infinity();
+  const IntraopSegmentation without = segment_intraop(head.image, prior, 1, {2}, p);
+  ASSERT_TRUE(without.refusal.empty()) << without.refusal;
+  std::size_t patch_in_without = 0;
+  for (std::size_t v = 0; v < g.voxel_count(); ++v) patch_in_without += patch.voxels[v] && without.labels.voxels[v] != 0;
+  EXPECT_LT(static_cast<double>(patch_in_without) / static_cast<double>(count_nonzero(patch)), 0.5)
+      << "the failure the condition fixes no longer reproduces";
 }
 
 // Ventricles that moved farther than they are thick (the brain's deep shift
