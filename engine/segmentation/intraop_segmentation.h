@@ -77,8 +77,8 @@ struct SegmentationParameters {
   // whose voxels hold part fluid passes the test only where noise carries
   // a voxel across the turn, and its median lies at the turn (1). Halfway
   // between the two (docs/DESIGN.md "Automatic intraop segmentation" item
-  // 7; measured: gaps, cavities and cisterns -0.81..0.13, a partial-volume
-  // sheet of cortex 0.73). A value of 1 or more: off.
+  // 7; measured: gaps, cavities and cisterns -0.81..0.19, sheets of
+  // partial-volume cortex 0.53-0.73). Infinity: off.
   double max_gap_median_toward_fluid_turn = 0.5;
   // The ventricular fluid class must stand this many pooled sd's from the
   // farthest major parenchyma class, or the image cannot show the ventricles
