@@ -96,6 +96,40 @@ double log_density(const GaussianClass& g, double x) {
   return -std::log(g.sd) - 0.5 * z * z;
 }
 
+// The fluid test of a bias-corrected intensity: likelier under the
+// ventricles' class than under any parenchyma class (each class's density
+// alone, not its share: however rare a tissue of the brain, the intensity is
+// compared with it).
+bool likelier_fluid(const std::vector<GaussianClass>& classes, double x) {
+  double best_fluid = -std::numeric_limits<double>::infinity(), best_tissue = best_fluid;
+  for (const auto& c : classes) {
+    if (c.tissue == Tissue::ventricle) best_fluid = std::max(best_fluid, log_density(c, x));
+    else if (c.tissue == Tissue::parenchyma) best_tissue = std::max(best_tissue, log_density(c, x));
+  }
+  return best_fluid > best_tissue;
+}
+
+// Where the fluid test turns: from the fluid class's mean toward the nearest
+// parenchyma class's, the first intensity the test no longer calls fluid.
+// {fluid mean, boundary}; equal when the classes give no such point.
+std::pair<double, double> fluid_boundary(const std::vector<GaussianClass>& classes) {
+  const GaussianClass* fluid = nullptr;
+  for (const auto& c : classes)
+    if (c.tissue == Tissue::ventricle && (!fluid || c.weight > fluid->weight)) fluid = &c;
+  if (!fluid) return {0, 0};
+  const GaussianClass* tissue = nullptr;
+  for (const auto& c : classes)
+    if (c.tissue == Tissue::parenchyma && (!tissue || std::abs(c.mean - fluid->mean) < std::abs(tissue->mean - fluid->mean)))
+      tissue = &c;
+  if (!tissue) return {fluid->mean, fluid->mean};
+  const int steps = 1000;
+  for (int s = 1; s <= steps; ++s) {
+    const double x = fluid->mean + (tissue->mean - fluid->mean) * s / steps;
+    if (!likelier_fluid(classes, x)) return {fluid->mean, x};
+  }
+  return {fluid->mean, tissue->mean};
+}
+
 // Fluid labelled parenchyma that is thicker than any sulcus (it survives an
 // opening of radius max_sulcus_half_width_mm) and lies open to what is
 // outside the brain (at most a cap, drop_beyond_open_fluid, between) is not
@@ -108,12 +142,13 @@ double log_density(const GaussianClass& g, double x) {
 struct OpenFluid {
   Mask moved;                          // the gap's fluid, moved out of the brain
   double next_to_ventricles_ml = 0;    // thick fluid left in: continuous with the ventricles
+  double partial_fluid_ml = 0;         // left in: its median nearer the fluid test's turn than the fluid
   nlohmann::json components = nlohmann::json::array();  // diagnostic: each open component >= min_gap_ml
 };
 OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
                      const Mask& brain, const Mask& ventricle, const Mask& carried_ventricles,
                      const Mask& carried_outline, double max_sulcus_half_width_mm, double max_cap_mm,
-                     double min_gap_ml) {
+                     double min_gap_ml, double max_median_toward_turn) {
   // Fluid: a bias-corrected intensity likelier under the ventricles' class
   // than under any parenchyma class (each class's density alone, not its
   // share: however rare a tissue of the brain, the intensity is compared
@@ -127,14 +162,7 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
   for (std::size_t v = 0; v < fluid.voxels.size(); ++v) {
     outside.voxels[v] = !outside.voxels[v];
     if (!brain.voxels[v] || ventricle.voxels[v]) continue;
-    const double x = image.voxels[v] / bias[v];
-    double best_fluid = -std::numeric_limits<double>::infinity(), best_tissue = best_fluid;
-    for (std::size_t c = 0; c < classes.size(); ++c) {
-      if (classes[c].tissue == Tissue::ventricle) best_fluid = std::max(best_fluid, log_density(classes[c], x));
-      else if (classes[c].tissue == Tissue::parenchyma)
-        best_tissue = std::max(best_tissue, log_density(classes[c], x));
-    }
-    fluid.voxels[v] = best_fluid > best_tissue;
+    fluid.voxels[v] = likelier_fluid(classes, image.voxels[v] / bias[v]);
   }
   // Noise makes single voxels of a fluid layer look like tissue (a few per
   // cent at the lowest SNR), and each such hole would erode the opening by
@@ -170,7 +198,7 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
   std::vector<bool> ventricular(size.size(), false);
   for (std::size_t v = 0; v < thick.voxels.size(); ++v)
     if (thick.voxels[v] && near_ventricles.voxels[v]) ventricular[static_cast<std::size_t>(components.voxels[v])] = true;
-  OpenFluid out{Mask(brain.grid, 0), 0, nlohmann::json::array()};
+  OpenFluid out{Mask(brain.grid, 0), 0, 0, nlohmann::json::array()};
   {
     const ImageF to_ventricles = distance_to_mask_mm(any_ventricle);
     Mask carried_outside = carried_outline;
@@ -178,6 +206,7 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
     const ImageF depth = distance_to_mask_mm(carried_outside);
     std::vector<double> near(size.size(), 1e9), deep(size.size(), 0);
     std::vector<Eigen::Vector3d> sum(size.size(), Eigen::Vector3d::Zero());
+    std::vector<std::vector<float>> intensities(size.size());
     const Grid3& g = brain.grid;
     for (int k = 0; k < g.dims[2]; ++k)
       for (int j = 0; j < g.dims[1]; ++j)
@@ -188,12 +217,30 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
           near[c] = std::min<double>(near[c], to_ventricles.voxels[v]);
           deep[c] = std::max<double>(deep[c], depth.voxels[v]);
           sum[c] += g.world_mm(i, j, k);
+          intensities[c].push_back(image.voxels[v] / bias[v]);
         }
+    // A gap is a body of fluid: its intensities lie about the fluid's, and
+    // their median nearer the fluid class's mean than where the fluid test
+    // turns. Tissue whose voxels hold part fluid (a cortex with sulcal fluid
+    // finer than a voxel, which every outline counts as brain) passes the
+    // test only where noise takes it across: its median lies at the turn
+    // (docs/DESIGN.md "Automatic intraop segmentation", item 7).
+    const auto [fluid_mean, turn] = fluid_boundary(classes);
     for (std::size_t c = 1; c < size.size(); ++c)
       if (open_to_outside[c]) {
         const Eigen::Vector3d m = sum[c] / static_cast<double>(size[c]);
+        auto& x = intensities[c];
+        std::nth_element(x.begin(), x.begin() + static_cast<std::ptrdiff_t>(x.size() / 2), x.end());
+        const double median = x[x.size() / 2];
+        // 0 at the fluid class's mean, 1 where the fluid test turns.
+        const double toward_turn = turn != fluid_mean ? (median - fluid_mean) / (turn - fluid_mean) : 0.0;
         out.components.push_back({{"ml", static_cast<double>(size[c]) * voxel_ml}, {"ventricles_mm", near[c]},
-                                  {"max_depth_mm", deep[c]}, {"centroid_mm", {m[0], m[1], m[2]}}});
+                                  {"max_depth_mm", deep[c]}, {"centroid_mm", {m[0], m[1], m[2]}},
+                                  {"median_intensity", median}, {"median_toward_fluid_turn", toward_turn}});
+        if (toward_turn >= max_median_toward_turn) {
+          out.partial_fluid_ml += static_cast<double>(size[c]) * voxel_ml;
+          open_to_outside[c] = false;
+        }
       }
   }
   for (std::size_t c = 1; c < size.size(); ++c)
@@ -380,16 +427,18 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   keep_carried_ventricles(brain, ventricle, ventricle_box);
   std::array<std::vector<float>, kTissues> posterior = em.posterior;
   Mask moved_out(g, 0), gap_fluid(g, 0);
-  double open_fluid_ml = 0, ventricular_fluid_ml = 0;
+  double open_fluid_ml = 0, ventricular_fluid_ml = 0, partial_fluid_ml = 0;
   nlohmann::json open_components = nlohmann::json::array();
   if (params.max_sulcus_half_width_mm > 0) {
     OpenFluid found = open_fluid(image_box, em.bias, em.classes, brain, ventricle, ventricle_box, outline_box,
-                                 params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml);
+                                 params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml,
+                                 params.max_gap_median_toward_fluid_turn);
     open_components = found.components;
     moved_out = std::move(found.moved);
     if (gap_found_before) keep_gaps_found_before(moved_out, *gap_found_before, box, params.max_sulcus_half_width_mm);
     gap_fluid = moved_out;
     ventricular_fluid_ml = found.next_to_ventricles_ml;
+    partial_fluid_ml = found.partial_fluid_ml;
     for (std::size_t v = 0; v < moved_out.voxels.size(); ++v) {
       if (!moved_out.voxels[v]) continue;
       brain.voxels[v] = 0;
@@ -458,6 +507,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["open_fluid_ml"] = open_fluid_ml;
   result.report["beyond_open_fluid_ml"] = volume_ml(moved_out) - open_fluid_ml;
   result.report["open_fluid_next_to_ventricles_ml"] = ventricular_fluid_ml;
+  result.report["open_fluid_partial_volume_ml"] = partial_fluid_ml;
   result.report["open_fluid_components"] = open_components;
   result.report["ventricles_ml"] = volume_ml(ventricle);
   const bool classes_apart = !std::isfinite(class_contrast) || class_contrast >= params.min_fluid_contrast_sd;

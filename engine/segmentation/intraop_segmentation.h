@@ -69,6 +69,17 @@ struct SegmentationParameters {
   // and sylvian cisterns, thick fluid open to the outside as well, hold a
   // few ml each and stay in the brain's outline as every outline counts them.
   double min_gap_ml = 5;
+  // And that fluid is a body of fluid: the median of its bias-corrected
+  // intensities lies less than this share of the way from the fluid class's
+  // mean to where the fluid test turns (the nearest parenchyma class's side).
+  // Fluid throughout has its median at the fluid's intensity (0, or beyond
+  // it: the class also holds the ventricles' partial-volume wall); tissue
+  // whose voxels hold part fluid passes the test only where noise carries
+  // a voxel across the turn, and its median lies at the turn (1). Halfway
+  // between the two (docs/DESIGN.md "Automatic intraop segmentation" item
+  // 7; measured: gaps, cavities and cisterns -0.81..0.19, sheets of
+  // partial-volume cortex 0.53-0.73). Infinity: off.
+  double max_gap_median_toward_fluid_turn = 0.5;
   // The ventricular fluid class must stand this many pooled sd's from the
   // farthest major parenchyma class, or the image cannot show the ventricles
   // (a contrast with no fluid/tissue difference, or noise far beyond any

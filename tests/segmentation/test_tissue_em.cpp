@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <random>
 
 #include "image/image_stats.h"
@@ -350,6 +351,69 @@ TEST(TissueEm, AHornThePriorLacksIsNotASinkingsGap) {
   // At this contrast the grey class also takes the 3 mm of fluid around the
   // brain (as in FluidUnderASunkenCortexIsOutsideTheBrain): about 0.91.
   EXPECT_GT(outline_dice(seg.labels, head.truth), 0.9) << seg.report.dump();
+}
+
+// Cortex whose voxels hold part fluid (sulcal fluid finer than a voxel: on
+// the robustness suite's frontal_sinking_10mm_las, 9 ml under the lateral
+// temporal surface of the other hemisphere, median intensity 55 where the
+// gap's fluid is 32 and the grey-matter class 71; docs/PERFORMANCE.md
+// 12.13): each of its voxels passes the fluid test where noise takes it
+// across, closing bridges the rest, and it was thick, open and large enough
+// for a sinking's gap; it and its rim went out of the brain. A gap is a body
+// of fluid whose median lies at the fluid's intensity: the partial-volume
+// layer stays in the brain, and the sunken cortex's gap still goes out.
+TEST(TissueEm, PartialVolumeCortexIsNotASinkingsGap) {
+  Intensities in;
+  in.gm = 50;
+  Synthetic head = make_head(in, 5.0, 0.2, 0.0, {1.2, 1.2, 2.0}, 15.0);
+  const Synthetic before = make_head(in, 5.0, 0.2);
+  // Three quarters fluid in every voxel: at this contrast the grey class
+  // stretches over the fluid's partial volume (37 +- 14) and the fluid test
+  // turns at about 33, so the layer's voxels (31 +- 5) straddle the turn.
+  const float layer = in.fluid + 0.25f * (in.gm - in.fluid);
+  std::mt19937 rng(13);
+  std::normal_distribution<float> noise(0.f, 5.f);
+  const Grid3& g = head.truth.grid;
+  Mask patch(g, 0);
+  const Eigen::Vector3d semi(56, 66, 48);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d at = g.world_mm(i, j, k);
+        const double depth_mm = (1 - ellipsoid(at, {0, 0, 0}, semi)) * 50;
+        if (head.truth.at(i, j, k) != 1 || at.x() < 0 || std::abs(at.y()) > 22 || std::abs(at.z()) > 18) continue;
+        if (depth_mm < 2 || depth_mm > 10) continue;
+        patch.at(i, j, k) = 1;
+        head.image.at(i, j, k) = std::max(0.f, head.true_bias.at(i, j, k) * layer + noise(rng));
+      }
+  const double voxel_ml = 1.2 * 1.2 * 2.0 / 1000;
+  const double patch_ml = static_cast<double>(count_nonzero(patch)) * voxel_ml;
+  SegmentationParameters p = params_for_test();
+  ASSERT_GT(patch_ml, 2 * p.min_gap_ml) << "the layer must hold more than a gap's minimum";
+  const LabelImage prior = misregistered(before.truth, {2, -2, 1}, 1.0);
+  const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, p);
+  ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+  std::size_t gap = 0, gap_out = 0, patch_in = 0;
+  for (std::size_t v = 0; v < g.voxel_count(); ++v) {
+    const bool in_gap = before.truth.voxels[v] != 0 && head.truth.voxels[v] == 0;
+    gap += in_gap;
+    gap_out += in_gap && seg.labels.voxels[v] == 0;
+    patch_in += patch.voxels[v] && seg.labels.voxels[v] != 0;
+  }
+  // The rule saw the layer (thick, open, large enough) and left it in.
+  EXPECT_GT(seg.report["open_fluid_partial_volume_ml"].get<double>(), p.min_gap_ml) << seg.report.dump();
+  EXPECT_GT(static_cast<double>(patch_in) / static_cast<double>(count_nonzero(patch)), 0.95) << seg.report.dump();
+  // The gap under the craniotomy still goes out.
+  EXPECT_GT(static_cast<double>(gap_out) / static_cast<double>(gap), 0.9) << seg.report.dump();
+  EXPECT_GT(seg.open_fluid_ml, 0.5 * static_cast<double>(gap) * voxel_ml);
+  // Without the body-of-fluid condition the layer goes out with the gap.
+  p.max_gap_median_toward_fluid_turn = std::numeric_limits<double>::infinity();
+  const IntraopSegmentation without = segment_intraop(head.image, prior, 1, {2}, p);
+  ASSERT_TRUE(without.refusal.empty()) << without.refusal;
+  std::size_t patch_in_without = 0;
+  for (std::size_t v = 0; v < g.voxel_count(); ++v) patch_in_without += patch.voxels[v] && without.labels.voxels[v] != 0;
+  EXPECT_LT(static_cast<double>(patch_in_without) / static_cast<double>(count_nonzero(patch)), 0.5)
+      << "the failure the condition fixes no longer reproduces";
 }
 
 // Ventricles that moved farther than they are thick (the brain's deep shift
