@@ -55,25 +55,6 @@ std::vector<LabelDice> dice_per_label(const LabelImage& a, const LabelImage& b,
   return result;
 }
 
-Mask boundary_voxels(const Mask& mask) {
-  const Grid3& g = mask.grid;
-  Mask out(g, 0);
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        if (!mask.at(i, j, k)) continue;
-        const std::array<std::array<int, 3>, 6> nb{{{i - 1, j, k}, {i + 1, j, k}, {i, j - 1, k},
-                                                   {i, j + 1, k}, {i, j, k - 1}, {i, j, k + 1}}};
-        for (const auto& n : nb) {
-          if (g.contains(n[0], n[1], n[2]) && !mask.at(n[0], n[1], n[2])) {
-            out.at(i, j, k) = 1;
-            break;
-          }
-        }
-      }
-  return out;
-}
-
 SurfaceDistance surface_distance(const Mask& a, const Mask& b) {
   require_same_grid(a.grid, b.grid, "surface_distance");
   const Mask ba = boundary_voxels(a), bb = boundary_voxels(b);

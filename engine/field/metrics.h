@@ -40,7 +40,6 @@ struct SurfaceDistance {
 };
 // InputError when either mask has no boundary voxel (distance undefined).
 SurfaceDistance surface_distance(const Mask& a, const Mask& b);
-Mask boundary_voxels(const Mask& mask);
 
 // ---- Jacobian of x -> x + u(x)
 // det(I + grad u) with grad u from central differences in voxel index space

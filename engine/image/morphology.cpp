@@ -162,6 +162,21 @@ Mask fill_holes(const Mask& mask) {
   return out;
 }
 
+Mask boundary_voxels(const Mask& mask) {
+  Mask out(mask.grid, 0);
+  const auto& n = mask.grid.dims;
+  for (int k = 0; k < n[2]; ++k)
+    for (int j = 0; j < n[1]; ++j)
+      for (int i = 0; i < n[0]; ++i) {
+        if (!mask.at(i, j, k)) continue;
+        const bool edge = (i > 0 && !mask.at(i - 1, j, k)) || (i + 1 < n[0] && !mask.at(i + 1, j, k)) ||
+                          (j > 0 && !mask.at(i, j - 1, k)) || (j + 1 < n[1] && !mask.at(i, j + 1, k)) ||
+                          (k > 0 && !mask.at(i, j, k - 1)) || (k + 1 < n[2] && !mask.at(i, j, k + 1));
+        out.at(i, j, k) = edge;
+      }
+  return out;
+}
+
 namespace {
 
 // op (a dilation or erosion by radius_mm) on the mask's bounding box grown by
@@ -189,31 +204,16 @@ Mask within_reach(const Mask& mask, double radius_mm, Op op) {
   return out;
 }
 
-// The voxels of `features` with a 6-neighbour in the grid that is not one.
-// The nearest feature to any other voxel is such a voxel: from a feature all
-// of whose neighbours are features, one step toward the point is a feature
-// and nearer. So distances from them equal distances from all of `features`
-// everywhere but on the features themselves, and lines through the inside of
-// a large mask are left infinite below (no work).
-Mask feature_boundary(const Mask& features) {
-  Mask out(features.grid, 0);
-  const auto& n = features.grid.dims;
-  for (int k = 0; k < n[2]; ++k)
-    for (int j = 0; j < n[1]; ++j)
-      for (int i = 0; i < n[0]; ++i) {
-        if (!features.at(i, j, k)) continue;
-        const bool edge = (i > 0 && !features.at(i - 1, j, k)) || (i + 1 < n[0] && !features.at(i + 1, j, k)) ||
-                          (j > 0 && !features.at(i, j - 1, k)) || (j + 1 < n[1] && !features.at(i, j + 1, k)) ||
-                          (k > 0 && !features.at(i, j, k - 1)) || (k + 1 < n[2] && !features.at(i, j, k + 1));
-        out.at(i, j, k) = edge;
-      }
-  return out;
-}
-
+// The nearest feature to any voxel that is not one is a boundary voxel:
+// from a feature whose neighbours are all features, one step toward the
+// point is a feature and nearer. So distances from boundary_voxels equal
+// distances from the whole mask everywhere but on the mask, and lines
+// through the inside of a large mask are left infinite by the capped map
+// (no work).
 // Dilation: the mask, and every voxel within the radius of its boundary; the
 // distance map is needed only up to the radius (squared_distance_to_mask_mm2's cap).
 Mask dilate_whole(const Mask& mask, double r2) {
-  const ImageF d2 = squared_distance_to_mask_mm2(feature_boundary(mask), r2);
+  const ImageF d2 = squared_distance_to_mask_mm2(boundary_voxels(mask), r2);
   Mask out(mask.grid, 0);
   for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = mask.voxels[i] || d2.voxels[i] <= r2;
   return out;
@@ -223,7 +223,7 @@ Mask dilate_whole(const Mask& mask, double r2) {
 Mask erode_whole(const Mask& mask, double r2) {
   Mask background(mask.grid, 0);
   for (std::size_t i = 0; i < mask.voxels.size(); ++i) background.voxels[i] = mask.voxels[i] == 0;
-  const ImageF d2 = squared_distance_to_mask_mm2(feature_boundary(background), r2);
+  const ImageF d2 = squared_distance_to_mask_mm2(boundary_voxels(background), r2);
   Mask out(mask.grid, 0);
   for (std::size_t i = 0; i < out.voxels.size(); ++i) out.voxels[i] = mask.voxels[i] && d2.voxels[i] > r2;
   return out;

@@ -27,6 +27,10 @@ Mask largest_component(const Mask& mask, int connectivity);
 // Background not 6-connected to the image border becomes foreground.
 Mask fill_holes(const Mask& mask);
 
+// The mask's voxels with a 6-neighbour inside the image that is not in the
+// mask: its one-voxel inner boundary.
+Mask boundary_voxels(const Mask& mask);
+
 // Voxels within radius_mm (centre to centre) of the mask.
 Mask dilate(const Mask& mask, double radius_mm);
 // Voxels farther than radius_mm from every background voxel.

@@ -89,24 +89,7 @@ std::vector<std::uint16_t> ventricle_labels(const LabelTable& table) { return ta
 // The inner band one voxel inside the outline's surface.
 Mask inner_surface_band(const Mask& outline) {
   const double h = outline.grid.spacing_mm().minCoeff();
-  const Mask inner = erode(outline, 1.01 * h);
-  Mask band(outline.grid, 0);
-  const auto& n = outline.grid.dims;
-  for (int k = 0; k < n[2]; ++k)
-    for (int j = 0; j < n[1]; ++j)
-      for (int i = 0; i < n[0]; ++i) {
-        if (!inner.at(i, j, k)) continue;
-        const int p[3] = {i, j, k};
-        bool edge = false;
-        for (int a = 0; a < 3 && !edge; ++a)
-          for (int s = -1; s <= 1 && !edge; s += 2) {
-            int q[3] = {p[0], p[1], p[2]};
-            q[a] += s;
-            edge = outline.grid.contains(q[0], q[1], q[2]) && !inner.at(q[0], q[1], q[2]);
-          }
-        band.at(i, j, k) = edge;
-      }
-  return band;
+  return boundary_voxels(erode(outline, 1.01 * h));
 }
 
 // What the gates measure of the preop carried by the head placement: the
