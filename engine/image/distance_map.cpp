@@ -144,27 +144,20 @@ ImageF squared_edt(const Grid3& g, IsFeature&& is_feature, double cap_mm2 = kInf
 
 }  // namespace
 
-ImageF squared_distance_to_mask_mm2(const Mask& mask) {
-  const std::uint8_t* m = mask.voxels.data();
-  return squared_edt(mask.grid, [m](std::size_t i) { return m[i] != 0; });
-}
-
 ImageF squared_distance_to_mask_mm2(const Mask& mask, double cap_mm2) {
   const std::uint8_t* m = mask.voxels.data();
   return squared_edt(mask.grid, [m](std::size_t i) { return m[i] != 0; }, cap_mm2);
 }
 
-ImageF distance_to_mask_mm(const Mask& mask) {
-  ImageF d = squared_distance_to_mask_mm2(mask);
-  for (float& v : d.voxels) v = std::sqrt(v);
-  return d;
-}
+ImageF squared_distance_to_mask_mm2(const Mask& mask) { return squared_distance_to_mask_mm2(mask, kInf); }
 
 ImageF distance_to_mask_mm(const Mask& mask, double cap_mm) {
   ImageF d = squared_distance_to_mask_mm2(mask, cap_mm * cap_mm);
   for (float& v : d.voxels) v = std::sqrt(v);
   return d;
 }
+
+ImageF distance_to_mask_mm(const Mask& mask) { return distance_to_mask_mm(mask, kInf); }
 
 ImageF signed_distance_mm(const Mask& mask) {
   const std::uint8_t* m = mask.voxels.data();
