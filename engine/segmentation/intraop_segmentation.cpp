@@ -1,10 +1,12 @@
 #include "segmentation/intraop_segmentation.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "image/distance_map.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
@@ -307,22 +309,30 @@ void drop_beyond_open_fluid(Mask& brain, const Mask& ventricle, const Mask& move
     }
     return -1;
   };
-  Mask beyond(g, 0);
+  std::vector<std::array<int, 3>> rays;
   for (int k = 0; k < g.dims[2]; ++k)
     for (int j = 0; j < g.dims[1]; ++j)
       for (int i = 0; i < g.dims[0]; ++i) {
         const std::size_t v = g.index(i, j, k);
-        if (!brain.voxels[v] || ventricle.voxels[v] || !candidates.voxels[v]) continue;
-        const Eigen::Vector3d p(i, j, k);
-        const Eigen::Vector3d to_centre = centre_voxel - p;
-        const double length_mm = to_centre.cwiseProduct(spacing).norm();
-        if (length_mm < step_mm) continue;
-        const Eigen::Vector3d dir = to_centre * (step_mm / length_mm);
-        const int in = run(p, dir, steps, [&](std::size_t u) { return moved.voxels[u] != 0; });
-        if (in < 0) continue;
-        const int out = run(p, -dir, steps - in, [&](std::size_t u) { return !brain.voxels[u] && !moved.voxels[u]; });
-        if (out >= 0) beyond.voxels[v] = 1;
+        if (brain.voxels[v] && !ventricle.voxels[v] && candidates.voxels[v]) rays.push_back({i, j, k});
       }
+  // Each ray reads the masks and writes its own voxel: the two halves of the
+  // list side by side, the same voxels either way.
+  Mask beyond(g, 0);
+  parallel_halves(rays.size(), 4096, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t r = begin; r < end; ++r) {
+      const auto [i, j, k] = rays[r];
+      const Eigen::Vector3d p(i, j, k);
+      const Eigen::Vector3d to_centre = centre_voxel - p;
+      const double length_mm = to_centre.cwiseProduct(spacing).norm();
+      if (length_mm < step_mm) continue;
+      const Eigen::Vector3d dir = to_centre * (step_mm / length_mm);
+      const int in = run(p, dir, steps, [&](std::size_t u) { return moved.voxels[u] != 0; });
+      if (in < 0) continue;
+      const int out = run(p, -dir, steps - in, [&](std::size_t u) { return !brain.voxels[u] && !moved.voxels[u]; });
+      if (out >= 0) beyond.voxels[g.index(i, j, k)] = 1;
+    }
+  });
   for (std::size_t v = 0; v < brain.voxels.size(); ++v)
     if (beyond.voxels[v]) brain.voxels[v] = 0;
   // What is left of the cap where the gap thins out at its rim, and the falx
