@@ -30,6 +30,8 @@ using namespace brainshift;
 
 namespace {
 
+constexpr std::uint64_t kReseedStride = 1000;
+
 void emit(const nlohmann::json& record) {
   std::printf("%s\n", record.dump().c_str());
   std::fflush(stdout);
@@ -63,6 +65,18 @@ std::vector<HospitalCaseSpec> with_snr_sweep(const std::vector<HospitalCaseSpec>
       out.push_back(c);
     }
   return out;
+}
+
+// --reseed K: every case and subject drawn again from other seeds (another
+// head's reshaping, another deformation's detail and noise; the same kinds
+// of case), named CASE_reseedK: cases the engine was never tuned on.
+std::vector<HospitalCaseSpec> reseeded(std::vector<HospitalCaseSpec> suite, std::uint64_t k) {
+  if (k == 0) return suite;
+  for (auto& c : suite) {
+    c.deformation.seed += kReseedStride * k;
+    c.deformation.name += "_reseed" + std::to_string(k);
+  }
+  return suite;
 }
 
 // Every selected case without a record is marked unfinished, with its
@@ -159,10 +173,14 @@ int main(int argc, char** argv) {
                  "case named CASE_snrX): how the result falls off with the noise")
       ->delimiter(',')
       ->check(CLI::PositiveNumber);
+  std::uint64_t reseed = 0;
+  app.add_option("--reseed", reseed,
+                 "draw every selected case and subject again from other seeds (K > 0; cases named CASE_reseedK): "
+                 "a family of cases the engine was never tuned on");
   bool list_subjects = false;
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
-  const std::vector<HospitalCaseSpec> suite = with_snr_sweep(selected(cases, subjects), snr_sweep);
+  const std::vector<HospitalCaseSpec> suite = reseeded(with_snr_sweep(selected(cases, subjects), snr_sweep), reseed);
   if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {
     std::set<std::string> seen;
@@ -187,7 +205,7 @@ int main(int argc, char** argv) {
       failed_subject = spec.subject;  // until it is made
       session.reset();
       try {
-        subject = std::make_unique<Subject>(evaluation::make_named_subject(atlas, spec.subject));
+        subject = std::make_unique<Subject>(evaluation::make_named_subject(atlas, spec.subject, kReseedStride * reseed));
       } catch (const std::exception& e) {
         emit({{"record", "preop"}, {"subject", spec.subject}, {"status", "failed"}, {"note", std::string("subject: ") + e.what()}});
         subject.reset();

@@ -1,5 +1,6 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
@@ -258,4 +259,29 @@ TEST(Morphology, LabelsThresholdAndStats) {
 }
 
 }  // namespace
+TEST(Morphology, BoundingBoxIsTheExtentOfTheSetVoxels) {
+  // Sparse random masks (a few voxels, some rows empty, set voxels at the
+  // grid's edges) against the definition: the min and max index per axis.
+  std::uint32_t state = 12345;
+  const auto next = [&] { return state = state * 1664525u + 1013904223u; };
+  for (int trial = 0; trial < 50; ++trial) {
+    Mask m(grid({7 + trial % 5, 6, 4 + trial % 3}, {1, 1, 1}), 0);
+    const int n = 1 + static_cast<int>(next() % 6);
+    for (int s = 0; s < n; ++s) m.voxels[next() % m.voxels.size()] = 1;
+    VoxelBox want;
+    want.lo = {m.grid.dims[0], m.grid.dims[1], m.grid.dims[2]};
+    for (int k = 0; k < m.grid.dims[2]; ++k)
+      for (int j = 0; j < m.grid.dims[1]; ++j)
+        for (int i = 0; i < m.grid.dims[0]; ++i)
+          if (m.at(i, j, k)) {
+            want.lo = {std::min(want.lo[0], i), std::min(want.lo[1], j), std::min(want.lo[2], k)};
+            want.hi = {std::max(want.hi[0], i), std::max(want.hi[1], j), std::max(want.hi[2], k)};
+          }
+    const VoxelBox box = bounding_box_voxels(m);
+    ASSERT_FALSE(box.empty);
+    EXPECT_EQ(box.lo, want.lo) << "trial " << trial;
+    EXPECT_EQ(box.hi, want.hi) << "trial " << trial;
+  }
+}
+
 }  // namespace brainshift

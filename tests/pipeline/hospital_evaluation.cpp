@@ -14,9 +14,13 @@ AtlasInputs load_atlas_inputs(const std::string& atlas_cache, const std::string&
   return {std::move(atlas.t1), std::move(atlas.labels)};
 }
 
-Subject make_named_subject(const AtlasInputs& atlas, const std::string& name) {
-  for (const auto& s : hospital_subjects())
-    if (s.name == name) return make_subject(atlas.t1, atlas.labels, s);
+Subject make_named_subject(const AtlasInputs& atlas, const std::string& name, std::uint64_t seed_offset) {
+  for (auto s : hospital_subjects())
+    if (s.name == name) {
+      s.seed += seed_offset;
+      if (s.tumor) s.tumor->seed += seed_offset;
+      return make_subject(atlas.t1, atlas.labels, s);
+    }
   throw InputError("no hospital subject named '" + name + "'");
 }
 

@@ -18,7 +18,9 @@ AtlasInputs load_atlas_inputs(const std::string& atlas_cache,
                               const std::string& templates_dir = "/usr/share/mricron/templates");
 
 // The subject of hospital_subjects() with this name (InputError if none).
-Subject make_named_subject(const AtlasInputs& atlas, const std::string& name);
+// seed_offset > 0: the subject's random reshaping (and its tumour's shape)
+// drawn again from other seeds: another head of the same kind.
+Subject make_named_subject(const AtlasInputs& atlas, const std::string& name, std::uint64_t seed_offset = 0);
 
 // What the engine is given: segmentation + intraop T1, segmentation alone,
 // or the image alone (only where the engine accepts it).
