@@ -1,7 +1,9 @@
 #pragma once
 // Everything the intraop stages reuse from the preop phase, kept in memory on
 // rank 0 between scans (the FEM part also lives on the workers).
+#include <array>
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -55,6 +57,10 @@ struct WarmState {
   // The preop head (coarse grid), for placing the preop on a scan given
   // without labels (prepare_stage.h); made on the first such scan.
   std::optional<Mask> preop_head;
+  // The preop T1's median in its ventricles and in its parenchyma (fluid,
+  // tissue), for telling fluid the preop already held from a gap
+  // (segmentation::PreopSeen); made on the first scan given without labels.
+  std::optional<std::array<double, 2>> preop_fluid_tissue_medians;
 };
 
 // The preop phase on rank 0 (drives the workers through fem).

@@ -4,6 +4,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <optional>
 
 #include "core/errors.h"
 #include "core/parallel.h"
@@ -11,6 +12,7 @@
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "registration/boundary_samples.h"
+#include "registration/linear_sampler.h"
 
 namespace brainshift::segmentation {
 namespace {
@@ -145,12 +147,14 @@ struct OpenFluid {
   Mask moved;                          // the gap's fluid, moved out of the brain
   double next_to_ventricles_ml = 0;    // thick fluid left in: continuous with the ventricles
   double partial_fluid_ml = 0;         // left in: its median nearer the fluid test's turn than the fluid
+  double fluid_before_ml = 0;          // left in: fluid in the preop as well (a cistern, a fissure)
   nlohmann::json components = nlohmann::json::array();  // diagnostic: each open component >= min_gap_ml
 };
 OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
                      const Mask& brain, const Mask& ventricle, const Mask& carried_ventricles,
                      const Mask& carried_outline, double max_sulcus_half_width_mm, double max_cap_mm,
-                     double min_gap_ml, double max_median_toward_turn) {
+                     double min_gap_ml, double max_median_toward_turn, const PreopSeen* seen,
+                     const Mask& resectable, double min_preop_toward_tissue) {
   // Fluid: a bias-corrected intensity likelier under the ventricles' class
   // than under any parenchyma class (each class's density alone, not its
   // share: however rare a tissue of the brain, the intensity is compared
@@ -200,7 +204,8 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
   std::vector<bool> ventricular(size.size(), false);
   for (std::size_t v = 0; v < thick.voxels.size(); ++v)
     if (thick.voxels[v] && near_ventricles.voxels[v]) ventricular[static_cast<std::size_t>(components.voxels[v])] = true;
-  OpenFluid out{Mask(brain.grid, 0), 0, 0, nlohmann::json::array()};
+  OpenFluid out;
+  out.moved = Mask(brain.grid, 0);
   {
     const ImageF to_ventricles = distance_to_mask_mm(any_ventricle);
     Mask carried_outside = carried_outline;
@@ -208,8 +213,11 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
     const ImageF depth = distance_to_mask_mm(carried_outside);
     std::vector<double> near(size.size(), 1e9), deep(size.size(), 0);
     std::vector<Eigen::Vector3d> sum(size.size(), Eigen::Vector3d::Zero());
-    std::vector<std::vector<float>> intensities(size.size());
+    std::vector<std::vector<float>> intensities(size.size()), preop(size.size());
     const Grid3& g = brain.grid;
+    const bool use_preop = seen && seen->image && seen->tissue_median != seen->fluid_median;
+    std::optional<LinearSampler> preop_sampler;
+    if (use_preop) preop_sampler.emplace(*seen->image);
     for (int k = 0; k < g.dims[2]; ++k)
       for (int j = 0; j < g.dims[1]; ++j)
         for (int i = 0; i < g.dims[0]; ++i) {
@@ -220,6 +228,13 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
           deep[c] = std::max<double>(deep[c], depth.voxels[v]);
           sum[c] += g.world_mm(i, j, k);
           intensities[c].push_back(image.voxels[v] / bias[v]);
+          double before = 0;
+          if (!use_preop) continue;
+          if (!resectable.voxels.empty() && resectable.voxels[v]) before = seen->tissue_median;
+          else if (!preop_sampler->sample((seen->preop_from_intraop * g.world_mm(i, j, k).homogeneous()).head<3>(),
+                                          &before, nullptr))
+            continue;  // beyond the preop image: no evidence either way
+          preop[c].push_back(static_cast<float>(before));
         }
     // A gap is a body of fluid: its intensities lie about the fluid's, and
     // their median nearer the fluid class's mean than where the fluid test
@@ -236,11 +251,22 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
         const double median = x[x.size() / 2];
         // 0 at the fluid class's mean, 1 where the fluid test turns.
         const double toward_turn = turn != fluid_mean ? (median - fluid_mean) / (turn - fluid_mean) : 0.0;
-        out.components.push_back({{"ml", static_cast<double>(size[c]) * voxel_ml}, {"ventricles_mm", near[c]},
-                                  {"max_depth_mm", deep[c]}, {"centroid_mm", {m[0], m[1], m[2]}},
-                                  {"median_intensity", median}, {"median_toward_fluid_turn", toward_turn}});
+        nlohmann::json record = {{"ml", static_cast<double>(size[c]) * voxel_ml}, {"ventricles_mm", near[c]},
+                                 {"max_depth_mm", deep[c]}, {"centroid_mm", {m[0], m[1], m[2]}},
+                                 {"median_intensity", median}, {"median_toward_fluid_turn", toward_turn}};
+        // What the preop held there: 0 at its fluid, 1 at its tissue.
+        double preop_toward_tissue = 1;
+        if (auto& y = preop[c]; !y.empty()) {
+          std::nth_element(y.begin(), y.begin() + static_cast<std::ptrdiff_t>(y.size() / 2), y.end());
+          preop_toward_tissue = (y[y.size() / 2] - seen->fluid_median) / (seen->tissue_median - seen->fluid_median);
+          record["preop_toward_tissue"] = preop_toward_tissue;
+        }
+        out.components.push_back(record);
         if (toward_turn >= max_median_toward_turn) {
           out.partial_fluid_ml += static_cast<double>(size[c]) * voxel_ml;
+          open_to_outside[c] = false;
+        } else if (preop_toward_tissue < min_preop_toward_tissue) {
+          out.fluid_before_ml += static_cast<double>(size[c]) * voxel_ml;
           open_to_outside[c] = false;
         }
       }
@@ -405,7 +431,7 @@ nlohmann::json describe(const EmResult& em) {
 IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carried_labels,
                                     std::uint16_t brain_label, const std::vector<std::uint16_t>& ventricle_labels,
                                     const SegmentationParameters& params, const IntraopSegmentation* fitted,
-                                    const Mask* gap_found_before) {
+                                    const Mask* gap_found_before, const PreopSeen* preop_seen) {
   if (!image.grid.same_geometry(carried_labels.grid))
     throw InputError("segmentation: the image and the carried labels are on different grids");
   const Mask outline = outline_mask(carried_labels);
@@ -437,18 +463,23 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   keep_carried_ventricles(brain, ventricle, ventricle_box);
   std::array<std::vector<float>, kTissues> posterior = em.posterior;
   Mask moved_out(g, 0), gap_fluid(g, 0);
-  double open_fluid_ml = 0, ventricular_fluid_ml = 0, partial_fluid_ml = 0;
+  double open_fluid_ml = 0, ventricular_fluid_ml = 0, partial_fluid_ml = 0, fluid_before_ml = 0;
   nlohmann::json open_components = nlohmann::json::array();
   if (params.max_sulcus_half_width_mm > 0) {
+    const Mask resectable_box = preop_seen && preop_seen->resectable.grid.same_geometry(image.grid)
+                                    ? crop_to_box(preop_seen->resectable, box)
+                                    : Mask{};
     OpenFluid found = open_fluid(image_box, em.bias, em.classes, brain, ventricle, ventricle_box, outline_box,
                                  params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml,
-                                 params.max_gap_median_toward_fluid_turn);
+                                 params.max_gap_median_toward_fluid_turn, preop_seen, resectable_box,
+                                 params.min_gap_preop_toward_tissue);
     open_components = found.components;
     moved_out = std::move(found.moved);
     if (gap_found_before) keep_gaps_found_before(moved_out, *gap_found_before, box, params.max_sulcus_half_width_mm);
     gap_fluid = moved_out;
     ventricular_fluid_ml = found.next_to_ventricles_ml;
     partial_fluid_ml = found.partial_fluid_ml;
+    fluid_before_ml = found.fluid_before_ml;
     for (std::size_t v = 0; v < moved_out.voxels.size(); ++v) {
       if (!moved_out.voxels[v]) continue;
       brain.voxels[v] = 0;
@@ -518,6 +549,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["beyond_open_fluid_ml"] = volume_ml(moved_out) - open_fluid_ml;
   result.report["open_fluid_next_to_ventricles_ml"] = ventricular_fluid_ml;
   result.report["open_fluid_partial_volume_ml"] = partial_fluid_ml;
+  result.report["open_fluid_in_preop_ml"] = fluid_before_ml;
   result.report["open_fluid_components"] = open_components;
   result.report["ventricles_ml"] = volume_ml(ventricle);
   const bool classes_apart = !std::isfinite(class_contrast) || class_contrast >= params.min_fluid_contrast_sd;

@@ -12,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include <Eigen/Dense>
 #include <nlohmann/json.hpp>
 
 #include "core/image.h"
@@ -80,6 +81,17 @@ struct SegmentationParameters {
   // 7; measured: gaps, cavities and cisterns -0.81..0.19, sheets of
   // partial-volume cortex 0.53-0.73). Infinity: off.
   double max_gap_median_toward_fluid_turn = 0.5;
+  // And the preop, seen through the head's placement (PreopSeen), held
+  // tissue there: the median of its intensities over the component lies at
+  // least this share of the way from the preop's fluid (its ventricles'
+  // median) to its tissue (its parenchyma's median). A sinking's gap opens
+  // where the cortex was (grey matter: about 0.8 of the way in a T1), while
+  // the basal cisterns and the fissures are fluid in the preop as well
+  // (0-0.3): halfway between, as for the intraop test above (docs/DESIGN.md
+  // "Automatic intraop segmentation", item 7). What the preop labels as
+  // resectable counts as tissue: a cavity is a gap even where a cyst was.
+  // 0: off.
+  double min_gap_preop_toward_tissue = 0.5;
   // The ventricular fluid class must stand this many pooled sd's from the
   // farthest major parenchyma class, or the image cannot show the ventricles
   // (a contrast with no fluid/tissue difference, or noise far beyond any
@@ -92,6 +104,17 @@ struct SegmentationParameters {
   // is placed by noise. Lower than the class figure: the tissue around the
   // wall mixes white matter, the caudate's grey matter and partial volume.
   double min_wall_contrast_sd = 1.0;
+};
+
+// The preop as it was before the operation, where the head's placement puts
+// it on the intraop grid: fluid the preop already held there (a cistern, a
+// fissure) is anatomy, not a gap a sinking opened (open_fluid).
+struct PreopSeen {
+  const ImageF* image = nullptr;  // the preop T1 (its own grid)
+  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();  // world mm
+  double fluid_median = 0;   // the preop's intensity in its ventricles
+  double tissue_median = 0;  // and in its parenchyma
+  Mask resectable;           // the carried preop's resectable labels, intraop grid (empty: none)
 };
 
 struct IntraopSegmentation {
@@ -122,9 +145,11 @@ struct IntraopSegmentation {
 // out (IntraopSegmentation::open_fluid); when given, only open fluid that
 // touches it is moved out now (docs/DESIGN.md "Automatic intraop
 // segmentation", item 7).
+// preop_seen: when given, open fluid the preop held as fluid stays in the
+// brain (SegmentationParameters::min_gap_preop_toward_tissue).
 IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carried_labels,
                                     std::uint16_t brain_label, const std::vector<std::uint16_t>& ventricle_labels,
                                     const SegmentationParameters& params, const IntraopSegmentation* fitted = nullptr,
-                                    const Mask* gap_found_before = nullptr);
+                                    const Mask* gap_found_before = nullptr, const PreopSeen* preop_seen = nullptr);
 
 }  // namespace brainshift::segmentation

@@ -416,6 +416,76 @@ TEST(TissueEm, PartialVolumeCortexIsNotASinkingsGap) {
       << "the failure the condition fixes no longer reproduces";
 }
 
+// A basal cistern: fluid at the brain's base, open to the outside, thicker
+// than a sulcus and larger than a gap's minimum, which the preop label map
+// counts as brain (an atlas's outline does). On the hospital suite (a large
+// head, 0.15 T, docs/PERFORMANCE.md 12.17) the open-fluid rule took 5-9 ml of
+// the interpeduncular cistern for a sinking's gap; the outline's notch
+// pulled the field 7 mm at a landmark 10 mm deep. A gap opens where the
+// cortex was; the cistern's fluid was there before the operation: with the
+// preop seen through the placement it stays in the brain, and the sunken
+// cortex's gap still goes out.
+TEST(TissueEm, ACisternThePreopHeldIsNotASinkingsGap) {
+  Intensities in;
+  in.gm = 50;
+  Synthetic head = make_head(in, 5.0, 0.2, 0.0, {1.2, 1.2, 2.0}, 15.0);
+  Synthetic before = make_head(in, 5.0, 0.2);
+  const Eigen::Vector3d centre(0, 0, -44), semi(16, 16, 14);
+  std::mt19937 rng(17);
+  std::normal_distribution<float> noise(0.f, 5.f);
+  const Grid3& g = head.truth.grid;
+  Mask cistern(g, 0);
+  for (Synthetic* s : {&head, &before})
+    for (int k = 0; k < g.dims[2]; ++k)
+      for (int j = 0; j < g.dims[1]; ++j)
+        for (int i = 0; i < g.dims[0]; ++i) {
+          if (s->truth.at(i, j, k) != 1 || ellipsoid(g.world_mm(i, j, k), centre, semi) >= 1) continue;
+          s->image.at(i, j, k) = std::max(0.f, s->true_bias.at(i, j, k) * in.fluid + noise(rng));
+          if (s == &head) cistern.at(i, j, k) = 1;  // brain in both label maps, as an atlas counts it
+        }
+  const double voxel_ml = 1.2 * 1.2 * 2.0 / 1000;
+  SegmentationParameters p = params_for_test();
+  ASSERT_GT(static_cast<double>(count_nonzero(cistern)) * voxel_ml, 2 * p.min_gap_ml);
+  const LabelImage prior = misregistered(before.truth, {2, -2, 1}, 1.0);
+  // The preop's own fluid and tissue: medians in its ventricles and parenchyma.
+  std::vector<float> fluid, tissue;
+  for (std::size_t v = 0; v < g.voxel_count(); ++v) {
+    if (before.truth.voxels[v] == 2) fluid.push_back(before.image.voxels[v]);
+    if (before.truth.voxels[v] == 1) tissue.push_back(before.image.voxels[v]);
+  }
+  const auto median = [](std::vector<float> x) {
+    std::nth_element(x.begin(), x.begin() + static_cast<std::ptrdiff_t>(x.size() / 2), x.end());
+    return static_cast<double>(x[x.size() / 2]);
+  };
+  PreopSeen seen;
+  seen.image = &before.image;  // placed where the intraop image is: the identity
+  seen.fluid_median = median(fluid);
+  seen.tissue_median = median(tissue);
+  const auto shares = [&](const IntraopSegmentation& seg) {
+    std::size_t gap = 0, gap_out = 0, cistern_in = 0;
+    for (std::size_t v = 0; v < g.voxel_count(); ++v) {
+      const bool in_gap = before.truth.voxels[v] != 0 && head.truth.voxels[v] == 0;
+      gap += in_gap;
+      gap_out += in_gap && seg.labels.voxels[v] == 0;
+      cistern_in += cistern.voxels[v] && seg.labels.voxels[v] != 0;
+    }
+    return std::pair{static_cast<double>(gap_out) / static_cast<double>(gap),
+                     static_cast<double>(cistern_in) / static_cast<double>(count_nonzero(cistern))};
+  };
+  const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, p, nullptr, nullptr, &seen);
+  ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+  const auto [gap_out, cistern_in] = shares(seg);
+  EXPECT_GT(seg.report["open_fluid_in_preop_ml"].get<double>(), p.min_gap_ml) << seg.report.dump();
+  EXPECT_GT(cistern_in, 0.95) << seg.report.dump();
+  EXPECT_GT(gap_out, 0.9) << seg.report.dump();
+  // Without the preop the cistern goes out with the gap.
+  const IntraopSegmentation blind = segment_intraop(head.image, prior, 1, {2}, p);
+  ASSERT_TRUE(blind.refusal.empty()) << blind.refusal;
+  const auto [blind_gap_out, blind_cistern_in] = shares(blind);
+  EXPECT_LT(blind_cistern_in, 0.5) << "the failure the preop test fixes no longer reproduces";
+  EXPECT_GT(blind_gap_out, 0.9);
+}
+
 // Ventricles that moved farther than they are thick (the brain's deep shift
 // after the head's alignment alone): where the carried ventricles were the
 // image shows white matter. Their prior is an even chance within the shift
