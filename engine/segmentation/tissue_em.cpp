@@ -175,7 +175,13 @@ std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<d
         if (std::abs(c->mean - fluid_mean) < std::abs(nearest->mean - fluid_mean)) nearest = c;
       nearest->mean = fluid_mean;
       nearest->sd = fluid_sd;
-      nearest->surface_fluid = true;
+      // And one more outside class, the fluid around the brain held to the
+      // ventricles' fluid (hold_surface_fluid): without a share (weight 0,
+      // no part in the fit) until the fit finds the fluid the brightest
+      // tissue.
+      GaussianClass held{Tissue::outside, fluid_mean, fluid_sd, 0.0};
+      held.surface_fluid = true;
+      classes.push_back(held);
     }
   }
   return classes;
@@ -228,41 +234,64 @@ constexpr double kMinSd = 0.005;
 // The fluid around the brain in a bright-fluid (T2-like) image. There a
 // parenchyma class can span the partial volume of the bright fluid rim
 // around the brain, where the prior still leans to brain, while the
-// outside's fluid class, a small share of an outside made mostly of air, bone
-// and scalp, loses it (docs/PERFORMANCE.md 12.11). The rim is CSF, the same
-// fluid as in the ventricles: the outside's fluid class is held to the
-// ventricles' fitted class (mean and sd; it cannot drift to another tissue),
-// and next to the outline (in_surface_band), where the outside is that fluid
-// and the dura rather than air, bone and scalp, it has a share of its own,
-// at least its share of the whole outside; the other outside classes keep
-// their proportions of the rest there (a share of their own let scalp-like
-// classes take grey matter, 12.14). Not in a dark-fluid (T1-like) image:
-// there the outside's dark classes take the dark rim already, and a band
-// share for the dark fluid took the cortex (12.14): those images are
+// outside's fluid, a small share of an outside made mostly of air, bone and
+// scalp, loses it (docs/PERFORMANCE.md 12.11). The rim is CSF, the same
+// fluid as in the ventricles: an outside class of its own (surface_fluid) is
+// held to the ventricles' fitted class (mean and sd: it cannot drift to
+// another tissue), and next to the outline (in_surface_band), where the
+// outside is that fluid and the dura rather than air, bone and scalp, it has
+// a share of its own, at least its share of the whole outside; the other
+// outside classes, which stay free (bright fat and scalp need a class of
+// their own), keep their proportions of the rest there (a share of their own
+// let scalp-like classes take grey matter, 12.14). Not in a dark-fluid
+// (T1-like) image: there the outside's dark classes take the dark rim
+// already, and a band share for the dark fluid took the cortex (12.14); the
+// held class keeps a share of 0 and takes no part, so those images are
 // classified exactly as before.
 void hold_surface_fluid(const std::vector<double>& w, const std::vector<double>& w_band,
                         std::vector<GaussianClass>& classes) {
+  const auto held = std::find_if(classes.begin(), classes.end(), [](const GaussianClass& g) { return g.surface_fluid; });
+  if (held == classes.end()) return;
   const GaussianClass* ventricle = nullptr;
   double brightest_tissue = -std::numeric_limits<double>::infinity();
   for (const auto& g : classes) {
     if (g.tissue == Tissue::ventricle && (!ventricle || g.weight > ventricle->weight)) ventricle = &g;
     if (g.tissue == Tissue::parenchyma) brightest_tissue = std::max(brightest_tissue, g.mean);
   }
+  const auto f = static_cast<std::size_t>(held - classes.begin());
+  const bool bright_fluid = ventricle && ventricle->mean > brightest_tissue;
   for (auto& g : classes) g.band_weight = 0;
-  if (!ventricle || !(ventricle->mean > brightest_tissue)) return;
-  const auto fluid = std::find_if(classes.begin(), classes.end(), [](const GaussianClass& g) { return g.surface_fluid; });
-  if (fluid == classes.end()) return;
-  double outside_band = 0;
+  if (!bright_fluid && held->weight == 0) return;  // never entered: the fit as without it
+  // The held class's share of the whole outside: from its responsibilities
+  // (maximise), or, when it enters, the even start every outside class had
+  // (1 / their number); 0 when the fluid is no longer the brightest tissue.
+  // In the band, its share there, at least that. The others share the rest
+  // in their fitted proportions, in the band as elsewhere.
+  int outside_classes = 0;
+  double others = 0, outside_band = 0;
   for (std::size_t c = 0; c < classes.size(); ++c)
-    if (classes[c].tissue == Tissue::outside) outside_band += w_band[c];
-  const auto f = static_cast<std::size_t>(fluid - classes.begin());
-  if (!(outside_band > 0) || w[f] <= 1e-9 || fluid->weight >= 1) return;
-  fluid->mean = ventricle->mean;
-  fluid->sd = ventricle->sd;
-  const double share = std::clamp(w_band[f] / outside_band, fluid->weight, 1 - 1e-6);
-  const double rest = (1 - share) / (1 - fluid->weight);
-  for (auto& g : classes)
-    if (g.tissue == Tissue::outside) g.band_weight = g.surface_fluid ? share : std::max(g.weight * rest, 1e-6);
+    if (classes[c].tissue == Tissue::outside) {
+      outside_classes += 1;
+      outside_band += w_band[c];
+      if (c != f) others += classes[c].weight;
+    }
+  double share = 0, band_share = 0;
+  if (bright_fluid) {
+    share = std::clamp(w[f] > 1e-9 ? held->weight : 1.0 / outside_classes, 1e-6, 1 - 1e-6);
+    band_share = w[f] > 1e-9 && outside_band > 0 ? w_band[f] / outside_band : share;
+    band_share = std::clamp(band_share, share, 1 - 1e-6);
+    held->mean = ventricle->mean;
+    held->sd = ventricle->sd;
+  }
+  for (std::size_t c = 0; c < classes.size(); ++c) {
+    GaussianClass& g = classes[c];
+    if (g.tissue != Tissue::outside || c == f || !(others > 0)) continue;
+    const double proportion = g.weight / others;
+    g.weight = std::max(proportion * (1 - share), 1e-6);
+    if (bright_fluid) g.band_weight = std::max(proportion * (1 - band_share), 1e-6);
+  }
+  held->weight = share;
+  held->band_weight = band_share;
 }
 
 void maximise(const Samples& s, const std::vector<std::vector<double>>& gamma, const std::vector<double>& corrected,
@@ -384,7 +413,8 @@ EmResult classify_with_classes(const ImageF& image, const TissuePrior& prior, co
   if (log_bias.size() != image.grid.voxel_count()) throw InputError("segmentation: the bias does not fit the image");
   if (classes.empty()) throw InputError("segmentation: no classes to classify with");
   for (const auto& g : classes)
-    if (!(g.sd > 0) || !(g.weight > 0)) throw InputError("segmentation: a class without spread or weight");
+    if (!(g.sd > 0) || !(g.weight > 0 || (g.surface_fluid && g.weight == 0)))
+      throw InputError("segmentation: a class without spread or weight");
   EmResult out;
   classify_voxels(image, prior, 1.0, classes, log_bias, params, out);
   out.classes = classes;
