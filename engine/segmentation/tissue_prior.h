@@ -58,7 +58,7 @@ double prior_reach_mm(double outline_mm, double floor);
 // [kSurfaceBandLow, kSurfaceBandHigh)): within about three prior widths of the
 // outline, the subarachnoid fluid and dura around the brain (docs/DESIGN.md
 // "Automatic intraop segmentation").
-inline constexpr double kSurfaceBandLow = 0.05, kSurfaceBandHigh = 0.5;
+inline constexpr double kSurfaceBandLow = 0.05, kSurfaceBandHigh = 0.95;
 inline bool in_surface_band(double brain_prior) {
   return brain_prior >= kSurfaceBandLow && brain_prior < kSurfaceBandHigh;
 }
