@@ -29,7 +29,9 @@ namespace brainshift::segmentation {
 
 struct EmParameters {
   // Gaussians per tissue: parenchyma (grey, white), ventricular fluid, and
-  // outside the brain (air, bone, fluid, fat/scalp).
+  // outside the brain (air, bone, fluid, fat/scalp). The outside gets one
+  // more, the fluid around the brain held to the ventricles' fluid
+  // (GaussianClass::surface_fluid), whenever it has more than one.
   std::array<int, kTissues> classes{2, 1, 4};
   int bias_degree = 2;
   int max_iterations = 30;
