@@ -421,7 +421,9 @@ std::vector<float> earlier_log_bias(const IntraopSegmentation& fitted, const Vox
 nlohmann::json describe(const EmResult& em) {
   nlohmann::json classes = nlohmann::json::array();
   for (const auto& g : em.classes)
-    classes.push_back({{"tissue", name_of(g.tissue)}, {"mean", g.mean}, {"sd", g.sd}, {"weight", g.weight}});
+    classes.push_back({{"tissue", name_of(g.tissue)}, {"mean", g.mean}, {"sd", g.sd}, {"weight", g.weight},
+                       {"band_weight", g.band_weight > 0 ? g.band_weight : g.weight},
+                       {"surface_fluid", g.surface_fluid}});
   return {{"classes", classes}, {"iterations", em.iterations}, {"converged", em.converged},
           {"mean_log_likelihood", em.mean_log_likelihood}};
 }

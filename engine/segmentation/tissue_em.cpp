@@ -19,7 +19,12 @@ struct Samples {
   std::vector<std::array<int, 3>> voxel;
   std::vector<double> intensity;                 // normalised
   std::vector<std::array<double, kTissues>> log_prior;
+  std::vector<char> band;  // in_surface_band
 };
+
+double brain_prior_at(const TissuePrior& prior, std::size_t v) {
+  return static_cast<double>(prior.p[index_of(Tissue::parenchyma)][v]) + prior.p[index_of(Tissue::ventricle)][v];
+}
 
 // A regular subsample of about `budget` voxels: a lattice of the same
 // spacing in mm along every axis (strides per axis from the voxel spacing),
@@ -43,6 +48,7 @@ Samples draw_samples(const ImageF& image, const TissuePrior& prior, double scale
         std::array<double, kTissues> lp{};
         for (int t = 0; t < kTissues; ++t) lp[t] = prior.p[t][v] > 0 ? std::log(prior.p[t][v]) : kLogTiny;
         s.log_prior.push_back(lp);
+        s.band.push_back(in_surface_band(brain_prior_at(prior, v)));
       }
   return s;
 }
@@ -169,6 +175,13 @@ std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<d
         if (std::abs(c->mean - fluid_mean) < std::abs(nearest->mean - fluid_mean)) nearest = c;
       nearest->mean = fluid_mean;
       nearest->sd = fluid_sd;
+      // And one more outside class, the fluid around the brain held to the
+      // ventricles' fluid (hold_surface_fluid): without a share (weight 0,
+      // no part in the fit) until the fit finds the fluid the brightest
+      // tissue.
+      GaussianClass held{Tissue::outside, fluid_mean, fluid_sd, 0.0};
+      held.surface_fluid = true;
+      classes.push_back(held);
     }
   }
   return classes;
@@ -178,8 +191,11 @@ std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<d
 // rather than per sample and class: the logarithms dominated the fit's time.
 struct ClassTerms {
   std::vector<int> tissue;
-  std::vector<double> mean, inv_sd, log_scale;  // log_scale = log(weight / sd)
+  std::vector<double> mean, inv_sd;
+  std::array<std::vector<double>, 2> log_scale;  // log(share / sd): [0] elsewhere, [1] in the surface band
 };
+
+double band_share(const GaussianClass& g) { return g.band_weight > 0 ? g.band_weight : g.weight; }
 
 ClassTerms class_terms(const std::vector<GaussianClass>& classes) {
   ClassTerms k;
@@ -187,19 +203,21 @@ ClassTerms class_terms(const std::vector<GaussianClass>& classes) {
     k.tissue.push_back(index_of(g.tissue));
     k.mean.push_back(g.mean);
     k.inv_sd.push_back(1.0 / g.sd);
-    k.log_scale.push_back(std::log(g.weight) - std::log(g.sd));
+    k.log_scale[0].push_back(std::log(g.weight) - std::log(g.sd));
+    k.log_scale[1].push_back(std::log(band_share(g)) - std::log(g.sd));
   }
   return k;
 }
 
 // log sum_c pi_c N(x; mu_c, sd_c) + log prior_t per tissue, and the class
 // responsibilities; returns log sum over everything.
-double responsibilities(double x, const std::array<double, kTissues>& log_prior, const ClassTerms& k,
+double responsibilities(double x, const std::array<double, kTissues>& log_prior, const ClassTerms& k, bool band,
                         std::vector<double>& gamma) {
   double top = -std::numeric_limits<double>::infinity();
+  const std::vector<double>& log_scale = k.log_scale[band ? 1 : 0];
   for (std::size_t c = 0; c < gamma.size(); ++c) {
     const double z = (x - k.mean[c]) * k.inv_sd[c];
-    gamma[c] = log_prior[k.tissue[c]] + k.log_scale[c] - 0.5 * z * z;
+    gamma[c] = log_prior[k.tissue[c]] + log_scale[c] - 0.5 * z * z;
     top = std::max(top, gamma[c]);
   }
   double sum = 0;
@@ -213,14 +231,78 @@ double responsibilities(double x, const std::array<double, kTissues>& log_prior,
 // only keeps a class from collapsing onto a few identical voxels.
 constexpr double kMinSd = 0.005;
 
+// The fluid around the brain in a bright-fluid (T2-like) image. There a
+// parenchyma class can span the partial volume of the bright fluid rim
+// around the brain, where the prior still leans to brain, while the
+// outside's fluid, a small share of an outside made mostly of air, bone and
+// scalp, loses it (docs/PERFORMANCE.md 12.11). The rim is CSF, the same
+// fluid as in the ventricles: an outside class of its own (surface_fluid) is
+// held to the ventricles' fitted class (mean and sd: it cannot drift to
+// another tissue), and next to the outline (in_surface_band), where the
+// outside is that fluid and the dura rather than air, bone and scalp, it has
+// a share of its own, at least its share of the whole outside; the other
+// outside classes, which stay free (bright fat and scalp need a class of
+// their own), keep their proportions of the rest there (a share of their own
+// let scalp-like classes take grey matter, 12.14). Not in a dark-fluid
+// (T1-like) image: there the outside's dark classes take the dark rim
+// already, and a band share for the dark fluid took the cortex (12.14); the
+// held class keeps a share of 0 and takes no part, so those images are
+// classified exactly as before.
+void hold_surface_fluid(const std::vector<double>& w, const std::vector<double>& w_band,
+                        std::vector<GaussianClass>& classes) {
+  const auto held = std::find_if(classes.begin(), classes.end(), [](const GaussianClass& g) { return g.surface_fluid; });
+  if (held == classes.end()) return;
+  const GaussianClass* ventricle = nullptr;
+  double brightest_tissue = -std::numeric_limits<double>::infinity();
+  for (const auto& g : classes) {
+    if (g.tissue == Tissue::ventricle && (!ventricle || g.weight > ventricle->weight)) ventricle = &g;
+    if (g.tissue == Tissue::parenchyma) brightest_tissue = std::max(brightest_tissue, g.mean);
+  }
+  const auto f = static_cast<std::size_t>(held - classes.begin());
+  const bool bright_fluid = ventricle && ventricle->mean > brightest_tissue;
+  for (auto& g : classes) g.band_weight = 0;
+  if (!bright_fluid && held->weight == 0) return;  // never entered: the fit as without it
+  // The held class's share of the whole outside: from its responsibilities
+  // (maximise), or, when it enters, the even start every outside class had
+  // (1 / their number); 0 when the fluid is no longer the brightest tissue.
+  // In the band, its share there, at least that. The others share the rest
+  // in their fitted proportions, in the band as elsewhere.
+  int outside_classes = 0;
+  double others = 0, outside_band = 0;
+  for (std::size_t c = 0; c < classes.size(); ++c)
+    if (classes[c].tissue == Tissue::outside) {
+      outside_classes += 1;
+      outside_band += w_band[c];
+      if (c != f) others += classes[c].weight;
+    }
+  double share = 0, band_share = 0;
+  if (bright_fluid) {
+    share = std::clamp(w[f] > 1e-9 ? held->weight : 1.0 / outside_classes, 1e-6, 1 - 1e-6);
+    band_share = w[f] > 1e-9 && outside_band > 0 ? w_band[f] / outside_band : share;
+    band_share = std::clamp(band_share, share, 1 - 1e-6);
+    held->mean = ventricle->mean;
+    held->sd = ventricle->sd;
+  }
+  for (std::size_t c = 0; c < classes.size(); ++c) {
+    GaussianClass& g = classes[c];
+    if (g.tissue != Tissue::outside || c == f || !(others > 0)) continue;
+    const double proportion = g.weight / others;
+    g.weight = std::max(proportion * (1 - share), 1e-6);
+    if (bright_fluid) g.band_weight = std::max(proportion * (1 - band_share), 1e-6);
+  }
+  held->weight = share;
+  held->band_weight = band_share;
+}
+
 void maximise(const Samples& s, const std::vector<std::vector<double>>& gamma, const std::vector<double>& corrected,
               std::vector<GaussianClass>& classes, bool fixed_ventricle_class) {
   const std::size_t C = classes.size();
-  std::vector<double> w(C, 0), m(C, 0), q(C, 0);
+  std::vector<double> w(C, 0), m(C, 0), q(C, 0), w_band(C, 0);
   for (std::size_t n = 0; n < s.intensity.size(); ++n)
     for (std::size_t c = 0; c < C; ++c) {
       w[c] += gamma[n][c];
       m[c] += gamma[n][c] * corrected[n];
+      if (s.band[n]) w_band[c] += gamma[n][c];
     }
   for (std::size_t c = 0; c < C; ++c) m[c] = w[c] > 0 ? m[c] / w[c] : classes[c].mean;
   for (std::size_t n = 0; n < s.intensity.size(); ++n)
@@ -234,6 +316,7 @@ void maximise(const Samples& s, const std::vector<std::vector<double>>& gamma, c
     classes[c].sd = std::max(std::sqrt(q[c] / w[c]), kMinSd);
     classes[c].weight = std::max(w[c] / tissue_weight[index_of(classes[c].tissue)], 1e-6);
   }
+  hold_surface_fluid(w, w_band, classes);
 }
 
 // The bias step: per sample the log of image / its class's mean, weighted by
@@ -306,9 +389,10 @@ void classify_voxels(const ImageF& image, const TissuePrior& prior, double scale
       out.bias[v] = std::exp(log_bias[v]);
       const double x = image.voxels[v] / scale / out.bias[v];
       double m = -std::numeric_limits<double>::infinity();
+      const std::vector<double>& log_scale = terms.log_scale[in_surface_band(brain_prior_at(prior, v)) ? 1 : 0];
       for (std::size_t c = 0; c < l.size(); ++c) {
         const double z = (x - terms.mean[c]) * terms.inv_sd[c];
-        l[c] = terms.log_scale[c] - 0.5 * z * z;
+        l[c] = log_scale[c] - 0.5 * z * z;
         m = std::max(m, l[c]);
       }
       std::array<double, kTissues> e{};
@@ -329,7 +413,8 @@ EmResult classify_with_classes(const ImageF& image, const TissuePrior& prior, co
   if (log_bias.size() != image.grid.voxel_count()) throw InputError("segmentation: the bias does not fit the image");
   if (classes.empty()) throw InputError("segmentation: no classes to classify with");
   for (const auto& g : classes)
-    if (!(g.sd > 0) || !(g.weight > 0)) throw InputError("segmentation: a class without spread or weight");
+    if (!(g.sd > 0) || !(g.weight > 0 || (g.surface_fluid && g.weight == 0)))
+      throw InputError("segmentation: a class without spread or weight");
   EmResult out;
   classify_voxels(image, prior, 1.0, classes, log_bias, params, out);
   out.classes = classes;
@@ -377,7 +462,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
       on_two_halves(N, [&](std::size_t begin, std::size_t end, std::size_t half) {
         for (std::size_t n = begin; n < end; ++n) {
           corrected[n] = s.intensity[n] * std::exp(-log_b[n]);
-          partial[half] += responsibilities(corrected[n], s.log_prior[n], terms, gamma[n]) - log_b[n];
+          partial[half] += responsibilities(corrected[n], s.log_prior[n], terms, s.band[n], gamma[n]) - log_b[n];
         }
       });
       const double ll = (partial[0] + partial[1]) / static_cast<double>(N);

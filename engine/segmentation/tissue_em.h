@@ -29,7 +29,9 @@ namespace brainshift::segmentation {
 
 struct EmParameters {
   // Gaussians per tissue: parenchyma (grey, white), ventricular fluid, and
-  // outside the brain (air, bone, fluid, fat/scalp).
+  // outside the brain (air, bone, fluid, fat/scalp). The outside gets one
+  // more, the fluid around the brain held to the ventricles' fluid
+  // (GaussianClass::surface_fluid), whenever it has more than one.
   std::array<int, kTissues> classes{2, 1, 4};
   int bias_degree = 2;
   int max_iterations = 30;
@@ -51,6 +53,15 @@ struct GaussianClass {
   double mean = 0;    // bias-corrected intensity, in the image's units
   double sd = 0;
   double weight = 0;  // share within its tissue
+  // Share within its tissue next to the brain's outline (in_surface_band),
+  // <= 0: weight. Only the outside's fluid class of a bright-fluid image has
+  // one of its own (tissue_em.cpp hold_surface_fluid); the other outside
+  // classes there keep their proportions of what it leaves.
+  double band_weight = 0;
+  // The outside's class of the fluid around the brain (subarachnoid CSF,
+  // fluid under the craniotomy): started at the ventricles' fluid, and held
+  // to it where the fluid is the brightest tissue.
+  bool surface_fluid = false;
 };
 
 struct EmResult {

@@ -53,4 +53,15 @@ TissuePrior tissue_prior(const Mask& outline, const Mask& ventricles, const Prio
 // Beyond it only the floor and the image decide.
 double prior_reach_mm(double outline_mm, double floor);
 
+// The band just outside the carried outline where the prior leans to the
+// outside but still allows brain (brain prior p_parenchyma + p_ventricle in
+// [kSurfaceBandLow, kSurfaceBandHigh)): within about three prior widths
+// outside the outline, the subarachnoid fluid and dura around the brain
+// (docs/DESIGN.md "Automatic intraop segmentation", item 10). Not inside the
+// outline: fluid there is sulcal, and sulci are brain (item 7).
+inline constexpr double kSurfaceBandLow = 0.05, kSurfaceBandHigh = 0.5;
+inline bool in_surface_band(double brain_prior) {
+  return brain_prior >= kSurfaceBandLow && brain_prior < kSurfaceBandHigh;
+}
+
 }  // namespace brainshift::segmentation

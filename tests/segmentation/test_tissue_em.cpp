@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <random>
 
@@ -210,6 +211,7 @@ TEST(TissueEm, BrightFluidContrastIsFittedFromThePriorNotFromAnOrdering) {
   const LabelImage prior = misregistered(head.truth, {-2, 2, 1}, 0.97);
   const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, params_for_test());
   ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+  std::printf("T2-like head: outline Dice %.4f\n", outline_dice(seg.labels, head.truth));
   EXPECT_GE(outline_dice(seg.labels, head.truth), 0.95) << seg.report.dump();
   EXPECT_GE(dice(seg.labels, head.truth, 2), 0.85) << seg.report.dump();
 }
