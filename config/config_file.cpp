@@ -194,7 +194,6 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
 void read_rest(TomlSection& root, PipelineParameters& p) {
   TomlSection field = root.table("field");
   field.read("blend_distance_mm", p.field.blend_distance_mm);
-  field.read("fade_min_determinant", p.field.fade_min_determinant);
   field.read("barycentric_tolerance", p.field.barycentric_tolerance);
   field.read("smoothing_sweeps", p.field.smoothing_sweeps);
   field.reject_unknown_keys();

@@ -22,9 +22,8 @@ constexpr float kUncovered = -std::numeric_limits<float>::infinity();
 void validate(const TetMesh& mesh, const MeshDeformation& deformation, const Grid3& grid,
               const FieldParameters& params) {
   if (!(params.blend_distance_mm > 0.0) || !(params.barycentric_tolerance >= 0.0) ||
-      !(params.fade_min_determinant >= 0.0 && params.fade_min_determinant < 1.0) ||
       params.smoothing_sweeps < 0) {
-    throw InputError("pullback_field: parameters need blend_distance_mm > 0, 0 <= fade_min_determinant < 1, "
+    throw InputError("pullback_field: parameters need blend_distance_mm > 0, "
                      "barycentric_tolerance >= 0 and smoothing_sweeps >= 0");
   }
   if (deformation.nonrigid_mm.size() != mesh.node_count()) {
@@ -254,20 +253,13 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
     if (covered[v]) rest[v] = (field.vectors[v].cast<double>() - affine(i, j, k)).cast<float>();
   });
   const Mask region = brain_region(grid, covered);
-  // The fade is wide enough never to fold (FieldParameters::fade_min_determinant).
-  double remainder_mm = 0;
-  for (std::size_t v = 0; v < grid.voxel_count(); ++v)
-    if (covered[v]) remainder_mm = std::max(remainder_mm, static_cast<double>(rest[v].norm()));
-  const double blend_mm = fade_distance_mm(params, remainder_mm);
-  stats.max_remainder_mm = remainder_mm;
-  stats.blend_distance_mm = blend_mm;
   // Beyond the blend and the relaxed band the distance decides nothing.
-  const ImageF distance = distance_to_mask_mm(region, std::max(blend_mm, params.relax_band_mm));
+  const ImageF distance = distance_to_mask_mm(region, std::max(params.blend_distance_mm, params.relax_band_mm));
   std::vector<std::uint32_t> free_voxels, relax_voxels;
   std::vector<float> weight(grid.voxel_count(), 0.f);
   for (std::size_t v = 0; v < grid.voxel_count(); ++v) {
     if (covered[v]) continue;
-    weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / blend_mm));
+    weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
     if (region.voxels[v]) ++stats.cavity_voxels;
     else if (weight[v] > 0.f) ++stats.blended_voxels;
     if (weight[v] > 0.f) free_voxels.push_back(static_cast<std::uint32_t>(v));
@@ -283,17 +275,6 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
 }
 
 }  // namespace
-
-double fade_distance_mm(const FieldParameters& params, double max_remainder_mm) {
-  // 1 - smoothstep(d / D) falls by at most 1.5 / D per mm (at d = D / 2).
-  // Along the fade the field is (A^-1 x - x) + w(d) r, whose Jacobian
-  // determinant relative to the affine's is det(I + r (grad w)^T) = 1 + r . grad w
-  // >= 1 - 1.5 |r| / D: it stays >= fade_min_determinant when
-  // D >= 1.5 |r| / (1 - fade_min_determinant). |r| is bounded by its largest
-  // value on the covered voxels: the fill only averages those.
-  const double needed_mm = 1.5 * max_remainder_mm / (1.0 - params.fade_min_determinant);
-  return std::max(params.blend_distance_mm, needed_mm);
-}
 
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
                             const Grid3& intraop_grid, const FieldParameters& params,
@@ -322,8 +303,7 @@ void to_json(nlohmann::json& j, const FieldStats& s) {
   j = {{"covered_voxels", s.covered_voxels},   {"cavity_voxels", s.cavity_voxels},
        {"blended_voxels", s.blended_voxels},   {"skipped_tets", s.skipped_tets},
        {"inverted_tets", s.inverted_tets},     {"rasterise_seconds", s.rasterise_seconds},
-       {"fill_seconds", s.fill_seconds},       {"max_remainder_mm", s.max_remainder_mm},
-       {"blend_distance_mm", s.blend_distance_mm},       {"total_seconds", s.total_seconds}};
+       {"fill_seconds", s.fill_seconds},       {"total_seconds", s.total_seconds}};
 }
 
 }  // namespace brainshift

@@ -21,9 +21,8 @@
 //     the ventricle cavities. (Farther out the pyramid's trilinear fill is
 //     smooth enough and is faded out anyway; relaxing it there costs time.) The extension is faded out with distance d from the
 //     "brain region" (covered voxels plus enclosed uncovered voxels, i.e.
-//     cavities): weight = 1 - smoothstep(d / D), D = fade_distance_mm (the
-//     blend distance, wider for a large remainder so that the fade never
-//     folds). Beyond D only the affine remains: u(x) = A^-1 x - x.
+//     cavities): weight = 1 - smoothstep(d / blend_distance_mm). Beyond
+//     blend_distance_mm only the affine remains: u(x) = A^-1 x - x.
 //     Enclosed cavities (uncovered voxels not 6-connected to the grid border)
 //     keep the full non-rigid extension (weight 1). A cavity that reaches the
 //     grid border (field of view cut through a ventricle) is treated as outside.
@@ -37,16 +36,8 @@
 namespace brainshift {
 
 struct FieldParameters {
-  // Distance (mm) from the brain region over which the non-rigid part fades to
-  // 0, at least: widened where the remainder is large (fade_distance_mm).
+  // Distance (mm) from the brain region over which the non-rigid part fades to 0.
   double blend_distance_mm = 10.0;
-  // The fade's own lowest Jacobian determinant (along the fade, for the largest
-  // remainder): the floor the unfold repair demands of every brain voxel
-  // (UnfoldParameters::min_determinant). An outline voxel the deformed mesh
-  // does not cover lies in the fade; a remainder of 12 mm (a 22 mm sinking
-  // less its affine part) faded over 10 mm compresses it to J = 1 - 1.5 * 12 / 10
-  // = -0.8, a fold of the extension, not of the elastic solution.
-  double fade_min_determinant = 0.1;
   // Barycentric slack for the inside test (dimensionless). Large enough to
   // absorb round-off on shared faces, small enough not to extrapolate visibly.
   double barycentric_tolerance = 1e-7;
@@ -62,8 +53,6 @@ struct FieldStats {
   std::size_t blended_voxels = 0;   // outside, 0 < weight < 1
   std::size_t skipped_tets = 0;     // degenerate after deformation (zero volume)
   std::size_t inverted_tets = 0;    // negative volume after deformation (folding)
-  double max_remainder_mm = 0.0;    // largest non-rigid remainder on the covered voxels
-  double blend_distance_mm = 0.0;   // the fade's width used (fade_distance_mm)
   double rasterise_seconds = 0.0;
   double fill_seconds = 0.0;
   double total_seconds = 0.0;
@@ -74,11 +63,6 @@ struct FieldStats {
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
                             const Grid3& intraop_grid, const FieldParameters& params,
                             FieldStats* stats = nullptr);
-
-// The width of the fade for a largest remainder |r| (mm): blend_distance_mm, or
-// 1.5 |r| / (1 - fade_min_determinant) when wider, so that the fade's Jacobian
-// determinant 1 + r . grad w stays >= fade_min_determinant.
-double fade_distance_mm(const FieldParameters& params, double max_remainder_mm);
 
 // nlohmann ADL hook (json j = stats;), for run reports.
 void to_json(nlohmann::json& j, const FieldStats& s);
