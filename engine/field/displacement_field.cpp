@@ -245,7 +245,8 @@ struct AffinePullback {
 // Extends the non-rigid remainder beyond the covered voxels and composes the
 // final field there (covered voxels keep their exact rasterised values).
 void continue_outside(const MeshDeformation& deformation, const FieldParameters& params,
-                      const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats) {
+                      const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats,
+                      Mask* mesh_region) {
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
@@ -272,13 +273,14 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
   for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) {
     if (!covered[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
   });
+  if (mesh_region) *mesh_region = region;
 }
 
 }  // namespace
 
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
                             const Grid3& intraop_grid, const FieldParameters& params,
-                            FieldStats* stats_out) {
+                            FieldStats* stats_out, Mask* mesh_region) {
   validate(preop_mesh, deformation, intraop_grid, params);
   Stopwatch total;
   FieldStats stats;
@@ -292,7 +294,7 @@ VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& de
   }
   stats.rasterise_seconds = total.seconds();
   Stopwatch fill_timer;
-  continue_outside(deformation, params, covered, field, stats);
+  continue_outside(deformation, params, covered, field, stats, mesh_region);
   stats.fill_seconds = fill_timer.seconds();
   stats.total_seconds = total.seconds();
   if (stats_out) *stats_out = stats;

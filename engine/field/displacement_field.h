@@ -32,6 +32,7 @@
 #include "core/deformation.h"
 #include "core/image.h"
 #include "core/tet_mesh.h"
+#include "image/morphology.h"
 
 namespace brainshift {
 
@@ -58,11 +59,14 @@ struct FieldStats {
   double total_seconds = 0.0;
 };
 
+// mesh_region, when given, receives the voxels the deformed mesh covers plus
+// the enclosed cavities: where the field is the elastic solution's own map of
+// the preop brain, not its extension (what the fold gate judges).
 // Throws InputError when deformation.nonrigid_mm does not have one vector per
 // mesh node, a tet references a missing node, the grid is empty, or A is singular.
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
                             const Grid3& intraop_grid, const FieldParameters& params,
-                            FieldStats* stats = nullptr);
+                            FieldStats* stats = nullptr, Mask* mesh_region = nullptr);
 
 // nlohmann ADL hook (json j = stats;), for run reports.
 void to_json(nlohmann::json& j, const FieldStats& s);

@@ -214,7 +214,21 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
 
   clock.start(stages::kField);
   FieldStats field_stats;
-  result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
+  Mask mesh_region;
+  result.pullback_field_mm =
+      pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats, &mesh_region);
+  // The fold gate judges the elastic solution's map of the brain: the intraop
+  // outline where the deformed mesh covers it. Outline voxels beyond the mesh
+  // (an outline a few mm above the matched surface) carry the field's fade to
+  // the affine, an extension that folds under a large remainder whatever the
+  // solution (docs/DESIGN.md "The fold gate judges the mesh's image").
+  Mask fold_region = brain_region;
+  std::size_t outline_beyond_mesh = 0;
+  for (std::size_t v = 0; v < fold_region.voxels.size(); ++v)
+    if (fold_region.voxels[v] && !mesh_region.voxels[v]) {
+      fold_region.voxels[v] = 0;
+      ++outline_beyond_mesh;
+    }
   if (pass.prior_only && !params.auto_segmentation.passes.prior_refine)
     metrics["refine"] = {{"applied", false}, {"skipped", "a pass for the re-match's prior"}};
   else
@@ -229,25 +243,25 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
     }
   }
   metrics["plausibility"] = plausibility.to_json();
-  JacobianStats jac = jacobian_stats(result.pullback_field_mm, &brain_region);
+  JacobianStats jac = jacobian_stats(result.pullback_field_mm, &fold_region);
   if (failure.empty() && jac.min_det <= params.gates.min_jacobian_determinant) {
     // A few folded voxels (strongly compressed elements under a deep sinking)
     // are repaired locally before the whole non-rigid result is refused.
     UnfoldStats unfold;
-    const bool repaired = unfold_field(result.pullback_field_mm, brain_region, params.unfold, &unfold);
+    const bool repaired = unfold_field(result.pullback_field_mm, fold_region, params.unfold, &unfold);
     metrics["unfold"] = {{"folded_voxels_before", jac.folded_voxels}, {"repaired", repaired},
                          {"changed_voxels", unfold.changed_voxels}, {"rounds", unfold.rounds},
                          {"max_change_mm", unfold.max_change_mm}};
-    jac = jacobian_stats(result.pullback_field_mm, &brain_region);
+    jac = jacobian_stats(result.pullback_field_mm, &fold_region);
   }
   if (failure.empty() && jac.min_det <= params.gates.min_jacobian_determinant) {
     failure = "the non-rigid field folds (min Jacobian determinant " + std::to_string(jac.min_det) + ")";
     deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
     result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
-    jac = jacobian_stats(result.pullback_field_mm, &brain_region);
+    jac = jacobian_stats(result.pullback_field_mm, &fold_region);
   }
   metrics["jacobian"] = {{"min", jac.min_det}, {"max", jac.max_det},
-                         {"folded_voxels", jac.folded_voxels}};
+                         {"folded_voxels", jac.folded_voxels}, {"outline_voxels_beyond_mesh", outline_beyond_mesh}};
   clock.done(stages::kField);
 
   clock.start(stages::kWarp);

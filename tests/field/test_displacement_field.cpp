@@ -11,6 +11,8 @@
 #include "box_mesh.h"
 #include "core/errors.h"
 #include "field/displacement_field.h"
+#include "field/metrics.h"
+#include "image/image_stats.h"
 
 namespace brainshift {
 namespace {
@@ -159,6 +161,47 @@ TEST(PullbackField, ContinuousAcrossMeshBoundaryAndAffineFarAway) {
 }
 
 // Cavities (ventricles) are holes in the mesh: they get the full non-rigid part.
+// A whole brain sunk by 12 mm (the remainder the affine leaves of a 22 mm
+// sinking), and an intraop outline whose top lies 3 mm above the sunken mesh
+// (the fluid's partial volume at the floor of a gap). Over the outline's top
+// the field fades from 12 mm to 0 over the 10 mm blend distance: J down to
+// 1 - 1.5 * 12 / 10 = -0.8, a fold of the extension, not of the elastic
+// solution. The mesh's image (the region the fold gate judges) excludes it
+// and holds the exact translation (J = 1).
+TEST(PullbackField, TheMeshsImageExcludesTheFadeThatFoldsBeyondIt) {
+  Scene s;
+  MeshDeformation def;
+  def.nonrigid_mm.assign(s.mesh.node_count(), Eigen::Vector3d(0, 0, -12.0));
+  FieldStats stats;
+  Mask mesh_region;
+  const VectorImage3 u = pullback_field(s.mesh, def, s.grid, FieldParameters{}, &stats, &mesh_region);
+  ASSERT_TRUE(mesh_region.grid.same_geometry(s.grid));
+  EXPECT_EQ(count_nonzero(mesh_region), stats.covered_voxels + stats.cavity_voxels);
+  const ImageF det = jacobian_determinant(u);
+  const Grid3& g = s.grid;
+  const Eigen::Vector3d lo(-20, -18, -28), hi(20, 22, 12 + 3.0);  // the sunken box, its top 3 mm higher
+  double min_outline = 1e9, min_mesh = 1e9;
+  std::size_t beyond = 0;
+  for (int k = 1; k + 1 < g.dims[2]; ++k)
+    for (int j = 1; j + 1 < g.dims[1]; ++j)
+      for (int i = 1; i + 1 < g.dims[0]; ++i) {
+        const Eigen::Vector3d x = g.world_mm(i, j, k);
+        if ((x - lo).minCoeff() < 0 || (hi - x).minCoeff() < 0) continue;  // outside the outline
+        const std::size_t v = g.index(i, j, k);
+        min_outline = std::min(min_outline, static_cast<double>(det.voxels[v]));
+        if (mesh_region.voxels[v]) {
+          min_mesh = std::min(min_mesh, static_cast<double>(det.voxels[v]));
+        } else {
+          ++beyond;
+        }
+      }
+  std::printf("outline voxels beyond the mesh %zu, min det over the outline %.3f, over the mesh's image %.3f\n",
+              beyond, min_outline, min_mesh);
+  EXPECT_GT(beyond, 500u);
+  EXPECT_LT(min_outline, 0.0);
+  EXPECT_GT(min_mesh, 0.5);
+}
+
 TEST(PullbackField, CavityTakesTheSurroundingMotion) {
   Scene s;
   s.mesh = kuhn_box(Eigen::Vector3d(-20, -18, -16), {8, 8, 8}, 5.0, [](int i, int j, int k) {
