@@ -260,8 +260,12 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
     result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field, &field_stats);
     jac = jacobian_stats(result.pullback_field_mm, &fold_region);
   }
+  // The whole outline as delivered, shell beyond the mesh included: not a
+  // gate (above), but shown, so that a fold in the fade is never hidden.
+  const JacobianStats outline_jac = jacobian_stats(result.pullback_field_mm, &brain_region);
   metrics["jacobian"] = {{"min", jac.min_det}, {"max", jac.max_det},
-                         {"folded_voxels", jac.folded_voxels}, {"outline_voxels_beyond_mesh", outline_beyond_mesh}};
+                         {"folded_voxels", jac.folded_voxels}, {"outline_voxels_beyond_mesh", outline_beyond_mesh},
+                         {"outline_min", outline_jac.min_det}, {"outline_folded_voxels", outline_jac.folded_voxels}};
   clock.done(stages::kField);
 
   clock.start(stages::kWarp);
