@@ -17,6 +17,7 @@
 #include "registration/boundary_samples.h"
 #include "segmentation/bias_field.h"
 #include "segmentation/tissue_em.h"
+#include "misregistered_prior.h"
 
 using namespace brainshift;
 using namespace brainshift::segmentation;
@@ -95,21 +96,7 @@ Synthetic make_head(const Intensities& in, double noise_sd, double bias_amplitud
   return s;
 }
 
-// The truth shifted by (dx, dy, dz) mm and scaled: a misregistered prior.
-LabelImage misregistered(const LabelImage& truth, const Eigen::Vector3d& shift_mm, double scale) {
-  LabelImage out(truth.grid, 0);
-  const Eigen::Matrix4d vfw = truth.grid.voxel_from_world();
-  for (int k = 0; k < truth.grid.dims[2]; ++k)
-    for (int j = 0; j < truth.grid.dims[1]; ++j)
-      for (int i = 0; i < truth.grid.dims[0]; ++i) {
-        const Eigen::Vector3d src = (truth.grid.world_mm(i, j, k) - shift_mm) / scale;
-        const Eigen::Vector3d v = (vfw * src.homogeneous()).head<3>();
-        const int a = static_cast<int>(std::lround(v.x())), b = static_cast<int>(std::lround(v.y())),
-                  c = static_cast<int>(std::lround(v.z()));
-        if (truth.grid.contains(a, b, c)) out.at(i, j, k) = truth.at(a, b, c);
-      }
-  return out;
-}
+using brainshift::segmentation::test_support::misregistered;
 
 double dice(const LabelImage& a, const LabelImage& b, std::uint16_t label) {
   std::size_t both = 0, na = 0, nb = 0;
