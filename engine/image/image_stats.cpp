@@ -83,4 +83,11 @@ Eigen::Vector3d centroid_mm(const Mask& mask) {
   return g.world_mm(sum[0] / n, sum[1] / n, sum[2] / n);
 }
 
+float median_in_place(std::vector<float>& values) {
+  if (values.empty()) return 0.f;
+  const auto mid = values.begin() + static_cast<std::ptrdiff_t>(values.size() / 2);
+  std::nth_element(values.begin(), mid, values.end());
+  return *mid;
+}
+
 }  // namespace brainshift

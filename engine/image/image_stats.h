@@ -1,4 +1,5 @@
 #pragma once
+#include <vector>
 // Small measurements on masks, in voxels and in world units.
 #include <Eigen/Dense>
 #include <array>
@@ -28,5 +29,8 @@ std::size_t count_nonzero(const Mask& mask);
 double volume_ml(const Mask& mask);
 // Mean world position (RAS+ mm) of the foreground voxel centres; InputError if empty.
 Eigen::Vector3d centroid_mm(const Mask& mask);
+// The upper median (element size/2 in order) of values, reordering them; 0
+// when empty.
+float median_in_place(std::vector<float>& values);
 
 }  // namespace brainshift

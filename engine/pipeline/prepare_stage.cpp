@@ -86,12 +86,6 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
 
 std::vector<std::uint16_t> ventricle_labels(const LabelTable& table) { return table.cavity_labels(); }
 
-double median_of(std::vector<float>& x) {
-  if (x.empty()) return 0;
-  std::nth_element(x.begin(), x.begin() + static_cast<std::ptrdiff_t>(x.size() / 2), x.end());
-  return x[x.size() / 2];
-}
-
 // The preop where the head's placement puts it (segmentation::PreopSeen):
 // its T1 and its own fluid and tissue intensities. Without ventricles in the
 // preop labels there is no fluid to compare with: the medians are equal and
@@ -106,7 +100,7 @@ segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, 
       if (std::find(vent.begin(), vent.end(), labels[v]) != vent.end()) fluid.push_back(warm.preop.t1.voxels[v]);
       else if (labels[v] == table.brain_label()) tissue.push_back(warm.preop.t1.voxels[v]);
     }
-    const double f = median_of(fluid), t = median_of(tissue);
+    const double f = median_in_place(fluid), t = median_in_place(tissue);
     warm.preop_fluid_tissue_medians = fluid.empty() || tissue.empty() ? std::array<double, 2>{0, 0} : std::array<double, 2>{f, t};
   }
   segmentation::PreopSeen seen;
@@ -219,7 +213,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
   LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
   const segmentation::PreopSeen seen = preop_as_seen(warm, table, carried, placement);
-  auto segment = [&](const LabelImage& carried, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true,
+  auto segment = [&](const LabelImage& prior_labels, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true,
                      const segmentation::IntraopSegmentation* fitted = nullptr,
                      const Mask* gap_found_before = nullptr) {
     segmentation::SegmentationParameters sp = ap.classifier;
@@ -232,7 +226,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     sp.ventricle_shift_mm = ventricle_shift_mm;
     if (ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    return segmentation::segment_intraop(image, carried, table.brain_label(), ventricle_labels(table), sp, fitted,
+    return segmentation::segment_intraop(image, prior_labels, table.brain_label(), ventricle_labels(table), sp, fitted,
                                          gap_found_before, &seen);
   };
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);

@@ -246,9 +246,7 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
     for (std::size_t c = 1; c < size.size(); ++c)
       if (open_to_outside[c]) {
         const Eigen::Vector3d m = sum[c] / static_cast<double>(size[c]);
-        auto& x = intensities[c];
-        std::nth_element(x.begin(), x.begin() + static_cast<std::ptrdiff_t>(x.size() / 2), x.end());
-        const double median = x[x.size() / 2];
+        const double median = median_in_place(intensities[c]);
         // 0 at the fluid class's mean, 1 where the fluid test turns.
         const double toward_turn = turn != fluid_mean ? (median - fluid_mean) / (turn - fluid_mean) : 0.0;
         nlohmann::json record = {{"ml", static_cast<double>(size[c]) * voxel_ml}, {"ventricles_mm", near[c]},
@@ -256,9 +254,9 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
                                  {"median_intensity", median}, {"median_toward_fluid_turn", toward_turn}};
         // What the preop held there: 0 at its fluid, 1 at its tissue.
         double preop_toward_tissue = 1;
-        if (auto& y = preop[c]; !y.empty()) {
-          std::nth_element(y.begin(), y.begin() + static_cast<std::ptrdiff_t>(y.size() / 2), y.end());
-          preop_toward_tissue = (y[y.size() / 2] - seen->fluid_median) / (seen->tissue_median - seen->fluid_median);
+        if (!preop[c].empty()) {
+          preop_toward_tissue =
+              (median_in_place(preop[c]) - seen->fluid_median) / (seen->tissue_median - seen->fluid_median);
           record["preop_toward_tissue"] = preop_toward_tissue;
         }
         out.components.push_back(record);
