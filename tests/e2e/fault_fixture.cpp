@@ -62,6 +62,18 @@ std::string scan_id_of(const Message& push_reply) {
   return parse_scan_push_reply(push_reply).scan_id;
 }
 
+Message push_retrying_busy(Client& c, const ScanBytes& scan, const std::string& client_id,
+                           std::chrono::seconds timeout, int* busy_replies) {
+  const auto until = std::chrono::steady_clock::now() + timeout;
+  for (;;) {
+    Message reply = c.push(scan.labels, scan.image, client_id);
+    const bool busy = reply.type() == MessageType::kError && parse_error_reply(reply).code == ErrorCode::kBusy;
+    if (!busy || std::chrono::steady_clock::now() > until) return reply;
+    if (busy_replies) ++*busy_replies;
+    std::this_thread::sleep_for(250ms);
+  }
+}
+
 ScanListReply wait_all_finished(Client& c, std::chrono::seconds timeout) {
   const auto until = std::chrono::steady_clock::now() + timeout;
   for (;;) {

@@ -34,6 +34,14 @@ bool is_scan_event(const protocol::Message& m, protocol::MessageType type, const
 bool progress_at(const protocol::Message& m, const std::string& stage, double min_fraction);
 std::string scan_id_of(const protocol::Message& push_reply);
 
+// Pushes a scan and, while the daemon answers `busy` (its queue is full: the
+// documented answer is "retry later"), waits and pushes again, as a scanner-side
+// client must. A busy push was neither stored nor acknowledged, so pushing it
+// again cannot make a second scan. Returns the last reply (a scan.push reply or
+// another error); *busy_replies counts the retries.
+protocol::Message push_retrying_busy(Client& c, const ScanBytes& scan, const std::string& client_id,
+                                     std::chrono::seconds timeout, int* busy_replies = nullptr);
+
 // Polls scan.list until no scan is queued or processing.
 protocol::ScanListReply wait_all_finished(Client& c, std::chrono::seconds timeout);
 
