@@ -150,6 +150,7 @@ void read_classifier(TomlSection& s, segmentation::SegmentationParameters& c) {
   s.read("min_gap_ml", c.min_gap_ml, Interval::at_least(0));
   s.read("max_gap_median_toward_fluid_turn", c.max_gap_median_toward_fluid_turn, Interval::above(0));
   s.read("min_gap_preop_toward_tissue", c.min_gap_preop_toward_tissue, Interval::closed(0, 1));
+  s.read("max_fluid_rim_mm", c.max_fluid_rim_mm, Interval::closed(0, 10));
   s.read("bias_degree", c.em.bias_degree, 0, 4);
   s.read("max_iterations", c.em.max_iterations, 1, 1000);
   s.read("tolerance", c.em.tolerance, Interval::above(0));

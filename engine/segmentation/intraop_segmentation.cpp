@@ -12,6 +12,7 @@
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "registration/boundary_samples.h"
+#include "segmentation/fluid_rim.h"
 #include "registration/linear_sampler.h"
 
 namespace brainshift::segmentation {
@@ -501,6 +502,14 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
         }
     }
   }
+  // The bright fluid rim around a T2-like brain (item 11); nothing in a T1.
+  const Mask rim = fluid_rim(brain, ventricle, image_box, em.bias, em.classes, params.max_fluid_rim_mm);
+  for (std::size_t v = 0; v < rim.voxels.size(); ++v) {
+    if (!rim.voxels[v]) continue;
+    brain.voxels[v] = 0;
+    posterior[2][v] += posterior[0][v];
+    posterior[0][v] = 0;
+  }
   clean_brain(brain, posterior, ventricle, params.max_filled_hole_ml);
 
   IntraopSegmentation result;
@@ -551,6 +560,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["open_fluid_partial_volume_ml"] = partial_fluid_ml;
   result.report["open_fluid_in_preop_ml"] = fluid_before_ml;
   result.report["open_fluid_components"] = open_components;
+  result.report["fluid_rim_ml"] = volume_ml(rim);
   result.report["ventricles_ml"] = volume_ml(ventricle);
   const bool classes_apart = !std::isfinite(class_contrast) || class_contrast >= params.min_fluid_contrast_sd;
   const bool wall_apart = !std::isfinite(wall_contrast) || wall_contrast >= params.min_wall_contrast_sd;

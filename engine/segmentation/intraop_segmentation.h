@@ -92,6 +92,13 @@ struct SegmentationParameters {
   // resectable counts as tissue: a cavity is a gap even where a cyst was.
   // 0: off.
   double min_gap_preop_toward_tissue = 0.5;
+  // In an image whose fluid is the brightest tissue (T2-like), brain voxels
+  // at least half fluid reached from the outside within this depth (mm) are
+  // the CSF rim between cortex and skull, not brain (segmentation/fluid_rim.h):
+  // the subarachnoid space over the convexity is 1-3 mm thick. Deeper fluid
+  // open to the outside is the open-fluid rule's. 0: off. No effect on an
+  // image whose fluid is dark (T1, FLAIR).
+  double max_fluid_rim_mm = 3.0;
   // The ventricular fluid class must stand this many pooled sd's from the
   // farthest major parenchyma class, or the image cannot show the ventricles
   // (a contrast with no fluid/tissue difference, or noise far beyond any

@@ -1,0 +1,95 @@
+#include "segmentation/fluid_rim.h"
+
+#include <array>
+#include <deque>
+
+#include "image/distance_map.h"
+#include "image/morphology.h"
+
+namespace brainshift::segmentation {
+namespace {
+
+const GaussianClass* heaviest(const std::vector<GaussianClass>& classes, Tissue t) {
+  const GaussianClass* best = nullptr;
+  for (const auto& c : classes)
+    if (c.tissue == t && (!best || c.weight > best->weight)) best = &c;
+  return best;
+}
+
+}  // namespace
+
+// Why: in a T2-like image the CSF between the cortex and the skull (1-3 mm
+// over the convexity) is the brightest tissue there, and the brain holds
+// bright tissue of its own (sulcal fluid, oedema), so a parenchyma class
+// spans the fluid's partial volume; where the carried outline lies on the
+// rim (a first round, or a placement, a voxel or two out) the prior keeps
+// the rim in the brain, and the round after inherits it. In a T1 the rim is
+// dark, as dark as bone, and falls outside by its intensity alone. A voxel
+// at least half fluid is not brain (the partial-volume rule: at the midpoint
+// of the two tissues' intensities half of each), and fluid reached from the
+// outside within the rim's thickness is the rim. Deeper fluid open to the
+// outside is the open-fluid rule's (a gap, a cavity: item 7), and sulci
+// deeper than the bound keep their fluid, as every outline counts them.
+Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, const std::vector<float>& bias,
+               const std::vector<GaussianClass>& classes, double max_depth_mm) {
+  const Grid3& g = brain.grid;
+  Mask rim(g, 0);
+  const GaussianClass* fluid = heaviest(classes, Tissue::ventricle);
+  const GaussianClass* bulk = heaviest(classes, Tissue::parenchyma);
+  // Bright fluid: brighter than the bulk of the brain's tissue. Not "than
+  // every parenchyma class": the class spanning the bright tissue of the
+  // brain (the reason for the peel) may reach past the fluid's mean.
+  if (max_depth_mm <= 0 || !fluid || !bulk || fluid->mean <= bulk->mean) return rim;
+  // The tissue the rim borders is the cortex: of the parenchyma classes
+  // holding at least a sixth of the parenchyma (the major ones, as the
+  // contrast test counts them), the one nearest the fluid. Against white
+  // matter's mean the midpoint fell inside the grey matter of a 1 mm T2
+  // and peeled 167 ml of cortex (docs/PERFORMANCE.md 12.18).
+  const GaussianClass* cortex = bulk;
+  for (const auto& c : classes)
+    if (c.tissue == Tissue::parenchyma && c.weight >= 1.0 / 6 && c.mean < fluid->mean && c.mean > cortex->mean)
+      cortex = &c;
+  const double half_fluid = 0.5 * (fluid->mean + cortex->mean);
+
+  Mask outside = fill_holes(brain);
+  for (auto& v : outside.voxels) v = !v;
+  const ImageF depth_mm = distance_to_mask_mm(outside, max_depth_mm);
+  Mask candidate(g, 0);
+  for (std::size_t v = 0; v < candidate.voxels.size(); ++v)
+    candidate.voxels[v] = brain.voxels[v] && !ventricle.voxels[v] && depth_mm.voxels[v] <= max_depth_mm &&
+                          image.voxels[v] / bias[v] >= half_fluid;
+
+  // From the outside in through candidates: each voxel enters the queue once.
+  const std::array<std::array<int, 3>, 6> faces{{{1, 0, 0}, {-1, 0, 0}, {0, 1, 0}, {0, -1, 0}, {0, 0, 1}, {0, 0, -1}}};
+  auto neighbours = [&](int i, int j, int k, auto&& fn) {
+    for (const auto& f : faces) {
+      const int a = i + f[0], b = j + f[1], c = k + f[2];
+      if (g.contains(a, b, c)) fn(a, b, c);
+    }
+  };
+  std::deque<std::array<int, 3>> queue;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        if (!candidate.at(i, j, k)) continue;
+        bool touches = false;
+        neighbours(i, j, k, [&](int a, int b, int c) { touches = touches || outside.at(a, b, c); });
+        if (touches) {
+          rim.at(i, j, k) = 1;
+          queue.push_back({i, j, k});
+        }
+      }
+  while (!queue.empty()) {
+    const auto [i, j, k] = queue.front();
+    queue.pop_front();
+    neighbours(i, j, k, [&](int a, int b, int c) {
+      if (candidate.at(a, b, c) && !rim.at(a, b, c)) {
+        rim.at(a, b, c) = 1;
+        queue.push_back({a, b, c});
+      }
+    });
+  }
+  return rim;
+}
+
+}  // namespace brainshift::segmentation

@@ -1,0 +1,24 @@
+#pragma once
+// The bright fluid rim around the brain in an image whose fluid is the
+// brightest tissue (T2-like): peeled off the classified brain from the
+// outside in (docs/DESIGN.md "Automatic intraop segmentation", item 11).
+#include <vector>
+
+#include "core/image.h"
+#include "segmentation/tissue_em.h"
+
+namespace brainshift::segmentation {
+
+// The voxels of `brain` (not `ventricle`) that hold at least half fluid by
+// their bias-corrected intensity (image / bias at or beyond the midpoint of
+// the fluid class's mean and the cortex's: the major parenchyma class
+// nearest the fluid), lie within
+// max_depth_mm of the brain's outside (what lies beyond its outline; its
+// enclosed holes are not outside) and reach that outside through such voxels
+// (face neighbours). Empty unless the fitted fluid is brighter than the
+// largest parenchyma class (T2-like), and when max_depth_mm <= 0. All masks on one grid; bias
+// on that grid too.
+Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, const std::vector<float>& bias,
+               const std::vector<GaussianClass>& classes, double max_depth_mm);
+
+}  // namespace brainshift::segmentation
