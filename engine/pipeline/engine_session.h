@@ -42,6 +42,10 @@ struct IntraopInput {
   // The caller's reading or decoding of these images: counted in the
   // scan's "read" and "total" timings (run_intraop writes them all).
   double read_seconds = 0.0;
+  // Fluid the automatic segmentation found where the brain was (the gap a
+  // sinking leaves): the volume gate counts it with the brain. 0 for labels
+  // a caller gives.
+  double open_fluid_ml = 0.0;
 };
 
 // A scan as it arrives: an image, labels, or both (at least one). Without

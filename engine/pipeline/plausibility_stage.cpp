@@ -30,7 +30,10 @@ std::string check_input_plausibility(const WarmState& warm, const IntraopInput& 
   if (!limits.enabled) return {};
   const LabelTable& table = params.label_table;
   std::vector<GateResult> gates;
-  gates.push_back(volume_gate(volume_ml(brain_region), warm.brain_volume_ml, A, limits));
+  const double in_view = preop_fraction_in_view(warm.preop.labels, input.labels.grid, A);
+  GateResult volume = volume_gate(volume_ml(brain_region), in_view * warm.brain_volume_ml, A, limits, input.open_fluid_ml);
+  volume.extra["preop_fraction_in_view"] = in_view;
+  gates.push_back(std::move(volume));
   // The asymmetric structures: the cavities (lateral ventricles) and what may
   // be resected (the tumour); the left-right test needs them.
   std::vector<std::pair<std::string, std::uint16_t>> asymmetric;

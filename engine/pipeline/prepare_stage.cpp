@@ -247,9 +247,9 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   // skipped when its field is a full pass's, else by the full pass.
   // A re-match's pass starts its affine from the pass before it (item 9).
   const bool light_field_is_full = ap.passes.prior_refine && ap.passes.prior_surface_max_iterations == 0;
-  auto run_pass = [&](const LabelImage& labels, bool rematch_follows, bool& prior_only,
+  auto run_pass = [&](const segmentation::IntraopSegmentation& s, bool rematch_follows, bool& prior_only,
                       const Eigen::Matrix4d* affine_start = nullptr) {
-    const IntraopInput input{labels, image, read_seconds};
+    const IntraopInput input{s.labels, image, read_seconds, s.open_fluid_ml};
     if (!ap.passes.warm_start_affine) affine_start = nullptr;
     prior_only = false;
     if (rematch_follows) {
@@ -265,8 +265,8 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   };
   bool result_prior_only = false;
   ScanResult result = gates.failure.empty()
-                          ? run_pass(seg.labels, ap.rematch_rounds > 0, result_prior_only)
-                          : run_intraop(warm, IntraopInput{seg.labels, image, read_seconds}, params, progress, false,
+                          ? run_pass(seg, ap.rematch_rounds > 0, result_prior_only)
+                          : run_intraop(warm, IntraopInput{seg.labels, image, read_seconds, seg.open_fluid_ml}, params, progress, false,
                                         gates.failure);
   nlohmann::json rounds = nlohmann::json::array();
   rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
@@ -285,7 +285,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
                       {"open_fluid_rule", false}, {"refusal", plain.refusal}});
     if (plain.refusal.empty() && plain_gates.failure.empty()) {
       bool pass_prior_only = false;
-      ScanResult pass = run_pass(plain.labels, ap.rematch_rounds > 0, pass_prior_only);
+      ScanResult pass = run_pass(plain, ap.rematch_rounds > 0, pass_prior_only);
       if (pass.kind == ResultKind::nonrigid) {
         rounds.front()["kept"] = false;
         rounds.front()["fallback_reason"] = result.fallback_reason;
@@ -321,7 +321,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
       break;
     }
     bool pass_prior_only = false;
-    ScanResult pass = run_pass(next.labels, round < ap.rematch_rounds, pass_prior_only, &result.intraop_from_preop);
+    ScanResult pass = run_pass(next, round < ap.rematch_rounds, pass_prior_only, &result.intraop_from_preop);
     if (pass.kind != ResultKind::nonrigid) {  // a re-match the stages refuse (a fold): the previous pass stands
       rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
                         {"fallback_reason", pass.fallback_reason}, {"kept", false}});
@@ -338,7 +338,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   } else if (result_prior_only) {  // the answer: the full pass on the segmentation that stands
     const Eigen::Matrix4d same_labels_affine = result.intraop_from_preop;
     bool unused = false;
-    result = run_pass(seg.labels, false, unused, &same_labels_affine);
+    result = run_pass(seg, false, unused, &same_labels_affine);
   }
   seg_metrics["classifier"] = seg.report;
   seg_metrics["gates"] = gates.metrics;

@@ -54,17 +54,40 @@ nlohmann::json PlausibilityReport::to_json() const {
   return out;
 }
 
-GateResult volume_gate(double intraop_ml, double preop_ml, const Eigen::Matrix4d& A, const PlausibilityLimits& limits) {
-  if (preop_ml <= 0) return untested("volume", "no preop brain volume");
+// The part of the preop brain the affine places inside the intraop grid
+// (voxel centres within half a voxel of its border), from every second
+// voxel along each axis: a fraction good to a fraction of a percent.
+double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop) {
+  const Eigen::Matrix4d voxel_from_preop_voxel = intraop.voxel_from_world() * intraop_from_preop * preop.grid.world_from_voxel;
+  std::size_t all = 0, in_view = 0;
+  for (int k = 0; k < preop.grid.dims[2]; k += 2)
+    for (int j = 0; j < preop.grid.dims[1]; j += 2)
+      for (int i = 0; i < preop.grid.dims[0]; i += 2) {
+        if (preop.at(i, j, k) == 0) continue;
+        ++all;
+        const Eigen::Vector3d v = (voxel_from_preop_voxel * Eigen::Vector4d(i, j, k, 1)).head<3>();
+        bool inside = true;
+        for (int a = 0; a < 3; ++a) inside = inside && v[a] >= -0.5 && v[a] <= intraop.dims[a] - 0.5;
+        in_view += inside;
+      }
+  return all ? static_cast<double>(in_view) / static_cast<double>(all) : 1.0;
+}
+
+GateResult volume_gate(double intraop_ml, double preop_in_view_ml, const Eigen::Matrix4d& A,
+                       const PlausibilityLimits& limits, double open_fluid_ml) {
+  if (preop_in_view_ml <= 0) return untested("volume", "no preop brain volume in the field of view");
   GateResult g;
   g.name = "volume";
-  const double mapped_ml = affine_det(A) * preop_ml;
-  g.value = std::abs(intraop_ml / mapped_ml - 1.0);
+  const double mapped_ml = affine_det(A) * preop_in_view_ml;
+  const double held_ml = intraop_ml + open_fluid_ml;
+  g.value = std::abs(held_ml / mapped_ml - 1.0);
   g.limit = "<= " + fixed(limits.max_volume_change);
   g.passed = g.value <= limits.max_volume_change;
-  g.detail = "intraop brain " + fixed(intraop_ml, 1) + " ml against the preop brain mapped by the affine " +
-             fixed(mapped_ml, 1) + " ml (relative change)";
-  g.extra = {{"intraop_ml", intraop_ml}, {"preop_mapped_ml", mapped_ml}};
+  g.detail = "intraop brain " + fixed(intraop_ml, 1) + " ml" +
+             (open_fluid_ml > 0 ? " + " + fixed(open_fluid_ml, 1) + " ml of fluid where the brain was" : "") +
+             " against the preop brain in the field of view mapped by the affine " + fixed(mapped_ml, 1) +
+             " ml (relative change)";
+  g.extra = {{"intraop_ml", intraop_ml}, {"open_fluid_ml", open_fluid_ml}, {"preop_mapped_ml", mapped_ml}};
   return g;
 }
 

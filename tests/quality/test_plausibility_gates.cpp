@@ -74,6 +74,38 @@ TEST(VolumeGate, AFewPerCentPassesALeakOfTensOfPerCentFails) {
   EXPECT_NEAR(volume_gate(1331, 1000, linear(Eigen::Matrix3d::Identity() * 1.1), limits).value, 0.0, 1e-9);
 }
 
+TEST(VolumeGate, FluidWhereTheBrainWasCountsWithTheBrain) {
+  const PlausibilityLimits limits;
+  // A 20 % gap under the dura, found as fluid: the skull still holds the volume.
+  EXPECT_FALSE(volume_gate(800, 1000, Eigen::Matrix4d::Identity(), limits).passed);
+  const GateResult sunk = volume_gate(800, 1000, Eigen::Matrix4d::Identity(), limits, 180);
+  EXPECT_TRUE(sunk.passed);
+  EXPECT_NEAR(sunk.value, 0.02, 1e-9);
+  // Fluid does not excuse a leak.
+  EXPECT_FALSE(volume_gate(1300, 1000, Eigen::Matrix4d::Identity(), limits, 50).passed);
+}
+
+TEST(VolumeGate, OnlyThePreopInsideTheFieldOfViewIsCompared) {
+  // A 64-voxel cube of brain; the intraop grid holds its upper 48 slices.
+  LabelImage preop(cube_grid(64, 1.5));
+  for (int k = 8; k < 56; ++k)
+    for (int j = 8; j < 56; ++j)
+      for (int i = 8; i < 56; ++i) preop.at(i, j, k) = 1;
+  EXPECT_NEAR(preop_fraction_in_view(preop, preop.grid, Eigen::Matrix4d::Identity()), 1.0, 1e-12);
+  Grid3 slab = preop.grid;
+  slab.dims[2] = 32;  // slices 0..31 only: brain slices 8..31 of 8..55
+  const double in_view = preop_fraction_in_view(preop, slab, Eigen::Matrix4d::Identity());
+  EXPECT_NEAR(in_view, 0.5, 0.03);
+  // The same slab seen after the head moved up by 12 mm (8 voxels): less brain in view.
+  Eigen::Matrix4d up = Eigen::Matrix4d::Identity();
+  up(2, 3) = 12.0;
+  EXPECT_NEAR(preop_fraction_in_view(preop, slab, up), 16.0 / 48.0, 0.03);
+  // Nothing in view at all (the grid far away).
+  Eigen::Matrix4d away = Eigen::Matrix4d::Identity();
+  away(0, 3) = 500.0;
+  EXPECT_EQ(preop_fraction_in_view(preop, slab, away), 0.0);
+}
+
 TEST(VolumeGate, VentriclesMayShrinkButNotCoverTheBrain) {
   const PlausibilityLimits limits;
   EXPECT_TRUE(ventricle_volume_gate(10, 25, Eigen::Matrix4d::Identity(), limits).passed) << "drained CSF";

@@ -1,0 +1,87 @@
+// An intraop field of view that cuts the brain (a slab, a short coil, an
+// oblique block that misses the base): the part out of view is not missing
+// tissue, and the plausibility volume gate (quality/plausibility_gates.h)
+// compares only the preop brain the affine places in view. On the small
+// synthetic head (coarse mesh).
+#include <gtest/gtest.h>
+#include <mpi.h>
+
+#include <algorithm>
+
+#include "coarse_parameters.h"  // tests/support
+#include "image/resample.h"
+#include "pipeline/engine_session.h"
+#include "synthetic_head.h"
+
+using namespace brainshift;
+
+namespace {
+
+// The preop labels on an iMRI-like grid (1.4 x 1.4 x 2.8 mm) moved by a
+// translation, the grid starting `cut_fraction` of the brain's height above
+// its base; the top 6 mm of a 30 mm disc removed (a sinking).
+IntraopInput cut_scan(const PreopInput& preop, const Eigen::Vector3d& shift_mm, double cut_fraction) {
+  double bottom = 1e9, top = -1e9;
+  const Grid3& pg = preop.labels.grid;
+  for (int k = 0; k < pg.dims[2]; ++k)
+    for (int j = 0; j < pg.dims[1]; ++j)
+      for (int i = 0; i < pg.dims[0]; ++i)
+        if (preop.labels.at(i, j, k)) {
+          bottom = std::min(bottom, pg.world_mm(i, j, k).z() + shift_mm.z());
+          top = std::max(top, pg.world_mm(i, j, k).z() + shift_mm.z());
+        }
+  const double z0 = bottom + cut_fraction * (top - bottom);
+  Grid3 g;
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  g.world_from_voxel.diagonal().head<3>() = Eigen::Vector3d(1.4, 1.4, 2.8);
+  g.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-70, -77, z0);
+  g.dims = {100, 110, static_cast<int>((top + 15 - z0) / 2.8)};
+  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
+  preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
+  IntraopInput scan{resample_nearest(preop.labels, g, preop_from_intraop),
+                    resample_linear(preop.t1, g, preop_from_intraop)};
+  for (auto& v : scan.labels.voxels)
+    if (v == 4) v = 1;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        if (p.z() > top - 6.0 && p.head<2>().norm() < 30.0) scan.labels.at(i, j, k) = 0;
+      }
+  return scan;
+}
+
+TEST(FieldOfView, ABrainCutByTheFieldOfViewIsNotALostLobe) {
+  const test::SyntheticHead h = test::synthetic_head();
+  const PreopInput preop{h.t1, h.labels};
+  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
+  session.load_preop(preop, nullptr);
+  const Eigen::Vector3d shift(1.0, -1.0, 0.5);
+  // The lower 35 % of the brain's height (some 28 % of its volume) out of view.
+  const IntraopInput scan = cut_scan(preop, shift, 0.35);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  const auto& volume = r.metrics["plausibility"]["volume"];
+  ASSERT_TRUE(volume["tested"].get<bool>()) << volume.dump();
+  const double in_view = volume["preop_fraction_in_view"].get<double>();
+  EXPECT_GT(in_view, 0.60) << volume.dump();
+  EXPECT_LT(in_view, 0.85) << volume.dump();
+  // Against the whole preop brain the cut alone would be a change of 1 - in_view.
+  EXPECT_GT(1.0 - in_view, PipelineParameters{}.plausibility.max_volume_change);
+  EXPECT_LT(volume["value"].get<double>(), 0.05) << volume.dump();
+  // The translation is recovered where the brain did not sink.
+  const Grid3& g = scan.labels.grid;
+  double sum = 0;
+  std::size_t n = 0;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        if (scan.labels.at(i, j, k) == 0 || g.world_mm(i, j, k).head<2>().norm() < 40.0) continue;
+        sum += (r.pullback_field_mm.vectors[g.index(i, j, k)].cast<double>() + shift).norm();
+        ++n;
+      }
+  ASSERT_GT(n, 1000u);
+  EXPECT_LT(sum / static_cast<double>(n), 0.5);
+}
+
+}  // namespace
