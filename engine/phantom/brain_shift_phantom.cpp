@@ -78,7 +78,8 @@ PhantomCase make_phantom(const ImageF& preop_t1, const LabelImage& preop_labels,
   const auto brain_set = label_set(spec.brain_labels);
   PhantomCase out;
   out.true_intraop_from_preop_rigid = phi.intraop_from_preop_rigid();
-  const Grid3 grid = intraop_grid(spec, (phi.intraop_from_preop_rigid() * phi.brain_centroid_mm().homogeneous()).head<3>());
+  const Grid3 grid = intraop_grid(
+      spec, (phi.intraop_from_preop_rigid() * phi.brain_centroid_mm().homogeneous()).head<3>() + spec.grid_centre_offset_mm);
 
   // The truth, scaled down until the pull-back is comfortably invertible.
   double min_jac = 0;
@@ -247,7 +248,7 @@ PhantomCase make_phantom(const ImageF& preop_t1, const LabelImage& preop_labels,
     d["resection"]["blood_fill_fraction"] = spec.resection.blood_fill_fraction;
   }
   d["rigid"] = {{"rotation_deg", vec(spec.rigid.rotation_deg)}, {"translation_mm", vec(spec.rigid.translation_mm)}};
-  d["grid"] = {{"dims", spec.dims}, {"spacing_mm", vec(spec.spacing_mm)}, {"oblique_deg", vec(spec.oblique_deg)},
+  d["grid"] = {{"dims", spec.dims}, {"spacing_mm", vec(spec.spacing_mm)}, {"centre_offset_mm", vec(spec.grid_centre_offset_mm)}, {"oblique_deg", vec(spec.oblique_deg)},
                {"flip_first_axis", spec.flip_first_axis}};
   d["noise"] = {{"bias_amplitude", spec.bias_amplitude}, {"rician_sigma", sigma},
                 {"label_noise_mm", spec.label_noise_mm}, {"label_noise_correlation_mm", spec.label_noise_correlation_mm}};

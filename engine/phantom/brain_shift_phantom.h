@@ -135,8 +135,11 @@ struct PhantomSpec {
   RetractorSpec retractor;
   MidlineShiftSpec midline_shift;
   RigidSpec rigid;
-  // Intraop (iMRI-like) grid, centred on the moved brain centroid.
+  // Intraop (iMRI-like) grid, centred on the moved brain centroid plus
+  // grid_centre_offset_mm (world RAS+ mm; a short coil over the craniotomy
+  // sees the top of the head and misses the base).
   std::array<int, 3> dims{256, 256, 60};
+  Eigen::Vector3d grid_centre_offset_mm{0, 0, 0};
   Eigen::Vector3d spacing_mm{0.9375, 0.9375, 2.5};
   Eigen::Vector3d oblique_deg{0, 0, 0};  // rotation of the grid axes (R, A, S)
   bool flip_first_axis = false;          // handedness-flipping voxel order

@@ -74,6 +74,14 @@ ScannerSpec scanner(const std::string& name, const Eigen::Vector3d& spacing_mm, 
 ScannerSpec scanner_1p5t() { return scanner("1.5T_1mm_iso", {1, 1, 1}, {180, 216, 160}, 25, 0.1); }
 ScannerSpec scanner_0p5t() { return scanner("0.5T_1.2x1.2x2mm", {1.2, 1.2, 2.0}, {190, 220, 170}, 12, 0.2); }
 ScannerSpec scanner_0p15t() { return scanner("0.15T_1.7x1.7x2.4mm", {1.7, 1.7, 2.4}, {200, 230, 175}, 7, 0.4); }
+// A short coil over the craniotomy: 120 mm along S-I, centred 20 mm above
+// the brain's centroid, so the field of view ends some 35 mm into the
+// base (temporal poles, cerebellum); its sensitivity falls off (strong bias).
+ScannerSpec short_coil_1p5t() {
+  ScannerSpec s = scanner("1.5T_short_coil_1mm_120mmSI", {1, 1, 1}, {180, 216, 120}, 20, 0.3);
+  s.fov_centre_offset_mm = {0, 0, 20};
+  return s;
+}
 ScannerSpec sagittal_3mm() {
   // fov: S-I, A-P, then R-L across slices.
   ScannerSpec s = scanner("sagittal_1x1x3mm", {1, 1, 3}, {170, 220, 180}, 18, 0.15);
@@ -272,6 +280,13 @@ std::vector<HospitalCaseSpec> hospital_suite() {
     sinking(c.deformation, 20, 4, 35);
     c.deformation.rigid.rotation_deg = {4, -3, 3};
     c.deformation.rigid.translation_mm = {3, -2, 4};
+    suite.push_back(c);
+  }
+  {  // The base out of view (a short coil) under a vertex sinking: nothing
+     // below holds the brain's affine, the gap above pulls it down.
+    HospitalCaseSpec c = hospital_case("mass_effect_vertex_sink22_short_coil_1.5T", 213, "tumour_mass_effect", short_coil_1p5t());
+    vertex(c.deformation.sinking);
+    sinking(c.deformation, 22, 4, 35);
     suite.push_back(c);
   }
   return suite;

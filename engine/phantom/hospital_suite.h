@@ -47,7 +47,7 @@ struct HospitalCase {
 // reshaped head), a tumour's mass effect beside a ventricle; plus one with a
 // superficial tumour (a resection target).
 std::vector<SubjectSpec> hospital_subjects();
-// Twelve cases over those subjects (see hospital_suite.cpp for each one's why).
+// Thirteen cases over those subjects (see hospital_suite.cpp for each one's why).
 std::vector<HospitalCaseSpec> hospital_suite();
 
 HospitalCase make_hospital_case(const Subject& subject, const HospitalCaseSpec& spec);

@@ -17,9 +17,10 @@ using namespace phantom_detail;
 void check(const ScannerSpec& s) {
   if (!(s.spacing_mm.minCoeff() >= 0.3 && s.spacing_mm.maxCoeff() <= 8 && s.fov_mm.minCoeff() >= 10 &&
         s.fov_mm.maxCoeff() <= 400 && s.slice_profile_fwhm >= 0.3 && s.slice_profile_fwhm <= 3 && s.snr > 0 &&
-        s.bias_amplitude >= 0 && s.bias_amplitude < 1))
-    throw InputError("scanner '" + s.name + "': spacing in [0.3, 8] mm, FOV in [10, 400] mm, slice profile in "
-                     "[0.3, 3] slices, SNR > 0 and bias in [0, 1) are required");
+        s.bias_amplitude >= 0 && s.bias_amplitude < 1 && s.fov_centre_offset_mm.allFinite() &&
+        s.fov_centre_offset_mm.norm() <= 200))
+    throw InputError("scanner '" + s.name + "': spacing in [0.3, 8] mm, FOV in [10, 400] mm, its centre within "
+                     "200 mm of the brain's, slice profile in [0.3, 3] slices, SNR > 0 and bias in [0, 1) are required");
 }
 
 // T2-like value of brain tissue from its T1: piecewise linear through
@@ -44,6 +45,7 @@ void apply_scanner_grid(const ScannerSpec& scanner, PhantomSpec& spec) {
   for (int a = 0; a < 3; ++a) spec.dims[a] = std::max(2, static_cast<int>(std::lround(scanner.fov_mm[a] / scanner.spacing_mm[a])));
   spec.spacing_mm = scanner.spacing_mm;
   spec.oblique_deg = scanner.orientation_deg;
+  spec.grid_centre_offset_mm = scanner.fov_centre_offset_mm;
 }
 
 ImageF scene_contrast(const IntraopScene& scene, Contrast contrast) {
@@ -115,7 +117,7 @@ ImageF acquire(const IntraopScene& scene, const ScannerSpec& spec, const Grid3& 
 
 nlohmann::json to_json(const ScannerSpec& s) {
   auto vec = [](const Eigen::Vector3d& v) { return nlohmann::json::array({v.x(), v.y(), v.z()}); };
-  return {{"name", s.name}, {"spacing_mm", vec(s.spacing_mm)}, {"fov_mm", vec(s.fov_mm)},
+  return {{"name", s.name}, {"spacing_mm", vec(s.spacing_mm)}, {"fov_mm", vec(s.fov_mm)}, {"fov_centre_offset_mm", vec(s.fov_centre_offset_mm)},
           {"orientation_deg", vec(s.orientation_deg)}, {"slice_profile_fwhm", s.slice_profile_fwhm},
           {"snr", s.snr}, {"bias_amplitude", s.bias_amplitude},
           {"contrast", s.contrast == Contrast::t1 ? "t1" : "t2_like"}};

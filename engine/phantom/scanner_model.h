@@ -30,6 +30,7 @@ struct ScannerSpec {
   std::string name = "1.5T_1mm";
   Eigen::Vector3d spacing_mm{1, 1, 1};      // in-plane, in-plane, slice
   Eigen::Vector3d fov_mm{200, 230, 170};    // along the three grid axes
+  Eigen::Vector3d fov_centre_offset_mm{0, 0, 0};  // world RAS+ mm, from the moved brain centroid
   Eigen::Vector3d orientation_deg{0, 0, 0}; // grid axes rotated (as PhantomSpec::oblique_deg)
   double slice_profile_fwhm = 1.0;          // in slice thicknesses
   double snr = 25;

@@ -187,6 +187,24 @@ TEST(HospitalSuite, ScannerGridsHaveTheRequestedSpacingAndOrientation) {
   EXPECT_NEAR(std::acos(normal.z()) * 180 / 3.14159265358979, 28.0, 1e-6);
 }
 
+TEST(HospitalSuite, AFieldOfViewMovedUpCutsTheBase) {
+  const ScannerSpec centred = small_scanner({2, 2, 3}, Contrast::t1);
+  ScannerSpec raised = centred;
+  raised.fov_centre_offset_mm = {0, 0, 40};
+  const HospitalCase c = make_hospital_case(synthetic_subject(), small_case(centred));
+  const HospitalCase r = make_hospital_case(synthetic_subject(), small_case(raised));
+  const Grid3& gc = c.phantom.intraop_t1.grid;
+  const Grid3& gr = r.phantom.intraop_t1.grid;
+  EXPECT_EQ(gc.dims, gr.dims);
+  EXPECT_NEAR((gr.world_mm(0, 0, 0) - gc.world_mm(0, 0, 0) - Eigen::Vector3d(0, 0, 40)).norm(), 0.0, 1e-9);
+  // Less of the brain in view, none of it lost from the truth's labels in view.
+  const auto brain = [](const LabelImage& l) { return std::count_if(l.voxels.begin(), l.voxels.end(), [](auto v) { return v != 0; }); };
+  EXPECT_LT(brain(r.true_labels), brain(c.true_labels));
+  ScannerSpec far = centred;
+  far.fov_centre_offset_mm = {0, 0, 500};
+  EXPECT_THROW(make_hospital_case(synthetic_subject(), small_case(far)), InputError);
+}
+
 TEST(HospitalSuite, AlgorithmicSegmentationErrsAsItsImageMakesIt) {
   auto brain_ratio = [](const HospitalCase& c) {
     return c.description["segmentation"]["against_truth"]["brain_volume_ratio"].get<double>();
