@@ -8,7 +8,6 @@
 #include <cstring>
 
 #include "coarse_parameters.h"  // tests/support
-#include "image/resample.h"
 #include "pipeline/engine_session.h"
 #include "pipeline/warm_state.h"
 #include "synthetic_head.h"
@@ -26,23 +25,9 @@ IntraopInput moved_scan(const PreopInput& preop, const Eigen::Vector3d& shift_mm
   g.world_from_voxel = Eigen::Matrix4d::Identity();
   g.world_from_voxel.diagonal().head<3>() = Eigen::Vector3d(1.4, 1.4, 2.8);
   g.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-70, -77, -62);
-  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
-  preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
-  IntraopInput scan{resample_nearest(preop.labels, g, preop_from_intraop),
-                    resample_linear(preop.t1, g, preop_from_intraop)};
-  for (auto& v : scan.labels.voxels)
-    if (v == 4) v = 1;
-  double top = -1e9;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i)
-        if (scan.labels.at(i, j, k)) top = std::max(top, g.world_mm(i, j, k).z());
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const Eigen::Vector3d p = g.world_mm(i, j, k);
-        if (p.z() > top - sink_mm && p.head<2>().norm() < 30.0) scan.labels.at(i, j, k) = 0;
-      }
+  test::MovedHead moved = test::move_head(preop.labels, preop.t1, g, shift_mm);
+  IntraopInput scan{std::move(moved.labels), std::move(moved.t1)};
+  if (sink_mm > 0) test::sink_top(scan.labels, sink_mm, 30.0);
   return scan;
 }
 

@@ -17,7 +17,6 @@
 #include "core/errors.h"
 #include "field/metrics.h"
 #include "image/morphology.h"
-#include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
 #include "mesh/vtk_io.h"
 #include "pipeline/engine_session.h"
@@ -49,16 +48,10 @@ using test::coarse_parameters;  // tests/support
 // The intraop labels: preop labels (brain 1 = everything but the ventricles)
 // on an anisotropic iMRI-like grid, moved by a rigid translation.
 IntraopInput translated_scan(const PreopInput& preop, const Eigen::Vector3d& shift_mm) {
-  const Grid3 g = grid({100, 110, 44}, 1.4, {-70, -77, -62});
-  Grid3 aniso = g;
+  Grid3 aniso = grid({100, 110, 44}, 1.4, {-70, -77, -62});
   aniso.world_from_voxel(2, 2) = 2.8;
-  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
-  preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
-  LabelImage labels = resample_nearest(preop.labels, aniso, preop_from_intraop);
-  for (auto& v : labels.voxels)
-    if (v == 4) v = 1;
-  IntraopInput in{labels, resample_linear(preop.t1, aniso, preop_from_intraop)};
-  return in;
+  test::MovedHead moved = test::move_head(preop.labels, preop.t1, aniso, shift_mm);
+  return IntraopInput{std::move(moved.labels), std::move(moved.t1)};
 }
 
 class PipelineTest : public ::testing::Test {
@@ -223,16 +216,7 @@ TEST(PipelineSession, RegisteringBeforeAPreopIsLoadedIsAnInputError) {
 // removed, so the non-rigid stages have real work to do.
 IntraopInput sunken_scan(const PreopInput& preop) {
   IntraopInput scan = translated_scan(preop, {1.0, -1.0, 0.5});
-  const Grid3& g = scan.labels.grid;
-  double top = -1e9;
-  for (std::size_t v = 0; v < scan.labels.voxels.size(); ++v)
-    if (scan.labels.voxels[v] != 0) top = std::max(top, g.world_mm(v % g.dims[0], (v / g.dims[0]) % g.dims[1], v / (g.dims[0] * g.dims[1])).z());
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const Eigen::Vector3d p = g.world_mm(i, j, k);
-        if (p.z() > top - 6.0 && p.head<2>().norm() < 30.0) scan.labels.at(i, j, k) = 0;
-      }
+  test::sink_top(scan.labels, 6.0, 30.0);
   return scan;
 }
 

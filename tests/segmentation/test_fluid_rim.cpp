@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdio>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "segmentation/intraop_segmentation.h"
@@ -188,6 +189,29 @@ TEST(FluidRim, TheDarkRimIsNotBrainEither) {
   for (const auto& g : t1.classes) EXPECT_EQ(g.band_weight, 0) << name_of(g.tissue) << " " << g.mean;
 }
 
+// The carried outline on the rim (a round before took it: scale 1.03,
+// 1.5-2 mm out) under the re-match's narrow prior, the brain holding bright
+// tissue (sulcal fluid, an oedema); the peel off.
+namespace {
+Setting prior_on_the_rim() {
+  Setting s;
+  s.shift_mm = {0, 0, 0};
+  s.scale = 1.03;
+  s.prior_width_mm = 1.5;
+  s.bright_brain = true;
+  s.max_fluid_rim_mm = 0;
+  return s;
+}
+
+// The segmentation of that setting without the peel, then with the default one.
+std::pair<Outcome, Outcome> without_and_with_peel(const Contrast& contrast) {
+  Setting s = prior_on_the_rim();
+  const Outcome off = segment(contrast, s);
+  s.max_fluid_rim_mm = SegmentationParameters{}.max_fluid_rim_mm;
+  return {off, segment(contrast, s)};
+}
+}  // namespace
+
 // The hospital suite's T2-like failure (docs/PERFORMANCE.md 12.18): the brain
 // holds bright tissue (sulcal fluid, an oedema), so a parenchyma class spans
 // up to the fluid, and the carried outline lies on the rim (a round before
@@ -196,16 +220,7 @@ TEST(FluidRim, TheDarkRimIsNotBrainEither) {
 // from the outside in (fluid_rim) takes it out. The oedema and the sulci
 // deeper than the rim stay brain.
 TEST(FluidRim, TheRimIsPeeledWhenTheBrainHoldsBrightTissueAndThePriorHoldsTheRim) {
-  const Contrast t2{40, 55, 100, 10, 70, 2};
-  Setting s;
-  s.shift_mm = {0, 0, 0};
-  s.scale = 1.03;
-  s.prior_width_mm = 1.5;
-  s.bright_brain = true;
-  s.max_fluid_rim_mm = 0;
-  const Outcome kept = segment(t2, s);
-  s.max_fluid_rim_mm = SegmentationParameters{}.max_fluid_rim_mm;
-  const Outcome peeled = segment(t2, s);
+  const auto [kept, peeled] = without_and_with_peel(Contrast{40, 55, 100, 10, 70, 2});
   std::printf("bright brain, prior on the rim: outline Dice %.4f -> %.4f, rim called brain %.3f -> %.3f\n",
               kept.outline_dice, peeled.outline_dice, kept.rim_called_brain, peeled.rim_called_brain);
   EXPECT_GE(kept.rim_called_brain, 0.5) << "the case no longer shows the failure the peel is for";
@@ -216,16 +231,7 @@ TEST(FluidRim, TheRimIsPeeledWhenTheBrainHoldsBrightTissueAndThePriorHoldsTheRim
 
 // In a T1-like image the same setting peels nothing: the rim is dark.
 TEST(FluidRim, ADarkFluidIsNeverPeeled) {
-  const Contrast t1{100, 70, 25, 8, 75, 2};
-  Setting s;
-  s.shift_mm = {0, 0, 0};
-  s.scale = 1.03;
-  s.prior_width_mm = 1.5;
-  s.bright_brain = true;
-  s.max_fluid_rim_mm = 0;
-  const Outcome off = segment(t1, s);
-  s.max_fluid_rim_mm = SegmentationParameters{}.max_fluid_rim_mm;
-  const Outcome on = segment(t1, s);
+  const auto [off, on] = without_and_with_peel(Contrast{100, 70, 25, 8, 75, 2});
   EXPECT_EQ(off.outline_dice, on.outline_dice);
   EXPECT_EQ(off.rim_called_brain, on.rim_called_brain);
 }

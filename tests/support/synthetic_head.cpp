@@ -4,6 +4,8 @@
 #include <cmath>
 #include <cstdint>
 
+#include "image/resample.h"
+
 namespace brainshift::test {
 namespace {
 
@@ -61,6 +63,30 @@ double outline_dice(const LabelImage& a, const LabelImage& b) {
     nb += b.voxels[v] != 0;
   }
   return 2.0 * static_cast<double>(both) / static_cast<double>(na + nb);
+}
+
+MovedHead move_head(const LabelImage& labels, const ImageF& t1, const Grid3& grid, const Eigen::Vector3d& shift_mm) {
+  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
+  preop_from_intraop.block<3, 1>(0, 3) = -shift_mm;
+  MovedHead moved{resample_nearest(labels, grid, preop_from_intraop), resample_linear(t1, grid, preop_from_intraop)};
+  for (auto& v : moved.labels.voxels)
+    if (v == 4) v = 1;
+  return moved;
+}
+
+void sink_top(LabelImage& labels, double depth_mm, double radius_mm) {
+  const Grid3& g = labels.grid;
+  double top = -1e9;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        if (labels.at(i, j, k)) top = std::max(top, g.world_mm(i, j, k).z());
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        if (p.z() > top - depth_mm && p.head<2>().norm() < radius_mm) labels.at(i, j, k) = 0;
+      }
 }
 
 }  // namespace brainshift::test

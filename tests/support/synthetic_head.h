@@ -30,6 +30,19 @@ SyntheticHead synthetic_head(const SyntheticHeadSpec& spec = {});
 // fitted on the noise, a noiseless image has none.
 ImageF scanner_image(const ImageF& clean);
 
+// The preop labels and image carried onto `grid` by a translation of the
+// head (intraop = preop + shift_mm); the tumor (4) becomes brain (1), as a
+// segmenter without it would label it.
+struct MovedHead {
+  LabelImage labels;
+  ImageF t1;
+};
+MovedHead move_head(const LabelImage& labels, const ImageF& t1, const Grid3& grid, const Eigen::Vector3d& shift_mm);
+
+// A sinking under a craniotomy at the top: labels above (highest labelled
+// z) - depth_mm within radius_mm of the z axis set to 0.
+void sink_top(LabelImage& labels, double depth_mm, double radius_mm);
+
 // Dice of the two label maps' outlines (every non-zero label as one), on
 // the same grid: how well a segmentation found the head's brain.
 double outline_dice(const LabelImage& a, const LabelImage& b);
