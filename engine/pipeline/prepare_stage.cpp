@@ -229,9 +229,16 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
     return segmentation::segment_intraop(image, prior_labels, table.brain_label(), ventricle_labels(table), sp, fitted,
                                          gap_found_before, &seen);
   };
+  // As for given labels (run_intraop), but said of the image and before the
+  // segmentation's time is spent: the preop placed by the head shows how much
+  // of the brain the field of view holds.
+  const CarriedPreopVolumes carried_volumes = carried_preop_volumes(carried, table);
+  if (carried_volumes.brain_ml < params.gates.min_intraop_brain_fraction * warm.brain_volume_ml)
+    throw InputError("intraop image: the field of view holds " + std::to_string(carried_volumes.brain_ml) +
+                     " ml of the preop's " + std::to_string(warm.brain_volume_ml) +
+                     " ml brain (placed by the head); it misses most of the brain");
   segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
   if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
-  const CarriedPreopVolumes carried_volumes = carried_preop_volumes(carried, table);
   SegmentationGates gates = check_against(seg.labels, seg.confidence, carried_volumes, table, ap, seg.open_fluid_ml);
   segment_seconds += watch.lap();
   if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);

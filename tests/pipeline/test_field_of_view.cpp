@@ -7,8 +7,10 @@
 #include <mpi.h>
 
 #include <algorithm>
+#include <string>
 
 #include "coarse_parameters.h"  // tests/support
+#include "core/errors.h"
 #include "pipeline/engine_session.h"
 #include "synthetic_head.h"
 
@@ -78,6 +80,26 @@ TEST(FieldOfView, ABrainCutByTheFieldOfViewIsNotALostLobe) {
       }
   ASSERT_GT(n, 1000u);
   EXPECT_LT(sum / static_cast<double>(n), 0.5);
+}
+
+// An image that holds a fifth of the brain: refused before the segmentation,
+// said of the image, as given labels are (PipelineTest's bad inputs).
+TEST(FieldOfView, AnImageThatMissesMostOfTheBrainIsAClearError) {
+  const test::SyntheticHead h = test::synthetic_head();
+  const PreopInput preop{h.t1, h.labels};
+  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
+  session.load_preop(preop, nullptr);
+  ScanInput scan;
+  scan.image = test::scanner_image(*cut_scan(preop, {0, 0, 0}, 0.7).t1);
+  try {
+    session.register_scan(scan, nullptr);
+    ADD_FAILURE() << "accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("intraop image: the field of view holds"), std::string::npos) << e.what();
+  }
+  // The session keeps serving.
+  scan.image = test::scanner_image(*cut_scan(preop, {0, 0, 0}, -0.1).t1);
+  EXPECT_EQ(session.register_scan(scan, nullptr).kind, ResultKind::nonrigid);
 }
 
 }  // namespace
