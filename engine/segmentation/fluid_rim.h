@@ -12,12 +12,11 @@ namespace brainshift::segmentation {
 // The voxels of `brain` (not `ventricle`) that hold at least half fluid by
 // their bias-corrected intensity (image / bias at or beyond the midpoint of
 // the fluid class's mean and the cortex's: the major parenchyma class
-// nearest the fluid), lie within
-// max_depth_mm of the brain's outside (what lies beyond its outline; its
-// enclosed holes are not outside) and reach that outside through such voxels
-// (face neighbours). Empty unless the fitted fluid is brighter than the
-// largest parenchyma class (T2-like), and when max_depth_mm <= 0. All masks on one grid; bias
-// on that grid too.
+// nearest the fluid), lie within max_depth_mm of the brain's outside (what
+// lies beyond its outline; its enclosed holes are not outside) and reach
+// that outside through such voxels (face neighbours). Empty when the fitted
+// fluid is not brighter than the largest parenchyma class (not T2-like) or
+// max_depth_mm <= 0. All masks, and the bias, on one grid.
 Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, const std::vector<float>& bias,
                const std::vector<GaussianClass>& classes, double max_depth_mm);
 

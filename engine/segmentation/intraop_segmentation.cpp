@@ -12,8 +12,8 @@
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "registration/boundary_samples.h"
-#include "segmentation/fluid_rim.h"
 #include "registration/linear_sampler.h"
+#include "segmentation/fluid_rim.h"
 
 namespace brainshift::segmentation {
 namespace {
