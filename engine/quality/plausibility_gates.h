@@ -70,6 +70,9 @@ class PlausibilityReport {
   std::vector<GateResult> gates_;
 };
 
+// The fraction of the preop labels' voxels (any label) that
+// intraop_from_preop places inside the intraop grid (volume_gate's field of view).
+double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop);
 // Brain volume: intraop outline (enclosed cavities filled) against the preop
 // outline mapped by the affine. preop_in_view_ml: the part of the preop
 // outline the affine places inside the intraop field of view (a slab or a
@@ -77,9 +80,6 @@ class PlausibilityReport {
 // open_fluid_ml: fluid the automatic segmentation found where the brain was
 // (the gap a sinking leaves under the dura), counted with the brain: that
 // volume was brain in the preop and the skull holds it; 0 for given labels.
-// The fraction of the preop labels' voxels (any label) that
-// intraop_from_preop places inside the intraop grid.
-double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop);
 GateResult volume_gate(double intraop_ml, double preop_in_view_ml, const Eigen::Matrix4d& intraop_from_preop,
                        const PlausibilityLimits& limits, double open_fluid_ml = 0.0);
 // Lateral ventricles, the same way; untested when either side has none.

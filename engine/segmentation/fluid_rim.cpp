@@ -1,22 +1,12 @@
 #include "segmentation/fluid_rim.h"
 
-#include <array>
-#include <deque>
+#include <cstdint>
+#include <vector>
 
 #include "image/distance_map.h"
 #include "image/morphology.h"
 
 namespace brainshift::segmentation {
-namespace {
-
-const GaussianClass* heaviest(const std::vector<GaussianClass>& classes, Tissue t) {
-  const GaussianClass* best = nullptr;
-  for (const auto& c : classes)
-    if (c.tissue == t && (!best || c.weight > best->weight)) best = &c;
-  return best;
-}
-
-}  // namespace
 
 // Why: in a T2-like image the CSF between the cortex and the skull (1-3 mm
 // over the convexity) is the brightest tissue there, and the brain holds
@@ -34,24 +24,24 @@ Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, co
                const std::vector<GaussianClass>& classes, double max_depth_mm) {
   const Grid3& g = brain.grid;
   Mask rim(g, 0);
-  const GaussianClass* fluid = heaviest(classes, Tissue::ventricle);
-  const GaussianClass* bulk = heaviest(classes, Tissue::parenchyma);
+  const GaussianClass* fluid = heaviest_class(classes, Tissue::ventricle);
+  const GaussianClass* bulk = heaviest_class(classes, Tissue::parenchyma);
   // Bright fluid: brighter than the bulk of the brain's tissue. Not "than
   // every parenchyma class": the class spanning the bright tissue of the
   // brain (the reason for the peel) may reach past the fluid's mean.
   if (max_depth_mm <= 0 || !fluid || !bulk || fluid->mean <= bulk->mean) return rim;
-  // The tissue the rim borders is the cortex: of the parenchyma classes
-  // holding at least a sixth of the parenchyma (the major ones, as the
-  // contrast test counts them), the one nearest the fluid. Against white
+  // The tissue the rim borders is the cortex: of the major parenchyma
+  // classes (kMajorClassWeight), the one nearest the fluid. Against white
   // matter's mean the midpoint fell inside the grey matter of a 1 mm T2
   // and peeled 167 ml of cortex (docs/PERFORMANCE.md 12.18).
   const GaussianClass* cortex = bulk;
   for (const auto& c : classes)
-    if (c.tissue == Tissue::parenchyma && c.weight >= 1.0 / 6 && c.mean < fluid->mean && c.mean > cortex->mean)
+    if (c.tissue == Tissue::parenchyma && c.weight >= kMajorClassWeight && c.mean < fluid->mean && c.mean > cortex->mean)
       cortex = &c;
   const double half_fluid = 0.5 * (fluid->mean + cortex->mean);
 
-  Mask outside = fill_holes(brain);
+  const Mask filled = fill_holes(brain);
+  Mask outside = filled;
   for (auto& v : outside.voxels) v = !v;
   const ImageF depth_mm = distance_to_mask_mm(outside, max_depth_mm);
   Mask candidate(g, 0);
@@ -59,36 +49,15 @@ Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, co
     candidate.voxels[v] = brain.voxels[v] && !ventricle.voxels[v] && depth_mm.voxels[v] <= max_depth_mm &&
                           image.voxels[v] / bias[v] >= half_fluid;
 
-  // From the outside in through candidates: each voxel enters the queue once.
-  const std::array<std::array<int, 3>, 6> faces{{{1, 0, 0}, {-1, 0, 0}, {0, 1, 0}, {0, -1, 0}, {0, 0, 1}, {0, 0, -1}}};
-  auto neighbours = [&](int i, int j, int k, auto&& fn) {
-    for (const auto& f : faces) {
-      const int a = i + f[0], b = j + f[1], c = k + f[2];
-      if (g.contains(a, b, c)) fn(a, b, c);
-    }
-  };
-  std::deque<std::array<int, 3>> queue;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        if (!candidate.at(i, j, k)) continue;
-        bool touches = false;
-        neighbours(i, j, k, [&](int a, int b, int c) { touches = touches || outside.at(a, b, c); });
-        if (touches) {
-          rim.at(i, j, k) = 1;
-          queue.push_back({i, j, k});
-        }
-      }
-  while (!queue.empty()) {
-    const auto [i, j, k] = queue.front();
-    queue.pop_front();
-    neighbours(i, j, k, [&](int a, int b, int c) {
-      if (candidate.at(a, b, c) && !rim.at(a, b, c)) {
-        rim.at(a, b, c) = 1;
-        queue.push_back({a, b, c});
-      }
-    });
-  }
+  // From the outside in through candidates: the face-connected pieces of
+  // the candidates with a voxel next to the outside.
+  int count = 0;
+  const auto pieces = connected_components(candidate, 6, &count);
+  std::vector<std::uint8_t> reached(static_cast<std::size_t>(count) + 1, 0);
+  const Mask next_to_outside = boundary_voxels(filled);  // a face neighbour outside
+  for (std::size_t v = 0; v < candidate.voxels.size(); ++v)
+    if (candidate.voxels[v] && next_to_outside.voxels[v]) reached[pieces.voxels[v]] = 1;
+  for (std::size_t v = 0; v < candidate.voxels.size(); ++v) rim.voxels[v] = reached[pieces.voxels[v]];
   return rim;
 }
 

@@ -29,8 +29,7 @@ ImageF crop_image(const ImageF& image, const VoxelBox& box, const Grid3& cropped
 }
 
 // The separation, in pooled sd's, between the ventricle class and the
-// parenchyma class farthest from it among those holding at least a sixth of
-// the parenchyma: the ventricles' wall is placed by the strongest edge of
+// parenchyma class farthest from it among the major ones (kMajorClassWeight): the ventricles' wall is placed by the strongest edge of
 // tissue around them (white matter in T1 and T2: the corpus callosum, the
 // periventricular white matter), and a lighter or nearer class of grey matter
 // and partial volume (sulcal fluid, the cortex under a craniotomy) does not
@@ -41,7 +40,7 @@ double fluid_contrast_sd(const std::vector<GaussianClass>& classes) {
   for (const auto& v : classes) {
     if (v.tissue != Tissue::ventricle) continue;
     for (const auto& p : classes)
-      if (p.tissue == Tissue::parenchyma && p.weight >= 1.0 / 6) {
+      if (p.tissue == Tissue::parenchyma && p.weight >= kMajorClassWeight) {
         any = true;
         best = std::max(best, std::abs(v.mean - p.mean) / std::sqrt(v.sd * v.sd + p.sd * p.sd));
       }
@@ -118,9 +117,7 @@ bool likelier_fluid(const std::vector<GaussianClass>& classes, double x) {
 // parenchyma class's, the first intensity the test no longer calls fluid.
 // {fluid mean, boundary}; equal when the classes give no such point.
 std::pair<double, double> fluid_boundary(const std::vector<GaussianClass>& classes) {
-  const GaussianClass* fluid = nullptr;
-  for (const auto& c : classes)
-    if (c.tissue == Tissue::ventricle && (!fluid || c.weight > fluid->weight)) fluid = &c;
+  const GaussianClass* fluid = heaviest_class(classes, Tissue::ventricle);
   if (!fluid) return {0, 0};
   const GaussianClass* tissue = nullptr;
   for (const auto& c : classes)

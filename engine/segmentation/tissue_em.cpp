@@ -11,6 +11,14 @@
 #include "segmentation/potts.h"
 
 namespace brainshift::segmentation {
+
+const GaussianClass* heaviest_class(const std::vector<GaussianClass>& classes, Tissue t) {
+  const GaussianClass* best = nullptr;
+  for (const auto& c : classes)
+    if (c.tissue == t && (!best || c.weight > best->weight)) best = &c;
+  return best;
+}
+
 namespace {
 
 constexpr double kLogTiny = -1e30;
@@ -252,12 +260,10 @@ void hold_surface_fluid(const std::vector<double>& w, const std::vector<double>&
                         std::vector<GaussianClass>& classes) {
   const auto held = std::find_if(classes.begin(), classes.end(), [](const GaussianClass& g) { return g.surface_fluid; });
   if (held == classes.end()) return;
-  const GaussianClass* ventricle = nullptr;
+  const GaussianClass* ventricle = heaviest_class(classes, Tissue::ventricle);
   double brightest_tissue = -std::numeric_limits<double>::infinity();
-  for (const auto& g : classes) {
-    if (g.tissue == Tissue::ventricle && (!ventricle || g.weight > ventricle->weight)) ventricle = &g;
+  for (const auto& g : classes)
     if (g.tissue == Tissue::parenchyma) brightest_tissue = std::max(brightest_tissue, g.mean);
-  }
   const auto f = static_cast<std::size_t>(held - classes.begin());
   const bool bright_fluid = ventricle && ventricle->mean > brightest_tissue;
   for (auto& g : classes) g.band_weight = 0;

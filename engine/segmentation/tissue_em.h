@@ -64,6 +64,16 @@ struct GaussianClass {
   bool surface_fluid = false;
 };
 
+// The class of tissue t with the largest weight (the first of equals);
+// nullptr when t has none.
+const GaussianClass* heaviest_class(const std::vector<GaussianClass>& classes, Tissue t);
+
+// A parenchyma class holding at least this share of the parenchyma is a
+// major one (a tissue of the brain, not a partial-volume class): the
+// ventricles' contrast (intraop_segmentation.cpp) and the fluid rim's cortex
+// (fluid_rim.h) are measured against the major classes only.
+inline constexpr double kMajorClassWeight = 1.0 / 6;
+
 struct EmResult {
   std::vector<GaussianClass> classes;
   std::array<std::vector<float>, kTissues> posterior;  // per voxel, after the smoothing; sum to 1
