@@ -45,6 +45,39 @@ std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& 
   return sigma;
 }
 
+std::vector<Eigen::Vector3d> fixed_preop_mm(const WarmState& warm) {
+  std::vector<Eigen::Vector3d> out;
+  for (int n : warm.fem.fixed_nodes()) out.push_back(warm.fem.mesh().nodes_mm[n]);
+  return out;
+}
+
+LinearSolve fem_solve(WarmState& warm) {
+  return [&warm](const std::vector<Eigen::Vector3d>& values) {
+    std::vector<Eigen::Vector3d> out;
+    warm.fem.drive_solve(values, out);
+    return out;
+  };
+}
+
+// Per fixed node: whether the answer places it outside the intraop grid's
+// voxel centres, where the scan shows nothing (a field of view that cuts the
+// brain: a slab, a short coil). Its position is the model's continuation of
+// the seen surface, not a match.
+std::vector<bool> unseen_fixed_nodes(const WarmState& warm, const Grid3& grid, const ScanResult& result) {
+  const auto& fixed = warm.fem.fixed_nodes();
+  const auto& nodes = warm.fem.mesh().nodes_mm;
+  const Eigen::Matrix4d voxel_from_world = grid.voxel_from_world();
+  std::vector<bool> unseen(fixed.size(), false);
+  for (std::size_t i = 0; i < fixed.size(); ++i) {
+    const int n = fixed[i];
+    Eigen::Vector3d q = (result.intraop_from_preop * nodes[n].homogeneous()).head<3>();
+    if (static_cast<std::size_t>(n) < result.nonrigid_node_mm.size()) q += result.nonrigid_node_mm[n];
+    const Eigen::Vector3d v = (voxel_from_world * q.homogeneous()).head<3>();
+    for (int a = 0; a < 3; ++a) unseen[i] = unseen[i] || v[a] < 0.0 || v[a] > grid.dims[a] - 1.0;
+  }
+  return unseen;
+}
+
 }  // namespace
 
 void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineParameters& params, ScanResult& result,
@@ -57,16 +90,18 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   std::vector<double> sigma, node_rms(warm.fem.mesh().node_count(), 0.0);
   if (up.samples > 0) {
     sigma = surface_noise_mm(warm, input, tissue_labels(params.label_table), result);
-    std::vector<Eigen::Vector3d> fixed_preop;
-    for (int n : warm.fem.fixed_nodes()) fixed_preop.push_back(warm.fem.mesh().nodes_mm[n]);
-    const LinearSolve solve = [&warm](const std::vector<Eigen::Vector3d>& values) {
-      std::vector<Eigen::Vector3d> out;
-      warm.fem.drive_solve(values, out);
-      return out;
-    };
-    node_rms = propagate_surface_noise(fixed_preop, sigma, solve, up);
+    node_rms = propagate_surface_noise(fixed_preop_mm(warm), sigma, fem_solve(warm), up);
   }
   nlohmann::json summary;
+  // Brain surface out of view (term 3 of quality/uncertainty_map.h): three
+  // warm solves, only when the field of view cuts the brain.
+  const std::vector<bool> unseen = unseen_fixed_nodes(warm, input.labels.grid, result);
+  const std::vector<double> unseen_rms = unseen_surface_rms_mm(fixed_preop_mm(warm), unseen, fem_solve(warm), up);
+  for (std::size_t n = 0; n < unseen_rms.size() && n < node_rms.size(); ++n)
+    node_rms[n] = std::hypot(node_rms[n], unseen_rms[n]);
+  summary["unseen_surface"] = {{"fixed_nodes", std::count(unseen.begin(), unseen.end(), true)},
+                               {"of", unseen.size()},
+                               {"shift_mm", up.unseen_shift_mm}};
   if (!sigma.empty()) {
     double mean_sigma = 0;
     for (double s : sigma) mean_sigma += s / static_cast<double>(sigma.size());

@@ -1,6 +1,7 @@
 #include "quality/uncertainty_map.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <random>
 
@@ -104,6 +105,43 @@ std::vector<double> propagate_surface_noise(const std::vector<Eigen::Vector3d>& 
   }
   for (auto& v : variance) v = std::sqrt(v / samples);
   return variance;
+}
+
+std::vector<double> unseen_surface_rms_mm(const std::vector<Eigen::Vector3d>& fixed_preop_mm,
+                                          const std::vector<bool>& unseen, const LinearSolve& solve,
+                                          const UncertaintyParameters& params) {
+  if (std::find(unseen.begin(), unseen.end(), true) == unseen.end()) return {};
+  std::vector<std::size_t> seen_nodes;
+  for (std::size_t i = 0; i < unseen.size(); ++i)
+    if (!unseen[i]) seen_nodes.push_back(i);
+  // How far each unseen node may have gone: its distance to the seen surface, capped.
+  std::vector<double> shift_mm(unseen.size(), 0.0);
+  for (std::size_t i = 0; i < unseen.size(); ++i) {
+    if (!unseen[i]) continue;
+    double nearest2 = params.unseen_shift_mm * params.unseen_shift_mm;
+    for (std::size_t j : seen_nodes)
+      nearest2 = std::min(nearest2, (fixed_preop_mm[j] - fixed_preop_mm[i]).squaredNorm());
+    shift_mm[i] = std::sqrt(nearest2);
+  }
+  std::array<std::vector<Eigen::Vector3d>, 3> response;
+  for (int a = 0; a < 3; ++a) {
+    std::vector<Eigen::Vector3d> values(unseen.size(), Eigen::Vector3d::Zero());
+    for (std::size_t i = 0; i < unseen.size(); ++i) values[i] = shift_mm[i] * Eigen::Vector3d::Unit(a);
+    response[a] = solve(values);
+  }
+  const std::size_t nodes = std::min({response[0].size(), response[1].size(), response[2].size()});
+  std::vector<double> rms(nodes, 0.0);
+  for (std::size_t n = 0; n < nodes; ++n) {
+    Eigen::Matrix3d g;
+    for (int a = 0; a < 3; ++a) g.col(a) = response[a][n];
+    // Largest singular value: the worst direction of the unseen shift.
+    const double worst = std::sqrt(std::max(0.0, Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(
+                                                     g.transpose() * g, Eigen::EigenvaluesOnly)
+                                                     .eigenvalues()
+                                                     .maxCoeff()));
+    rms[n] = worst / kBand95PerRms;
+  }
+  return rms;
 }
 
 ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParameters& params, nlohmann::json* summary) {

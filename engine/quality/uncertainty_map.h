@@ -24,6 +24,13 @@
 //     where both are: a large but uniform motion is pinned by the surface data
 //     next to it, a steep but small variation moves little. With an image
 //     that refined the field, image_residual_fraction of it remains.
+//  3. Brain surface the field of view cut off (a slab, a short coil). The
+//     match had no data there: where that surface went is unknown up to the
+//     largest brain shift (unseen_shift_mm). Its effect inside is the elastic
+//     model's: the worst direction's response to the unseen surface moved as
+//     one and the seen surface held (unseen_surface_rms_mm). It is the band's
+//     full size at the cut and fades over the seen brain as the model carries
+//     it; 0 when the whole brain is in view.
 // The band radius is the 95 % quantile of a 3-D isotropic Gaussian error of
 // that RMS: 2.80 / sqrt(3) = 1.61 times it.
 #include <cstdint>
@@ -57,6 +64,10 @@ struct UncertaintyParameters {
   // of the robustness suite's mean TRE with and without the intraop T1
   // (0.43 / 0.81 mm, PERFORMANCE.md section 7).
   double image_residual_fraction = 0.53;
+  // How far brain surface out of view may have moved unseen: the largest
+  // cortical brain shift during surgery (5-20 mm at the cortex, up to 24 mm
+  // measured). Not fitted: a safety bound (DESIGN.md, "Uncertainty map").
+  double unseen_shift_mm = 20;
   double grid_spacing_mm = 3;         // the map is computed this coarse, then interpolated
   std::uint64_t seed = 19;
 };
@@ -69,6 +80,20 @@ using LinearSolve = std::function<std::vector<Eigen::Vector3d>(const std::vector
 std::vector<double> propagate_surface_noise(const std::vector<Eigen::Vector3d>& fixed_preop_mm,
                                             const std::vector<double>& sigma_mm, const LinearSolve& solve,
                                             const UncertaintyParameters& params);
+
+// RMS (3-D) error at every mesh node caused by the fixed nodes marked unseen
+// (unseen[i], fixed-node order; preop positions fixed_preop_mm) having moved
+// unseen, the others held. How far: an unseen node at distance d from the
+// nearest seen one by up to min(d, unseen_shift_mm): tissue cannot move
+// relative to its neighbour by more than their distance without folding
+// (|grad u| < 1), nor anywhere by more than the largest brain shift. In which
+// direction: the worst one at each node, all unseen nodes together: per node
+// the largest singular value of its 3x3 response to the three unit
+// directions (three solves), as an RMS whose 95 % band is that size. Empty
+// when no node is unseen (no solve).
+std::vector<double> unseen_surface_rms_mm(const std::vector<Eigen::Vector3d>& fixed_preop_mm,
+                                          const std::vector<bool>& unseen, const LinearSolve& solve,
+                                          const UncertaintyParameters& params);
 
 struct UncertaintyInput {
   const TetMesh& preop_mesh;

@@ -82,6 +82,50 @@ TEST(FieldOfView, ABrainCutByTheFieldOfViewIsNotALostLobe) {
   EXPECT_LT(sum / static_cast<double>(n), 0.5);
 }
 
+// The uncertainty map says where the scan showed nothing: the band is wide
+// next to the cut (the brain beyond it may have moved unseen) and back to
+// what the seen data give far from it; with the whole brain in view no
+// surface is unseen and nothing is added.
+TEST(FieldOfView, TheUncertaintyMapIsWideAtTheCut) {
+  const test::SyntheticHead h = test::synthetic_head();
+  const PreopInput preop{h.t1, h.labels};
+  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
+  session.load_preop(preop, nullptr);
+  const Eigen::Vector3d shift(1.0, -1.0, 0.5);
+  const IntraopInput scan = cut_scan(preop, shift, 0.35);
+  ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  session.add_uncertainty(scan, r, nullptr);
+  const auto& unseen = r.metrics["uncertainty"]["unseen_surface"];
+  EXPECT_GT(unseen["fixed_nodes"].get<int>(), 0) << unseen.dump();
+  // The band in brain voxels within 3 mm of the cut (the grid's lowest face)
+  // and farther than 40 mm from it.
+  const Grid3& g = scan.labels.grid;
+  std::vector<double> at_cut, far;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        if (scan.labels.at(i, j, k) == 0) continue;
+        const double above_cut_mm = k * g.spacing_mm().z();
+        const double band = r.uncertainty_mm.at(i, j, k);
+        if (above_cut_mm < 3.0) at_cut.push_back(band);
+        else if (above_cut_mm > 40.0) far.push_back(band);
+      }
+  ASSERT_GT(at_cut.size(), 100u);
+  ASSERT_GT(far.size(), 100u);
+  const auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+    return v[v.size() / 2];
+  };
+  EXPECT_GT(median(at_cut), 3.0) << "far from the cut " << median(far);
+  EXPECT_GT(median(at_cut), 3.0 * median(far)) << "at the cut " << median(at_cut);
+  // The whole brain in view: nothing unseen.
+  const IntraopInput whole_scan = cut_scan(preop, shift, -0.1);
+  ScanResult whole = session.register_scan(whole_scan, nullptr);
+  session.add_uncertainty(whole_scan, whole, nullptr);
+  EXPECT_EQ(whole.metrics["uncertainty"]["unseen_surface"]["fixed_nodes"].get<int>(), 0);
+}
+
 // An image that holds a fifth of the brain: refused before the segmentation,
 // said of the image, as given labels are (PipelineTest's bad inputs).
 TEST(FieldOfView, AnImageThatMissesMostOfTheBrainIsAClearError) {

@@ -113,3 +113,48 @@ TEST(UncertaintyBand, ModelErrorIsTheGeometricMeanOfDisplacementAndItsChangeOver
   EXPECT_DOUBLE_EQ(model_error_rms_mm(5.0, 0.0, p), 0.0);
   EXPECT_DOUBLE_EQ(model_error_rms_mm(0.0, 0.3, p), 0.0);
 }
+
+// Term 3: brain surface out of view. The solve is the identity (each fixed
+// node's value is its own displacement) or a known linear map, so the band
+// at each node is what the unseen shift there allows.
+TEST(UnseenSurface, NothingUnseenNeedsNoSolveAndAddsNothing) {
+  bool solved = false;
+  const auto solve = [&](const std::vector<Eigen::Vector3d>& v) {
+    solved = true;
+    return v;
+  };
+  EXPECT_TRUE(unseen_surface_rms_mm({{0, 0, 0}, {5, 0, 0}}, {false, false}, solve, {}).empty());
+  EXPECT_FALSE(solved);
+}
+
+TEST(UnseenSurface, AnUnseenNodeMayHaveMovedItsDistanceFromTheSeenSurfaceUpToTheLargestShift) {
+  // Seen nodes along x in [0, 10] mm; unseen ones 3, 12 and 45 mm beyond.
+  std::vector<Eigen::Vector3d> points;
+  std::vector<bool> unseen;
+  for (int i = 0; i <= 10; ++i) points.emplace_back(i, 0, 0), unseen.push_back(false);
+  for (double x : {13.0, 22.0, 55.0}) points.emplace_back(x, 0, 0), unseen.push_back(true);
+  const auto id = [](const std::vector<Eigen::Vector3d>& v) { return v; };
+  UncertaintyParameters p;
+  const auto rms = unseen_surface_rms_mm(points, unseen, id, p);
+  ASSERT_EQ(rms.size(), points.size());
+  for (int i = 0; i <= 10; ++i) EXPECT_EQ(rms[i], 0.0);
+  EXPECT_NEAR(kBand95PerRms * rms[11], 3.0, 1e-9);
+  EXPECT_NEAR(kBand95PerRms * rms[12], 12.0, 1e-9);
+  EXPECT_NEAR(kBand95PerRms * rms[13], p.unseen_shift_mm, 1e-9);
+  p.unseen_shift_mm = 8;
+  EXPECT_NEAR(kBand95PerRms * unseen_surface_rms_mm(points, unseen, id, p)[12], 8.0, 1e-9);
+}
+
+TEST(UnseenSurface, TheBandTakesTheWorstDirectionOfTheUnseenShift) {
+  // A model that passes a shift along y at 3x and along x, z at half: the
+  // band is the y response, whichever direction the data would have chosen.
+  const std::vector<Eigen::Vector3d> points{{0, 0, 0}, {4, 0, 0}};
+  const auto solve = [](const std::vector<Eigen::Vector3d>& v) {
+    std::vector<Eigen::Vector3d> out;
+    for (const auto& x : v) out.emplace_back(0.5 * x.x(), 3.0 * x.y(), 0.5 * x.z());
+    return out;
+  };
+  const auto rms = unseen_surface_rms_mm(points, {false, true}, solve, {});
+  EXPECT_NEAR(kBand95PerRms * rms[1], 12.0, 1e-9);
+  EXPECT_EQ(rms[0], 0.0);
+}
