@@ -5,7 +5,7 @@
 // voxel beyond the segmented outline (which is only known to a voxel); 0
 // farther out, where no answer is claimed.
 //
-// Two independent sources, added in quadrature (DESIGN.md, "Uncertainty map";
+// Three independent sources, added in quadrature (DESIGN.md, "Uncertainty map";
 // measured on the robustness suite, PERFORMANCE.md section 11):
 //  1. The data's noise. The segmentation's quantisation, a uniform error over
 //     a voxel: (voxel volume)^(1/3) / sqrt 12 RMS everywhere the answer is
