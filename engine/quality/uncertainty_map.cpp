@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <map>
 #include <random>
 
 #include "image/distance_map.h"
@@ -111,16 +112,30 @@ std::vector<double> unseen_surface_rms_mm(const std::vector<Eigen::Vector3d>& fi
                                           const std::vector<bool>& unseen, const LinearSolve& solve,
                                           const UncertaintyParameters& params) {
   if (std::find(unseen.begin(), unseen.end(), true) == unseen.end()) return {};
-  std::vector<std::size_t> seen_nodes;
+  // How far each unseen node may have gone: its distance to the seen surface,
+  // capped. Only seen nodes within the cap matter: they are bucketed in cells
+  // of the cap's size, and each unseen node looks in the 27 cells around it.
+  const double cap_mm = std::max(params.unseen_shift_mm, 1.0);
+  const auto cell = [&](const Eigen::Vector3d& p) {
+    return std::array<long, 3>{std::lround(std::floor(p.x() / cap_mm)), std::lround(std::floor(p.y() / cap_mm)),
+                               std::lround(std::floor(p.z() / cap_mm))};
+  };
+  std::map<std::array<long, 3>, std::vector<std::size_t>> seen_in_cell;
   for (std::size_t i = 0; i < unseen.size(); ++i)
-    if (!unseen[i]) seen_nodes.push_back(i);
-  // How far each unseen node may have gone: its distance to the seen surface, capped.
+    if (!unseen[i]) seen_in_cell[cell(fixed_preop_mm[i])].push_back(i);
   std::vector<double> shift_mm(unseen.size(), 0.0);
   for (std::size_t i = 0; i < unseen.size(); ++i) {
     if (!unseen[i]) continue;
     double nearest2 = params.unseen_shift_mm * params.unseen_shift_mm;
-    for (std::size_t j : seen_nodes)
-      nearest2 = std::min(nearest2, (fixed_preop_mm[j] - fixed_preop_mm[i]).squaredNorm());
+    const auto c = cell(fixed_preop_mm[i]);
+    for (long dx = -1; dx <= 1; ++dx)
+      for (long dy = -1; dy <= 1; ++dy)
+        for (long dz = -1; dz <= 1; ++dz) {
+          const auto found = seen_in_cell.find({c[0] + dx, c[1] + dy, c[2] + dz});
+          if (found == seen_in_cell.end()) continue;
+          for (std::size_t j : found->second)
+            nearest2 = std::min(nearest2, (fixed_preop_mm[j] - fixed_preop_mm[i]).squaredNorm());
+        }
     shift_mm[i] = std::sqrt(nearest2);
   }
   std::array<std::vector<Eigen::Vector3d>, 3> response;
