@@ -37,6 +37,7 @@ ReportSummary report_summary(const ScanResult& result, const std::string& scan_i
     }
   }
   s.min_jacobian = number_at(m, "jacobian", "min");
+  if (m.contains("plausibility")) s.brain_in_view_fraction = number_at(m["plausibility"], "volume", "preop_fraction_in_view");
   if (m.contains("uncertainty")) {
     s.uncertainty_median_mm = number_at(m["uncertainty"], "band95_mm", "median");
     s.uncertainty_p95_mm = number_at(m["uncertainty"], "band95_mm", "p95");

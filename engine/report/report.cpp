@@ -279,9 +279,15 @@ class Page {
       rows.push_back({"Mean surface distance " + o.structure, number(o.mean_distance_affine_mm, "%.2f mm"),
                       number(o.mean_distance_mm, "%.2f mm")});
     rows.push_back({"Min Jacobian determinant", "", number(s.min_jacobian, "%.3f")});
+    // 1 when the whole brain is in view; below half a percent (some 8 ml at
+    // a corner of the grid) the row would only add noise.
+    if (s.brain_in_view_fraction && *s.brain_in_view_fraction < 0.995)
+      rows.push_back({"Preop brain in the field of view", "",
+                      number(100.0 * *s.brain_in_view_fraction, "%.0f %%") + " (rest not imaged)"});
     if (s.uncertainty_median_mm)
-      rows.push_back({"Uncertainty, 95 % band", "", number(s.uncertainty_median_mm, "%.2f mm") + " median, " +
-                                                      number(s.uncertainty_p95_mm, "%.2f mm") + " p95"});
+      // Short enough for the column when the p95 has two digits (a cut field of view).
+      rows.push_back({"Uncertainty band, median / p95", "", number(s.uncertainty_median_mm, "%.2f") + " / " +
+                                                              number(s.uncertainty_p95_mm, "%.2f mm")});
     rows.push_back({"Worst surface residual", "",
                     number(s.worst_residual_mm, "%.2f mm") +
                         (s.worst_residual_surface.empty() ? "" : " (" + s.worst_residual_surface + ")")});

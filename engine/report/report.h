@@ -60,6 +60,10 @@ struct ReportSummary {
   std::string worst_residual_surface;
   // The uncertainty map (95 % band radius over the brain) when it was made.
   std::optional<double> uncertainty_median_mm, uncertainty_p95_mm;
+  // The share of the preop brain the intraop field of view holds (the
+  // plausibility volume gate's); a row is printed only when part is cut off,
+  // where the answer is the model's continuation, not a match.
+  std::optional<double> brain_in_view_fraction;
   // Replaces the result line when set (a picture of something other than a
   // registration, e.g. a phantom's ground truth).
   std::string result_text;

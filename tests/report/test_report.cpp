@@ -261,6 +261,21 @@ TEST(Report, UncertaintyRowShowsTheBandWithItsColourBar) {
   EXPECT_GT(inked(d, {bar.x, bar.y + 12, bar.width, 16}), 20) << "its ends are labelled in mm";
 }
 
+// A field of view that cuts the brain is said among the key numbers; a
+// whole brain in view adds no row.
+TEST(Report, ABrainCutByTheFieldOfViewAddsAKeyNumber) {
+  const Scene s = make_scene();
+  ReportLayout plain, whole, cut;
+  report_png_bytes(inputs(s), {}, &plain);
+  ReportInputs in = inputs(s);
+  in.summary.brain_in_view_fraction = 1.0;
+  report_png_bytes(in, {}, &whole);
+  EXPECT_EQ(whole.numbers.height, plain.numbers.height);
+  in.summary.brain_in_view_fraction = 0.72;
+  report_png_bytes(in, {}, &cut);
+  EXPECT_EQ(cut.numbers.height, plain.numbers.height + 18);
+}
+
 TEST(Report, PixelSizeOptionScalesPanelsAndScaleBar) {
   const Scene s = make_scene();
   ReportOptions opt;
