@@ -62,8 +62,10 @@ class SceneWriter {
   }
 
   // A scalar or label volume; transform_id empty for the world frame.
+  // shown_from > 0: values below it are transparent (Slicer's display
+  // threshold), for a map whose 0 means "nothing claimed here".
   void volume(const std::string& file, const std::string& name, bool label_map, const std::string& transform_id,
-              const std::string& colour_id) {
+              const std::string& colour_id, double shown_from = 0) {
     const std::string storage_id = storage("VolumeArchetypeStorage", file);
     const std::string display_tag = label_map ? "LabelMapVolumeDisplay" : "VolumeDisplay";
     const std::string display_id =
@@ -72,6 +74,9 @@ class SceneWriter {
     Element display(display_tag, display_id);
     display.attr("name", display_tag).attr("hideFromEditors", "true").attr("colorNodeID", colour_id);
     if (!label_map) display.attr("autoWindowLevel", "1");
+    if (shown_from > 0)
+      display.attr("applyThreshold", "1").attr("autoThreshold", "0").attr("lowerThreshold", std::to_string(shown_from))
+          .attr("upperThreshold", "1e+30");
     xml_ += display.str();
     const std::string tag = label_map ? "LabelMapVolume" : "Volume";
     Element v(tag, std::string(label_map ? "vtkMRMLLabelMapVolumeNode" : "vtkMRMLScalarVolumeNode") +
@@ -170,7 +175,10 @@ void write_slicer_scene(const fs::path& dir, const SceneContents& c) {
   // Made after the answer: listed when it is there.
   const std::string uncertainty(protocol::result_output(ResultPart::kUncertainty).file);
   if (fs::is_regular_file(dir / uncertainty))
-    scene.volume(uncertainty, "uncertainty (95 % band, mm)", false, "", "vtkMRMLColorTableNodeRainbow");
+    // 0 is where no answer is claimed: transparent, so that it is not read
+    // as the rainbow's "most certain" blue (the band is never below the
+    // segmentation's quantisation, some 0.3 mm, where it is claimed).
+    scene.volume(uncertainty, "uncertainty (95 % band, mm)", false, "", "vtkMRMLColorTableNodeRainbow", 0.001);
   for (const auto& l : c.labels)
     if (fs::is_regular_file(dir / protocol::model_file_name(l.name))) scene.model(l);
   write_text(dir / kSceneColourTable, colour_table_text(c.labels));

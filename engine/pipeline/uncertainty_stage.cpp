@@ -110,7 +110,8 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   summary["samples"] = up.samples;
   result.uncertainty_mm = uncertainty_band_mm(
       {warm.fem.mesh(), node_rms, result.pullback_field_mm, result.intraop_from_preop, input.labels,
-       result.metrics.contains("refine") && result.metrics["refine"].value("applied", false)},
+       result.metrics.contains("refine") && result.metrics["refine"].value("applied", false),
+       &result.warped_labels},
       up, &summary);
   summary["meaning"] = "radius (mm) of the 95 % band around each voxel's matched preop point";
   const double seconds = watch.seconds();

@@ -168,9 +168,12 @@ ImageF uncertainty_band_mm(const UncertaintyInput& in, const UncertaintyParamete
   // Where an answer is claimed: the brain with its cavities (ventricles, an
   // enclosed resection), and one voxel beyond its outline, which is itself
   // only known to a voxel (a landmark just outside a segmentation is still
-  // in the brain).
+  // in the brain); and where the answer puts preop brain, which the surgeon
+  // sees as brain whatever the segmentation said.
+  const bool with_warped = in.warped_labels && in.warped_labels->grid.same_geometry(fine);
   Mask region(fine);
-  for (std::size_t v = 0; v < region.voxels.size(); ++v) region.voxels[v] = in.intraop_labels.voxels[v] != 0;
+  for (std::size_t v = 0; v < region.voxels.size(); ++v)
+    region.voxels[v] = in.intraop_labels.voxels[v] != 0 || (with_warped && in.warped_labels->voxels[v] != 0);
   region = dilate(fill_holes(region), fine.spacing_mm().maxCoeff());
   Mask coarse_region(coarse);
   for (std::size_t v = 0; v < coarse.voxel_count(); ++v) {

@@ -2,8 +2,9 @@
 // How far the served answer can be trusted, voxel by voxel: the radius (mm)
 // of the 95 % band around the matched preop point x + u(x), on the intraop
 // grid (uncertainty.nii.gz). It covers the brain with its cavities and one
-// voxel beyond the segmented outline (which is only known to a voxel); 0
-// farther out, where no answer is claimed.
+// voxel beyond the segmented outline (which is only known to a voxel), and
+// wherever the answer's warped preop labels put brain; 0 farther out, where
+// no answer is claimed.
 //
 // Three independent sources, added in quadrature (DESIGN.md, "Uncertainty map";
 // measured on the robustness suite, PERFORMANCE.md section 11):
@@ -102,6 +103,10 @@ struct UncertaintyInput {
   Eigen::Matrix4d intraop_from_preop;
   const LabelImage& intraop_labels;
   bool image_refined = false;                    // the intraop T1 refined the field's interior
+  // The preop labels the answer carries onto the intraop grid (optional):
+  // where they put brain the answer claims it too, even where the intraop
+  // segmentation left it out (an image-only segmentation a few mm short).
+  const LabelImage* warped_labels = nullptr;
 };
 
 // The 95 % band radius (mm) on the intraop grid; summary (optional) gets its

@@ -210,6 +210,30 @@ TEST_F(SlicerScene, AnAutomaticSegmentationIsListedWithTheLabelTable) {
   EXPECT_TRUE(confidence);
 }
 
+// The uncertainty map is 0 where no answer is claimed: shown transparent
+// there, never as the colour scale's lowest ("most certain") colour.
+TEST_F(SlicerScene, TheUncertaintyMapIsTransparentWhereNoAnswerIsClaimed) {
+  write_slicer_scene(dir, contents);
+  for (const Node* v : parse(dir / kSceneFile).tagged("Volume")) EXPECT_NE(v->at("name"), "uncertainty (95 % band, mm)");
+  touch(dir / "uncertainty.nii.gz");
+  write_slicer_scene(dir, contents);
+  const Scene scene = parse(dir / kSceneFile);
+  const Node* map = nullptr;
+  for (const Node* v : scene.tagged("Volume"))
+    if (scene.by_id(v->ref("storage"))->at("fileName") == "uncertainty.nii.gz") map = v;
+  ASSERT_NE(map, nullptr);
+  const Node* display = scene.by_id(map->ref("display"));
+  ASSERT_NE(display, nullptr);
+  EXPECT_EQ(display->tag, "VolumeDisplay");
+  EXPECT_EQ(display->at("colorNodeID"), "vtkMRMLColorTableNodeRainbow");
+  EXPECT_EQ(display->at("applyThreshold"), "1");
+  EXPECT_EQ(display->at("autoThreshold"), "0");
+  const double lower = std::stod(display->at("lowerThreshold"));
+  EXPECT_GT(lower, 0.0);
+  EXPECT_LT(lower, 0.1);  // far below the smallest claimed band (the quantisation, ~0.3 mm)
+  EXPECT_GT(std::stod(display->at("upperThreshold")), 1e3);
+}
+
 TEST_F(SlicerScene, MissingFilesAreNamed) {
   fs::remove(dir / "field.h5");
   try {

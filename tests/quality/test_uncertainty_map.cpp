@@ -76,6 +76,34 @@ TEST(UncertaintyBand, WithoutShiftOrResidualItIsTheQuantisationAndNoiseAddsInQua
   EXPECT_NEAR(summary["band95_mm"]["mean"].get<double>(), kBand95PerRms * q, 1e-3);
 }
 
+// The answer's warped preop brain is claimed too: a segmentation that falls
+// short of it (an image-only one a few mm inside the cortex) does not leave
+// the brain it missed at 0, which reads as "certain" on a colour scale.
+TEST(UncertaintyBand, WhereTheWarpedPreopPutsBrainTheBandIsClaimedThere) {
+  Case c;
+  const Grid3& g = c.labels.grid;
+  LabelImage warped(g, 0);
+  for (std::size_t v = 0; v < warped.voxels.size(); ++v)
+    warped.voxels[v] = g.world_mm(v % 40, (v / 40) % 40, v / 1600).norm() < 40 ? 1 : 0;
+  const std::vector<double> none(c.box.mesh.node_count(), 0.0);
+  const ImageF alone = uncertainty_band_mm({c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, false}, {});
+  const ImageF with = uncertainty_band_mm(
+      {c.box.mesh, none, c.field, Eigen::Matrix4d::Identity(), c.labels, false, &warped}, {});
+  const double q = std::cbrt(2.0 * 2.0 * 4.0) / std::sqrt(12.0);
+  std::size_t between = 0;
+  for (std::size_t v = 0; v < with.voxels.size(); ++v) {
+    const double r = g.world_mm(v % 40, (v / 40) % 40, v / 1600).norm();
+    if (c.labels.voxels[v] != 0) {
+      ASSERT_EQ(with.voxels[v], alone.voxels[v]);
+    }
+    if (r < 30 + 4 * std::sqrt(3.0) + 0.1 || r > 39) continue;  // beyond the segmentation's voxel, inside the warped brain
+    ++between;
+    ASSERT_EQ(alone.voxels[v], 0.f);
+    ASSERT_NEAR(with.voxels[v], kBand95PerRms * q, 1e-3);
+  }
+  EXPECT_GT(between, 1000u);
+}
+
 TEST(UncertaintyBand, AUniformShiftAddsNothingAShearGrowsWithDisplacementAndStrain) {
   Case c;
   const std::vector<double> none(c.box.mesh.node_count(), 0.0);
