@@ -43,12 +43,22 @@ IntraopInput cut_scan(const PreopInput& preop, const Eigen::Vector3d& shift_mm, 
   return scan;
 }
 
-TEST(FieldOfView, ABrainCutByTheFieldOfViewIsNotALostLobe) {
-  const test::SyntheticHead h = test::synthetic_head();
-  const PreopInput preop{h.t1, h.labels};
-  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
-  session.load_preop(preop, nullptr);
-  const Eigen::Vector3d shift(1.0, -1.0, 0.5);
+// The synthetic head's preop, warm on a coarse mesh.
+class FieldOfView : public ::testing::Test {
+ protected:
+  FieldOfView() : preop{head().t1, head().labels}, session(MPI_COMM_WORLD, test::coarse_parameters()) {
+    session.load_preop(preop, nullptr);
+  }
+  static const test::SyntheticHead& head() {
+    static const test::SyntheticHead h = test::synthetic_head();
+    return h;
+  }
+  const PreopInput preop;
+  EngineSession session;
+  const Eigen::Vector3d shift{1.0, -1.0, 0.5};
+};
+
+TEST_F(FieldOfView, ABrainCutByTheFieldOfViewIsNotALostLobe) {
   // The lower 35 % of the brain's height (some 28 % of its volume) out of view.
   const IntraopInput scan = cut_scan(preop, shift, 0.35);
   const ScanResult r = session.register_scan(scan, nullptr);
@@ -86,12 +96,7 @@ TEST(FieldOfView, ABrainCutByTheFieldOfViewIsNotALostLobe) {
 // next to the cut (the brain beyond it may have moved unseen) and back to
 // what the seen data give far from it; with the whole brain in view no
 // surface is unseen and nothing is added.
-TEST(FieldOfView, TheUncertaintyMapIsWideAtTheCut) {
-  const test::SyntheticHead h = test::synthetic_head();
-  const PreopInput preop{h.t1, h.labels};
-  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
-  session.load_preop(preop, nullptr);
-  const Eigen::Vector3d shift(1.0, -1.0, 0.5);
+TEST_F(FieldOfView, TheUncertaintyMapIsWideAtTheCut) {
   const IntraopInput scan = cut_scan(preop, shift, 0.35);
   ScanResult r = session.register_scan(scan, nullptr);
   ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
@@ -128,11 +133,7 @@ TEST(FieldOfView, TheUncertaintyMapIsWideAtTheCut) {
 
 // An image that holds a fifth of the brain: refused before the segmentation,
 // said of the image, as given labels are (PipelineTest's bad inputs).
-TEST(FieldOfView, AnImageThatMissesMostOfTheBrainIsAClearError) {
-  const test::SyntheticHead h = test::synthetic_head();
-  const PreopInput preop{h.t1, h.labels};
-  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
-  session.load_preop(preop, nullptr);
+TEST_F(FieldOfView, AnImageThatMissesMostOfTheBrainIsAClearError) {
   ScanInput scan;
   scan.image = test::scanner_image(*cut_scan(preop, {0, 0, 0}, 0.7).t1);
   try {
