@@ -26,12 +26,12 @@
 //     next to it, a steep but small variation moves little. With an image
 //     that refined the field, image_residual_fraction of it remains.
 //  3. Brain surface the field of view cut off (a slab, a short coil). The
-//     match had no data there: where that surface went is unknown up to the
-//     largest brain shift (unseen_shift_mm). Its effect inside is the elastic
-//     model's: the worst direction's response to the unseen surface moved as
-//     one and the seen surface held (unseen_surface_rms_mm). It is the band's
-//     full size at the cut and fades over the seen brain as the model carries
-//     it; 0 when the whole brain is in view.
+//     match had no data there: each unseen surface node may have gone as far
+//     as its distance from the seen surface, up to the largest brain shift
+//     (unseen_shift_mm). Its effect inside is the elastic model's, the seen
+//     surface held, in the worst direction (unseen_surface_rms_mm). It grows
+//     away from the cut into the unseen brain and fades over the seen brain
+//     as the model carries it; 0 when the whole brain is in view.
 // The band radius is the 95 % quantile of a 3-D isotropic Gaussian error of
 // that RMS: 2.80 / sqrt(3) = 1.61 times it.
 #include <cstdint>
