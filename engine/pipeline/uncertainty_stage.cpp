@@ -22,27 +22,36 @@ std::vector<std::uint16_t> tissue_labels(const LabelTable& table) {
 // Per fixed node: the RMS error of its matched position beyond the
 // segmentation's quantisation (which the band adds everywhere): its distance
 // to the intraop tissue boundary, what the match could not follow.
-std::vector<double> surface_noise_mm(const WarmState& warm, const IntraopInput& input,
-                                     const std::vector<std::uint16_t>& tissue, const ScanResult& result) {
+std::vector<double> surface_noise_mm(const IntraopInput& input, const std::vector<std::uint16_t>& tissue,
+                                     const std::vector<Eigen::Vector3d>& matched_mm) {
   Mask mask(input.labels.grid);
   for (std::size_t v = 0; v < mask.voxels.size(); ++v)
     mask.voxels[v] = std::find(tissue.begin(), tissue.end(), input.labels.voxels[v]) != tissue.end();
   const ImageF sdf = signed_distance_mm(mask);
   const LinearSampler boundary(sdf);
-  const auto& fixed = warm.fem.fixed_nodes();
-  const auto& nodes = warm.fem.mesh().nodes_mm;
-  std::vector<double> sigma(fixed.size());
-  for (std::size_t i = 0; i < fixed.size(); ++i) {
-    const int n = fixed[i];
-    Eigen::Vector3d q = (result.intraop_from_preop * nodes[n].homogeneous()).head<3>();
-    if (static_cast<std::size_t>(n) < result.nonrigid_node_mm.size()) q += result.nonrigid_node_mm[n];
+  std::vector<double> sigma(matched_mm.size());
+  for (std::size_t i = 0; i < matched_mm.size(); ++i) {
     double d = 0;
     // Outside the grid (field of view cut) the node has no data: its error is
     // as large as the grid's coarsest distance scale allows, 10 voxels.
-    if (!boundary.sample(q, &d, nullptr)) d = 10 * input.labels.grid.spacing_mm().maxCoeff();
+    if (!boundary.sample(matched_mm[i], &d, nullptr)) d = 10 * input.labels.grid.spacing_mm().maxCoeff();
     sigma[i] = std::abs(d);
   }
   return sigma;
+}
+
+// Where the answer places each fixed node on the intraop side (mm), in the
+// FEM's fixed-node order: the affine and the node's non-rigid displacement.
+std::vector<Eigen::Vector3d> matched_fixed_mm(const WarmState& warm, const ScanResult& result) {
+  const auto& fixed = warm.fem.fixed_nodes();
+  const auto& nodes = warm.fem.mesh().nodes_mm;
+  std::vector<Eigen::Vector3d> out(fixed.size());
+  for (std::size_t i = 0; i < fixed.size(); ++i) {
+    const int n = fixed[i];
+    out[i] = (result.intraop_from_preop * nodes[n].homogeneous()).head<3>();
+    if (static_cast<std::size_t>(n) < result.nonrigid_node_mm.size()) out[i] += result.nonrigid_node_mm[n];
+  }
+  return out;
 }
 
 std::vector<Eigen::Vector3d> fixed_preop_mm(const WarmState& warm) {
@@ -63,16 +72,11 @@ LinearSolve fem_solve(WarmState& warm) {
 // voxel centres, where the scan shows nothing (a field of view that cuts the
 // brain: a slab, a short coil). Its position is the model's continuation of
 // the seen surface, not a match.
-std::vector<bool> unseen_fixed_nodes(const WarmState& warm, const Grid3& grid, const ScanResult& result) {
-  const auto& fixed = warm.fem.fixed_nodes();
-  const auto& nodes = warm.fem.mesh().nodes_mm;
+std::vector<bool> unseen_fixed_nodes(const std::vector<Eigen::Vector3d>& matched_mm, const Grid3& grid) {
   const Eigen::Matrix4d voxel_from_world = grid.voxel_from_world();
-  std::vector<bool> unseen(fixed.size(), false);
-  for (std::size_t i = 0; i < fixed.size(); ++i) {
-    const int n = fixed[i];
-    Eigen::Vector3d q = (result.intraop_from_preop * nodes[n].homogeneous()).head<3>();
-    if (static_cast<std::size_t>(n) < result.nonrigid_node_mm.size()) q += result.nonrigid_node_mm[n];
-    const Eigen::Vector3d v = (voxel_from_world * q.homogeneous()).head<3>();
+  std::vector<bool> unseen(matched_mm.size(), false);
+  for (std::size_t i = 0; i < matched_mm.size(); ++i) {
+    const Eigen::Vector3d v = (voxel_from_world * matched_mm[i].homogeneous()).head<3>();
     for (int a = 0; a < 3; ++a) unseen[i] = unseen[i] || v[a] < 0.0 || v[a] > grid.dims[a] - 1.0;
   }
   return unseen;
@@ -88,15 +92,16 @@ void add_uncertainty(WarmState& warm, const IntraopInput& input, const PipelineP
   UncertaintyParameters up = params.uncertainty;
   if (result.kind != ResultKind::nonrigid) up.samples = up.fallback_samples;
   std::vector<double> sigma, node_rms(warm.fem.mesh().node_count(), 0.0);
+  const std::vector<Eigen::Vector3d> fixed_preop = fixed_preop_mm(warm), matched = matched_fixed_mm(warm, result);
   if (up.samples > 0) {
-    sigma = surface_noise_mm(warm, input, tissue_labels(params.label_table), result);
-    node_rms = propagate_surface_noise(fixed_preop_mm(warm), sigma, fem_solve(warm), up);
+    sigma = surface_noise_mm(input, tissue_labels(params.label_table), matched);
+    node_rms = propagate_surface_noise(fixed_preop, sigma, fem_solve(warm), up);
   }
   nlohmann::json summary;
   // Brain surface out of view (term 3 of quality/uncertainty_map.h): three
   // warm solves, only when the field of view cuts the brain.
-  const std::vector<bool> unseen = unseen_fixed_nodes(warm, input.labels.grid, result);
-  const std::vector<double> unseen_rms = unseen_surface_rms_mm(fixed_preop_mm(warm), unseen, fem_solve(warm), up);
+  const std::vector<bool> unseen = unseen_fixed_nodes(matched, input.labels.grid);
+  const std::vector<double> unseen_rms = unseen_surface_rms_mm(fixed_preop, unseen, fem_solve(warm), up);
   for (std::size_t n = 0; n < unseen_rms.size() && n < node_rms.size(); ++n)
     node_rms[n] = std::hypot(node_rms[n], unseen_rms[n]);
   summary["unseen_surface"] = {{"fixed_nodes", std::count(unseen.begin(), unseen.end(), true)},

@@ -73,6 +73,7 @@ class PlausibilityReport {
 // The fraction of the preop labels' voxels (any label) that
 // intraop_from_preop places inside the intraop grid (volume_gate's field of view).
 double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop);
+
 // Brain volume: intraop outline (enclosed cavities filled) against the preop
 // outline mapped by the affine. preop_in_view_ml: the part of the preop
 // outline the affine places inside the intraop field of view (a slab or a

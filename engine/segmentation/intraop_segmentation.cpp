@@ -29,7 +29,8 @@ ImageF crop_image(const ImageF& image, const VoxelBox& box, const Grid3& cropped
 }
 
 // The separation, in pooled sd's, between the ventricle class and the
-// parenchyma class farthest from it among the major ones (kMajorClassWeight): the ventricles' wall is placed by the strongest edge of
+// parenchyma class farthest from it among the major ones
+// (kMajorClassWeight): the ventricles' wall is placed by the strongest edge of
 // tissue around them (white matter in T1 and T2: the corpus callosum, the
 // periventricular white matter), and a lighter or nearer class of grey matter
 // and partial volume (sulcal fluid, the cortex under a craniotomy) does not
