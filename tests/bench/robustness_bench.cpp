@@ -108,9 +108,16 @@ int main(int argc, char** argv) {
       if (run.image_only) {
         cases.back()["image_only"] = brief(*run.image_only);
         from_image.push_back(*run.image_only);
-        std::fprintf(stderr, "%s: image only %.2f / %.2f mm%s, Dice %s\n", spec.phantom.name.c_str(),
-                     run.image_only->nonrigid_mean_mm, run.image_only->nonrigid_p95_mm,
-                     run.image_only->fallback ? " FALLBACK" : "", seg.dump().c_str());
+        const auto cal = evaluation::calibrate({*run.image_only});
+        std::fprintf(stderr, "%s: image only %.2f / %.2f mm%s (band %.2f, cover %.2f, rho %.2f), Dice %s\n",
+                     spec.phantom.name.c_str(), run.image_only->nonrigid_mean_mm, run.image_only->nonrigid_p95_mm,
+                     run.image_only->fallback ? " FALLBACK" : "", cal.mean_band_mm, cal.coverage, cal.spearman,
+                     seg.dump().c_str());
+        for (const auto& l : run.image_only->landmark_records)
+          if (records)
+            std::fprintf(records, "%s\n", nlohmann::json({{"case", spec.phantom.name}, {"mode", "image"},
+                                                          {"fallback", run.image_only->fallback}, {"landmark", l}})
+                                              .dump().c_str());
       } else {
         ++refused;
         std::fprintf(stderr, "%s: image only refused: %s\n", spec.phantom.name.c_str(), seg.dump().c_str());

@@ -58,7 +58,10 @@ RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& ana
     ScanInput scan;
     scan.image = c.intraop_t1;
     try {
-      const ScanResult r = session.register_scan(scan, nullptr);
+      ScanResult r = session.register_scan(scan, nullptr);
+      // The map as the daemon makes it for an image-only scan: from the
+      // automatic segmentation and the image.
+      if (with_uncertainty) session.add_uncertainty(IntraopInput{*r.intraop_labels, c.intraop_t1}, r, nullptr);
       run.image_only = evaluate_result(spec.phantom.name, c, r);
       run.segmentation = segmentation_dice(*r.intraop_labels, anatomy.truth_labels, c.true_pullback_mm,
                                            spec.phantom.resection.enabled, spec.phantom.resection.tumor_label);
