@@ -18,4 +18,8 @@ std::optional<Eigen::Vector3d> sample_vector_linear(const VectorImage3& field,
 std::optional<Eigen::Vector3d> sample_vector_linear_voxel(const VectorImage3& field,
                                                           const Eigen::Vector3d& voxel);
 
+// The field sampled at every voxel centre of target (trilinear, as above);
+// the zero vector where a centre lies beyond the field's extent.
+VectorImage3 resample_vector_linear(const VectorImage3& field, const Grid3& target);
+
 }  // namespace brainshift

@@ -1,20 +1,29 @@
 #include "image/resample.h"
 
+#include <algorithm>
+#include <cmath>
+
+#include "core/parallel.h"
+#include "image/gaussian_smooth.h"
+
 namespace brainshift {
 namespace {
 
 // Calls fn(output index, source voxel coordinate) for every target voxel,
-// stepping the affine incrementally along x.
+// stepping the affine incrementally along x. fn writes only its own output
+// voxel: the slices in two halves side by side, the same result.
 template <class Fn>
 void for_each_target(const Grid3& src, const Grid3& target, const Eigen::Matrix4d& src_from_target, Fn&& fn) {
   const Eigen::Matrix4d m = src.voxel_from_world() * src_from_target * target.world_from_voxel;
   const Eigen::Vector3d step = m.block<3, 1>(0, 0);
-  for (int k = 0; k < target.dims[2]; ++k)
-    for (int j = 0; j < target.dims[1]; ++j) {
-      const Eigen::Vector3d row = (m * Eigen::Vector4d(0, j, k, 1)).head<3>();
-      std::size_t out = target.index(0, j, k);
-      for (int i = 0; i < target.dims[0]; ++i, ++out) fn(out, Eigen::Vector3d(row + i * step));
-    }
+  parallel_halves(static_cast<std::size_t>(target.dims[2]), 8, [&](std::size_t k0, std::size_t k1) {
+    for (auto k = static_cast<int>(k0); k < static_cast<int>(k1); ++k)
+      for (int j = 0; j < target.dims[1]; ++j) {
+        const Eigen::Vector3d row = (m * Eigen::Vector4d(0, j, k, 1)).head<3>();
+        std::size_t out = target.index(0, j, k);
+        for (int i = 0; i < target.dims[0]; ++i, ++out) fn(out, Eigen::Vector3d(row + i * step));
+      }
+  });
 }
 
 }  // namespace
@@ -46,6 +55,35 @@ LabelImage resample_nearest(const LabelImage& src, const Grid3& target, const Ei
     if (nearest_voxel(src.grid, p, &index)) out.voxels[o] = src.voxels[index];
   });
   return out;
+}
+
+Grid3 same_extent_grid(const Grid3& grid, const std::array<int, 3>& dims) {
+  Grid3 out;
+  out.dims = dims;
+  Eigen::Matrix4d from_out = Eigen::Matrix4d::Identity();
+  for (int a = 0; a < 3; ++a) {
+    // r source voxels per output voxel; output voxel -0.5 and n_out - 0.5
+    // land on source voxel -0.5 and n - 0.5: the same box.
+    const double r = static_cast<double>(grid.dims[a]) / std::max(1, dims[a]);
+    from_out(a, a) = r;
+    from_out(a, 3) = (r - 1) / 2;
+  }
+  out.world_from_voxel = grid.world_from_voxel * from_out;
+  return out;
+}
+
+ImageF downsample_linear(const ImageF& image, const Grid3& coarser) {
+  // Each voxel integrates over its extent (a box as wide as its spacing); a
+  // Gaussian matched in variance to the wider box (sd = width / sqrt(12))
+  // takes the source's profile to the coarser one's before the samples are
+  // taken, so that noise finer than the new spacing does not alias.
+  const Eigen::Vector3d fine = image.grid.spacing_mm(), coarse = coarser.spacing_mm();
+  Eigen::Vector3d sigma_voxels;
+  for (int a = 0; a < 3; ++a)
+    sigma_voxels[a] = std::sqrt(std::max(0.0, coarse[a] * coarse[a] - fine[a] * fine[a]) / 12.0) / fine[a];
+  ImageF smoothed = image;
+  gaussian_smooth_voxels(smoothed, sigma_voxels);
+  return resample_linear(smoothed, coarser);
 }
 
 }  // namespace brainshift

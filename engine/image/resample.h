@@ -6,6 +6,7 @@
 // centres); within the outer half voxel the edge value is replicated. Elsewhere
 // outside_value is returned. (TrilinearEdge::kVoxelExtent of image/interpolation.h.)
 #include <Eigen/Dense>
+#include <array>
 #include <cstdint>
 #include <vector>
 
@@ -51,5 +52,14 @@ ImageF resample_linear(const ImageF& src, const Grid3& target,
 LabelImage resample_nearest(const LabelImage& src, const Grid3& target,
                             const Eigen::Matrix4d& src_world_from_target_world = Eigen::Matrix4d::Identity(),
                             std::uint16_t outside_value = 0);
+
+// The grid spanning the same box in world as `grid` (the extent of its
+// voxels, not only their centres) with `dims` voxels along its axes (same
+// directions).
+Grid3 same_extent_grid(const Grid3& grid, const std::array<int, 3>& dims);
+
+// image on a grid of coarser (or equal) spacing: smoothed to the coarser
+// voxels' profile first, then sampled linearly.
+ImageF downsample_linear(const ImageF& image, const Grid3& coarser);
 
 }  // namespace brainshift

@@ -1,4 +1,5 @@
 #include "pipeline/prepare_stage.h"
+#include "pipeline/working_grid.h"
 #include "protocol/stage_names.h"
 
 #include <algorithm>
@@ -198,8 +199,11 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
                        open_fluid_ml);
 }
 
-ScanResult register_image_only(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
-                               const ProgressFn& progress, bool with_quality_metrics) {
+namespace {
+
+// The image-only scan on the image's own grid (see register_image_only).
+ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
+                            const ProgressFn& progress, bool with_quality_metrics) {
   const LabelTable& table = params.label_table;
   const AutoSegmentationParameters& ap = params.auto_segmentation;
   if (image.grid.voxel_count() == 0) throw InputError("intraop image: the image has no voxels");
@@ -360,6 +364,35 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   t["total"] = scan_seconds + read_seconds;
   result.intraop_labels = std::move(seg.labels);
   result.segmentation_confidence = std::move(seg.confidence);
+  if (with_quality_metrics)
+    add_quality_metrics(warm, IntraopInput{*result.intraop_labels, image}, params, result, progress);
+  return result;
+}
+
+}  // namespace
+
+ScanResult register_image_only(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
+                               const ProgressFn& progress, bool with_quality_metrics) {
+  if (image.grid.voxel_count() == 0) throw InputError("intraop image: the image has no voxels");
+  const Grid3 work = working_grid(image.grid, params.auto_segmentation.working_spacing_mm);
+  if (work.dims == image.grid.dims)
+    return register_on_grid(warm, image, read_seconds, params, progress, with_quality_metrics);
+  Stopwatch watch;
+  for (float v : image.voxels)
+    if (!std::isfinite(v)) throw InputError("intraop image: contains non-finite values");
+  const ImageF coarser = downsample_linear(image, work);
+  double own_seconds = watch.lap();
+  ScanResult result = register_on_grid(warm, coarser, read_seconds, params, progress, false);
+  watch.lap();
+  carry_to_grid(warm, result, image.grid);
+  own_seconds += watch.lap();
+  const auto triple = [](const auto& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
+  result.metrics["segmentation"]["working_grid"] = {
+      {"dims", triple(work.dims)}, {"spacing_mm", triple(work.spacing_mm())},
+      {"image_dims", triple(image.grid.dims)}, {"image_spacing_mm", triple(image.grid.spacing_mm())}};
+  auto& t = result.timings["intraop"];
+  t["working_grid"] = own_seconds;
+  t[std::string(stages::kTotal)] = t.value(std::string(stages::kTotal), 0.0) + own_seconds;
   if (with_quality_metrics)
     add_quality_metrics(warm, IntraopInput{*result.intraop_labels, image}, params, result, progress);
   return result;

@@ -82,5 +82,31 @@ TEST(SamplingAgreement, VectorSamplingIsTheTrilinearSampler) {
   EXPECT_LT(inside, 2000);
 }
 
+// A field resampled onto another grid is the sampler at each of its voxel
+// centres, and zero where a centre lies beyond the field.
+TEST(SamplingAgreement, ResampledFieldIsTheSamplerAtEachVoxelCentre) {
+  const Grid3 g = test::oblique_grid({9, 8, 7}, {1.1, 0.8, 1.6}, {-3, 2, -4}, 0.4);
+  const VectorImage3 u = smooth_field(g);
+  const Grid3 target = test::oblique_grid({14, 12, 11}, {0.7, 0.6, 1.0}, {-4, 1, -5}, 0.3);
+  const VectorImage3 r = resample_vector_linear(u, target);
+  ASSERT_TRUE(r.grid.same_geometry(target));
+  int inside = 0, outside = 0;
+  for (int k = 0; k < target.dims[2]; ++k)
+    for (int j = 0; j < target.dims[1]; ++j)
+      for (int i = 0; i < target.dims[0]; ++i) {
+        const auto expected = sample_vector_linear(u, target.world_mm(i, j, k));
+        const Eigen::Vector3d got = r.vectors[target.index(i, j, k)].cast<double>();
+        if (!expected) {
+          ++outside;
+          ASSERT_EQ(got, Eigen::Vector3d::Zero());
+          continue;
+        }
+        ++inside;
+        ASSERT_LE((got - *expected).norm(), 1e-5 * std::max(1.0, expected->norm())) << i << "," << j << "," << k;
+      }
+  EXPECT_GT(inside, 100);
+  EXPECT_GT(outside, 100);
+}
+
 }  // namespace
 }  // namespace brainshift

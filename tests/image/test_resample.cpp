@@ -98,5 +98,51 @@ TEST(Resample, NearestPicksClosestVoxelThroughWorld) {
   EXPECT_EQ(r.at(3, 0, 2), 6 + 0 + 100 * 4);
 }
 
+// A coarser grid of the same extent: the outer faces of the voxel box are the
+// same points in world, whatever the number of voxels.
+TEST(Resample, TheSameExtentGridSpansTheSameBox) {
+  Grid3 g = grid({258, 309, 229}, {0.7, 0.7, 0.7}, {-90, -110, -70});
+  g.world_from_voxel.topLeftCorner<3, 3>() =
+      Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix() * 0.7;
+  const Grid3 c = same_extent_grid(g, {181, 216, 160});
+  EXPECT_EQ(c.dims, (std::array<int, 3>{181, 216, 160}));
+  for (int corner = 0; corner < 8; ++corner) {
+    const Eigen::Vector3d f(corner & 1 ? g.dims[0] - 0.5 : -0.5, corner & 2 ? g.dims[1] - 0.5 : -0.5,
+                            corner & 4 ? g.dims[2] - 0.5 : -0.5);
+    const Eigen::Vector3d k(corner & 1 ? c.dims[0] - 0.5 : -0.5, corner & 2 ? c.dims[1] - 0.5 : -0.5,
+                            corner & 4 ? c.dims[2] - 0.5 : -0.5);
+    EXPECT_LT((g.world_mm(f.x(), f.y(), f.z()) - c.world_mm(k.x(), k.y(), k.z())).norm(), 1e-9) << corner;
+  }
+  EXPECT_NEAR(c.spacing_mm().x(), 0.7 * 258 / 181, 1e-12);
+}
+
+// Smoothing to the coarser voxels' profile and sampling keep a linear
+// intensity (away from the edges, where the smoothing replicates), and
+// average the noise down by about the ratio of the voxel volumes.
+TEST(Resample, DownsamplingKeepsALinearIntensityAndAveragesNoise) {
+  const Grid3 fine = grid({60, 50, 40}, {0.7, 0.7, 0.7}, {-20, -15, -12});
+  const Grid3 coarse = same_extent_grid(fine, {42, 35, 28});
+  const ImageF down = downsample_linear(image_of_linear_fn(fine), coarse);
+  for (int k = 4; k < coarse.dims[2] - 4; ++k)
+    for (int j = 4; j < coarse.dims[1] - 4; ++j)
+      for (int i = 4; i < coarse.dims[0] - 4; ++i)
+        ASSERT_NEAR(down.at(i, j, k), linear_fn(coarse.world_mm(i, j, k)), 1e-3) << i << " " << j << " " << k;
+  ImageF noise(fine);
+  std::uint32_t state = 12345;
+  for (float& v : noise.voxels) {
+    state = state * 1664525u + 1013904223u;
+    v = static_cast<float>(state >> 8) / static_cast<float>(1u << 24) - 0.5f;  // sd 0.289
+  }
+  const ImageF n2 = downsample_linear(noise, coarse);
+  double ss = 0;
+  std::size_t count = 0;
+  for (int k = 4; k < coarse.dims[2] - 4; ++k)
+    for (int j = 4; j < coarse.dims[1] - 4; ++j)
+      for (int i = 4; i < coarse.dims[0] - 4; ++i, ++count) ss += n2.at(i, j, k) * n2.at(i, j, k);
+  const double sd = std::sqrt(ss / static_cast<double>(count));
+  EXPECT_LT(sd, 0.289 * 0.75) << "noise finer than the coarser voxels is averaged";
+  EXPECT_GT(sd, 0.289 * 0.2) << "but not smoothed away as by a much wider kernel";
+}
+
 }  // namespace
 }  // namespace brainshift

@@ -10,6 +10,7 @@
 #include "coarse_parameters.h"  // tests/support
 #include "pipeline/engine_session.h"
 #include "pipeline/warm_state.h"
+#include "pipeline/working_grid.h"
 #include "synthetic_head.h"
 
 using namespace brainshift;
@@ -126,6 +127,64 @@ TEST_F(ImageOnlyPasses, TheAnswerOfAnImageOnlyScanIsAFullPassWarmStartedFromTheL
   EXPECT_FALSE(s.metrics.contains("pass"));
   EXPECT_EQ(s.metrics["affine"]["warm_start"], false);
   EXPECT_FALSE(s.warped_t1.voxels.empty());
+}
+
+// The working grid (pipeline/working_grid.h): only an axis much finer than
+// the working spacing is coarsened, to whole voxels over the same extent.
+TEST(WorkingGrid, OnlyAxesMuchFinerThanTheWorkingSpacingAreCoarsened) {
+  const auto grid_of = [](std::array<int, 3> dims, Eigen::Vector3d spacing) {
+    Grid3 g;
+    g.dims = dims;
+    g.world_from_voxel.diagonal().head<3>() = spacing;
+    return g;
+  };
+  const Grid3 iso = grid_of({258, 309, 229}, {0.7, 0.7, 0.7});
+  const Grid3 w = working_grid(iso, 1.0);
+  EXPECT_EQ(w.dims, (std::array<int, 3>{181, 216, 160}));
+  for (int a = 0; a < 3; ++a) EXPECT_NEAR(w.spacing_mm()[a], 1.0, 0.01);
+  // As validated: a 1.5 T scan's 0.94 mm in-plane is worked on as it is.
+  const Grid3 clinical = grid_of({256, 256, 60}, {0.9375, 0.9375, 2.5});
+  EXPECT_EQ(working_grid(clinical, 1.0).dims, clinical.dims);
+  // Fine in-plane, thick slices: only the plane.
+  EXPECT_EQ(working_grid(grid_of({512, 512, 40}, {0.45, 0.45, 3.0}), 1.0).dims, (std::array<int, 3>{230, 230, 40}));
+  EXPECT_EQ(working_grid(iso, 0.0).dims, iso.dims) << "0: off";
+}
+
+// A scan finer than the working grid is segmented and registered on the
+// working grid and answered on its own: every output on the image's grid,
+// the translation recovered from the image alone as on the coarser scan
+// (PipelineTest.AScanGivenAsAnImageAloneIsSegmentedAndRegistered).
+TEST_F(ImageOnlyPasses, AFineImageIsWorkedOnACoarserGridAndAnsweredOnItsOwn) {
+  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
+  session.load_preop(*preop_, nullptr);
+  // moved_scan's extent at half its spacing: 0.7 x 0.7 x 1.4 mm.
+  Grid3 fine;
+  fine.dims = {200, 220, 88};
+  fine.world_from_voxel.diagonal().head<3>() = Eigen::Vector3d(0.7, 0.7, 1.4);
+  fine.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-70.35, -77.35, -62.7);
+  const Eigen::Vector3d shift(3.0, -2.0, 2.0);
+  const test::MovedHead truth = test::move_head(preop_->labels, preop_->t1, fine, shift);
+  ScanInput scan;
+  scan.image = test::scanner_image(truth.t1);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
+  const auto& worked = r.metrics["segmentation"]["working_grid"];
+  EXPECT_EQ(worked["dims"], nlohmann::json::array({140, 154, 88})) << worked.dump();
+  EXPECT_EQ(worked["image_dims"], nlohmann::json::array({200, 220, 88}));
+  ASSERT_TRUE(r.intraop_labels && r.segmentation_confidence);
+  for (const Grid3* g : {&r.pullback_field_mm.grid, &r.intraop_labels->grid, &r.segmentation_confidence->grid,
+                         &r.warped_labels.grid, &r.warped_t1.grid, &r.warped_t1_affine_only.grid})
+    EXPECT_TRUE(g->same_geometry(fine));
+  EXPECT_GT(test::outline_dice(*r.intraop_labels, truth.labels), 0.95);
+  double mean = 0;
+  std::size_t n = 0;
+  for (std::size_t v = 0; v < truth.labels.voxels.size(); ++v)
+    if (truth.labels.voxels[v] != 0) {
+      mean += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm();
+      ++n;
+    }
+  EXPECT_LT(mean / static_cast<double>(n), 0.5) << "mean error of the recovered translation";
+  EXPECT_GT(r.timings["intraop"].value("working_grid", 0.0), 0.0);
 }
 
 }  // namespace

@@ -1,0 +1,42 @@
+#include "pipeline/working_grid.h"
+
+#include <cmath>
+#include <future>
+
+#include "field/vector_sampling.h"
+#include "field/warp.h"
+#include "image/resample.h"
+
+namespace brainshift {
+
+Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm) {
+  if (!(working_spacing_mm > 0)) return image_grid;
+  const Eigen::Vector3d spacing = image_grid.spacing_mm();
+  std::array<int, 3> dims = image_grid.dims;
+  bool coarser = false;
+  for (int a = 0; a < 3; ++a) {
+    if (spacing[a] * kWorkingGridMinCoarsening >= working_spacing_mm) continue;
+    const double extent_mm = spacing[a] * image_grid.dims[a];
+    dims[a] = std::max(1, static_cast<int>(std::lround(extent_mm / working_spacing_mm)));
+    coarser = coarser || dims[a] < image_grid.dims[a];
+  }
+  return coarser ? same_extent_grid(image_grid, dims) : image_grid;
+}
+
+void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image_grid) {
+  result.pullback_field_mm = resample_vector_linear(result.pullback_field_mm, image_grid);
+  // The two warps are independent: the labels on the second core.
+  auto labels = std::async(std::launch::async,
+                           [&] { return warp_labels_nearest(warm.preop.labels, result.pullback_field_mm); });
+  if (!result.warped_t1.voxels.empty()) result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
+  result.warped_labels = labels.get();
+  if (!result.warped_t1_affine_only.voxels.empty())
+    result.warped_t1_affine_only =
+        resample_linear(warm.preop.t1, image_grid, result.intraop_from_preop.inverse());
+  if (result.intraop_labels) result.intraop_labels = resample_nearest(*result.intraop_labels, image_grid);
+  if (result.segmentation_confidence)
+    result.segmentation_confidence = resample_linear(*result.segmentation_confidence, image_grid);
+  if (!result.uncertainty_mm.voxels.empty()) result.uncertainty_mm = resample_linear(result.uncertainty_mm, image_grid);
+}
+
+}  // namespace brainshift

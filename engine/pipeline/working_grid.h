@@ -1,0 +1,35 @@
+#pragma once
+// The grid an image-only scan is worked on. The automatic segmentation and
+// the stages cost time and memory in proportion to the voxels (a 0.7 mm
+// isotropic 3 T scan holds 18 million, 4.7x the suites' 1.5 T scans, and took
+// a minute and 3.6 GB). Detail finer than half the mesh's surface facet
+// cannot reach the elastic model, so an axis much finer than
+// AutoSegmentationParameters::working_spacing_mm is coarsened to it for the
+// work, and the answer is carried back to the image's own grid, the grid
+// every output is defined on (docs/DESIGN.md "The working grid").
+#include "pipeline/warm_state.h"
+
+namespace brainshift {
+
+// An axis is coarsened only when its spacing is below working_spacing_mm by
+// more than this factor: a smaller change saves little (under a fifth of the
+// voxels along that axis) while the smoothing blurs the partial volume the
+// classifier reads; scans at 0.94-1 mm, as validated, are worked on as they
+// are.
+inline constexpr double kWorkingGridMinCoarsening = 1.25;
+
+// The image's grid, or the grid of the same extent and axes whose spacing is
+// working_spacing_mm (to a whole number of voxels) along each axis finer than
+// working_spacing_mm / kWorkingGridMinCoarsening. working_spacing_mm 0: the
+// image's grid.
+Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm);
+
+// A result worked out on a coarser grid of the same extent, carried to the
+// image's grid: the field sampled trilinearly (it is smooth on the scale of
+// the working voxels: the elastic solution between mesh nodes 2-3 mm apart),
+// the preop T1 and labels warped again through it, the segmentation by the
+// nearest working voxel, its confidence linearly. Models, the affine and the
+// per-node displacements do not depend on a grid.
+void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image_grid);
+
+}  // namespace brainshift
