@@ -99,6 +99,12 @@ int main(int argc, char** argv) {
       preops[warm_key] = {{"nodes", session->mesh().node_count()}, {"seconds", session->preop_timings()}};
     }
     const auto run = evaluation::run_robustness_case(*session, anatomy, spec, /*with_uncertainty=*/true, image_only);
+    const auto write_records = [&](const char* mode, const evaluation::CaseResult& r) {
+      if (!records) return;
+      for (const auto& l : r.landmark_records)
+        std::fprintf(records, "%s\n", nlohmann::json({{"case", spec.phantom.name}, {"mode", mode},
+                                                      {"fallback", r.fallback}, {"landmark", l}}).dump().c_str());
+    };
     cases.push_back({{"case", spec.phantom.name}, {"preop", warm_key},
                      {"with_image", brief(run.with_image)}, {"labels_only", brief(run.labels_only)}});
     if (image_only) {
@@ -113,11 +119,7 @@ int main(int argc, char** argv) {
                      spec.phantom.name.c_str(), run.image_only->nonrigid_mean_mm, run.image_only->nonrigid_p95_mm,
                      run.image_only->fallback ? " FALLBACK" : "", cal.mean_band_mm, cal.coverage, cal.spearman,
                      seg.dump().c_str());
-        for (const auto& l : run.image_only->landmark_records)
-          if (records)
-            std::fprintf(records, "%s\n", nlohmann::json({{"case", spec.phantom.name}, {"mode", "image"},
-                                                          {"fallback", run.image_only->fallback}, {"landmark", l}})
-                                              .dump().c_str());
+        write_records("image", *run.image_only);
       } else {
         ++refused;
         std::fprintf(stderr, "%s: image only refused: %s\n", spec.phantom.name.c_str(), seg.dump().c_str());
@@ -131,9 +133,8 @@ int main(int argc, char** argv) {
                  run.with_image.nonrigid_p95_mm, run.with_image.fallback ? " FALLBACK" : "", cal_i.mean_band_mm,
                  cal_i.coverage, cal_i.spearman, run.labels_only.nonrigid_mean_mm, run.labels_only.nonrigid_p95_mm,
                  run.labels_only.fallback ? " FALLBACK" : "", cal_l.mean_band_mm, cal_l.coverage, cal_l.spearman);
-    for (const auto& [mode, r] : {std::pair{"labels+image", &run.with_image}, std::pair{"labels", &run.labels_only}})
-      for (const auto& l : r->landmark_records)
-        if (records) std::fprintf(records, "%s\n", nlohmann::json({{"case", spec.phantom.name}, {"mode", mode}, {"fallback", r->fallback}, {"landmark", l}}).dump().c_str());
+    write_records("labels+image", run.with_image);
+    write_records("labels", run.labels_only);
     with_image.push_back(run.with_image);
     labels_only.push_back(run.labels_only);
   }
