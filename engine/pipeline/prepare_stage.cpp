@@ -5,10 +5,13 @@
 #include <algorithm>
 #include <cmath>
 #include <future>
+#include <optional>
 
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "core/timer.h"
+#include "field/vector_sampling.h"
+#include "field/warp.h"
 #include "image/image_stats.h"
 #include "image/resample.h"
 #include "registration/affine_registration.h"
@@ -114,112 +117,42 @@ segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, 
   return seen;
 }
 
-// The inner band one voxel inside the outline's surface.
-Mask inner_surface_band(const Mask& outline) {
-  const double h = outline.grid.spacing_mm().minCoeff();
-  return boundary_voxels(erode(outline, 1.01 * h));
-}
+// One image-only scan on one grid (the image's, or the coarser grid of the
+// first round): the preop carried there by the head's placement, and what
+// the segmentation rounds and the passes of the stages share.
+struct ScanOnGrid {
+  WarmState& warm;
+  const ImageF& image;
+  double read_seconds;
+  const PipelineParameters& params;
+  const ProgressFn& progress;
+  Eigen::Matrix4d placement;
+  LabelImage carried;
+  segmentation::PreopSeen seen;
+  CarriedPreopVolumes carried_volumes;
 
-// What the gates measure of the preop carried by the head placement: the
-// same for every round of a scan, so measured once.
-struct CarriedPreopVolumes {
-  double brain_ml = 0, resectable_ml = 0, ventricles_ml = 0;
-};
+  ScanOnGrid(WarmState& w, const ImageF& im, double read_s, const PipelineParameters& p, const ProgressFn& pr,
+             const Eigen::Matrix4d& intraop_from_preop)
+      : warm(w), image(im), read_seconds(read_s), params(p), progress(pr), placement(intraop_from_preop),
+        carried(resample_nearest(w.preop.labels, im.grid, intraop_from_preop.inverse())),
+        seen(preop_as_seen(w, p.label_table, carried, intraop_from_preop)),
+        carried_volumes(carried_preop_volumes(carried, p.label_table)) {}
 
-CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table) {
-  // The carried preop is already on the intraop grid through the placement,
-  // so its volume there includes the affine's scale and the field of view.
-  CarriedPreopVolumes c;
-  c.brain_ml = volume_ml(outline_mask(carried_preop));
-  for (auto v : table.resectable_labels()) c.resectable_ml += volume_ml(mask_of_labels(carried_preop, {v}));
-  c.ventricles_ml = volume_ml(mask_of_labels(carried_preop, ventricle_labels(table)));
-  return c;
-}
-
-SegmentationGates check_against(const LabelImage& segmentation, const ImageF& confidence,
-                                const CarriedPreopVolumes& preop, const LabelTable& table,
-                                const AutoSegmentationParameters& params, double open_fluid_ml) {
-  SegmentationGates g;
-  const Mask outline = outline_mask(segmentation);
-  const double resectable_ml = preop.resectable_ml;
-  const double seg_ml = volume_ml(outline), preop_ml = preop.brain_ml;
-  const double change = preop_ml > 0 ? seg_ml / preop_ml - 1 : -1;
-  // Smaller by what may be resected, and by the fluid found in the gap a
-  // sinking left (fluid by its intensity: a lost lobe is tissue).
-  const double lowest =
-      -params.max_brain_volume_change - (preop_ml > 0 ? (resectable_ml + open_fluid_ml) / preop_ml : 0);
-  g.metrics["brain_volume"] = {{"segmented_ml", seg_ml}, {"preop_ml", preop_ml}, {"change", change},
-                               {"open_fluid_ml", open_fluid_ml},
-                               {"allowed", {lowest, params.max_brain_volume_change}}};
-  if (change < lowest || change > params.max_brain_volume_change)
-    g.failure = "automatic segmentation: the brain's volume differs from the preop's by " +
-                std::to_string(100 * change) + " % (allowed " + std::to_string(100 * lowest) + " to +" +
-                std::to_string(100 * params.max_brain_volume_change) + " %)";
-
-  const auto vent = ventricle_labels(table);
-  const double seg_vent = volume_ml(mask_of_labels(segmentation, vent));
-  const double preop_vent = preop.ventricles_ml;
-  const double fraction = preop_vent > 0 ? seg_vent / preop_vent : 1.0;
-  g.metrics["ventricles"] = {{"segmented_ml", seg_vent}, {"preop_ml", preop_vent}, {"fraction", fraction},
-                             {"min_fraction", params.min_ventricle_fraction}};
-  if (g.failure.empty() && preop_vent > 0 && fraction < params.min_ventricle_fraction)
-    g.failure = "automatic segmentation: no ventricles found (" + std::to_string(seg_vent) + " ml against " +
-                std::to_string(preop_vent) + " ml preop)";
-
-  const VoxelBox box = grow_box(bounding_box_voxels(outline), outline.grid, 3.0);
-  std::size_t band_voxels = 0, uncertain = 0;
-  if (!box.empty) {
-    const Mask band = inner_surface_band(crop_to_box(outline, box));
-    for (int k = 0; k < band.grid.dims[2]; ++k)
-      for (int j = 0; j < band.grid.dims[1]; ++j)
-        for (int i = 0; i < band.grid.dims[0]; ++i) {
-          if (!band.at(i, j, k)) continue;
-          ++band_voxels;
-          uncertain += confidence.at(i + box.lo[0], j + box.lo[1], k + box.lo[2]) < params.min_surface_confidence;
-        }
+  // As for given labels (run_intraop), but said of the image and before the
+  // segmentation's time is spent: the preop placed by the head shows how much
+  // of the brain the field of view holds.
+  void check_field_of_view() const {
+    if (carried_volumes.brain_ml < params.gates.min_intraop_brain_fraction * warm.brain_volume_ml)
+      throw InputError("intraop image: the field of view holds " + std::to_string(carried_volumes.brain_ml) +
+                       " ml of the preop's " + std::to_string(warm.brain_volume_ml) +
+                       " ml brain (placed by the head); it misses most of the brain");
   }
-  const double uncertain_fraction = band_voxels ? static_cast<double>(uncertain) / static_cast<double>(band_voxels) : 1.0;
-  g.metrics["outer_surface"] = {{"uncertain_fraction", uncertain_fraction},
-                                {"min_confidence", params.min_surface_confidence},
-                                {"max_uncertain_fraction", params.max_uncertain_surface_fraction}};
-  if (g.failure.empty() && uncertain_fraction > params.max_uncertain_surface_fraction)
-    g.failure = "automatic segmentation: the outer brain surface is uncertain over " +
-                std::to_string(100 * uncertain_fraction) + " % of its area (limit " +
-                std::to_string(100 * params.max_uncertain_surface_fraction) + " %)";
-  g.metrics["passed"] = g.failure.empty();
-  return g;
-}
 
-}  // namespace
-
-SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
-                                     const LabelImage& carried_preop, const LabelTable& table,
-                                     const AutoSegmentationParameters& params, double open_fluid_ml) {
-  return check_against(segmentation, confidence, carried_preop_volumes(carried_preop, table), table, params,
-                       open_fluid_ml);
-}
-
-namespace {
-
-// The image-only scan on the image's own grid (see register_image_only).
-ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
-                            const ProgressFn& progress, bool with_quality_metrics) {
-  const LabelTable& table = params.label_table;
-  const AutoSegmentationParameters& ap = params.auto_segmentation;
-  if (image.grid.voxel_count() == 0) throw InputError("intraop image: the image has no voxels");
-  for (float v : image.voxels)
-    if (!std::isfinite(v)) throw InputError("intraop image: contains non-finite values");
-
-  Stopwatch watch, scan_watch;
-  double segment_seconds = 0;
-  nlohmann::json seg_metrics;
-  if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
-  const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
-  LabelImage carried = resample_nearest(warm.preop.labels, image.grid, placement.inverse());
-  const segmentation::PreopSeen seen = preop_as_seen(warm, table, carried, placement);
-  auto segment = [&](const LabelImage& prior_labels, double width_mm, double ventricle_shift_mm, bool open_fluid_rule = true,
-                     const segmentation::IntraopSegmentation* fitted = nullptr,
-                     const Mask* gap_found_before = nullptr) {
+  segmentation::IntraopSegmentation segment(const LabelImage& prior_labels, double width_mm, double ventricle_shift_mm,
+                                            bool open_fluid_rule = true,
+                                            const segmentation::IntraopSegmentation* fitted = nullptr,
+                                            const Mask* gap_found_before = nullptr) const {
+    const AutoSegmentationParameters& ap = params.auto_segmentation;
     segmentation::SegmentationParameters sp = ap.classifier;
     if (!open_fluid_rule) sp.max_sulcus_half_width_mm = 0;
     // The classified box ends where the prior meets its floor (docs/DESIGN.md
@@ -230,26 +163,15 @@ ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_se
     sp.ventricle_shift_mm = ventricle_shift_mm;
     if (ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    return segmentation::segment_intraop(image, prior_labels, table.brain_label(), ventricle_labels(table), sp, fitted,
-                                         gap_found_before, &seen);
-  };
-  // As for given labels (run_intraop), but said of the image and before the
-  // segmentation's time is spent: the preop placed by the head shows how much
-  // of the brain the field of view holds.
-  const CarriedPreopVolumes carried_volumes = carried_preop_volumes(carried, table);
-  if (carried_volumes.brain_ml < params.gates.min_intraop_brain_fraction * warm.brain_volume_ml)
-    throw InputError("intraop image: the field of view holds " + std::to_string(carried_volumes.brain_ml) +
-                     " ml of the preop's " + std::to_string(warm.brain_volume_ml) +
-                     " ml brain (placed by the head); it misses most of the brain");
-  segmentation::IntraopSegmentation seg = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
-  if (!seg.refusal.empty()) throw InputError("intraop image: " + seg.refusal);
-  SegmentationGates gates = check_against(seg.labels, seg.confidence, carried_volumes, table, ap, seg.open_fluid_ml);
-  segment_seconds += watch.lap();
-  if (progress) progress(std::string(stages::kSegment), 1.0, segment_seconds);
+    return segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
+                                         ventricle_labels(params.label_table), sp, fitted, gap_found_before, &seen);
+  }
 
-  // The gates are checked before the stages, not beside them: every stage
-  // already splits its work over both cores (the affine in every iteration),
-  // and a third thread slowed them by more than the check costs.
+  SegmentationGates gates(const segmentation::IntraopSegmentation& s, double open_fluid_ml) const {
+    return check_segmentation(s.labels, s.confidence, carried_volumes, params.label_table, params.auto_segmentation,
+                              open_fluid_ml);
+  }
+
   // A pass a re-match follows only makes the re-match's prior: it runs light
   // (PassOptions::prior_only). A light pass the stages refuse is run again in
   // full when a shortcut changed its field, so that the shortcuts never
@@ -257,116 +179,263 @@ ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_se
   // (refused, or its re-match refused) is completed: by the outputs it
   // skipped when its field is a full pass's, else by the full pass.
   // A re-match's pass starts its affine from the pass before it (item 9).
-  const bool light_field_is_full = ap.passes.prior_refine && ap.passes.prior_surface_max_iterations == 0;
-  auto run_pass = [&](const segmentation::IntraopSegmentation& s, bool rematch_follows, bool& prior_only,
-                      const Eigen::Matrix4d* affine_start = nullptr) {
+  bool light_field_is_full() const {
+    const auto& passes = params.auto_segmentation.passes;
+    return passes.prior_refine && passes.prior_surface_max_iterations == 0;
+  }
+  ScanResult run_pass(const segmentation::IntraopSegmentation& s, bool rematch_follows, bool& prior_only,
+                      const Eigen::Matrix4d* affine_start = nullptr) const {
     const IntraopInput input{s.labels, image, read_seconds, s.open_fluid_ml};
-    if (!ap.passes.warm_start_affine) affine_start = nullptr;
+    if (!params.auto_segmentation.passes.warm_start_affine) affine_start = nullptr;
     prior_only = false;
     if (rematch_follows) {
       ScanResult light = run_intraop(warm, input, params, progress, false, "", PassOptions{true, affine_start});
       prior_only = light.kind == ResultKind::nonrigid;
       if (prior_only) return light;
-      if (light_field_is_full) {
+      if (light_field_is_full()) {
         complete_prior_pass(warm, light, progress);
         return light;
       }
     }
     return run_intraop(warm, input, params, progress, false, "", PassOptions{false, affine_start});
-  };
+  }
+  ScanResult refused(const segmentation::IntraopSegmentation& s, const std::string& reason) const {
+    return run_intraop(warm, IntraopInput{s.labels, image, read_seconds, s.open_fluid_ml}, params, progress, false,
+                       reason);
+  }
+};
+
+// The rounds of one scan so far: the segmentation that stands, its gates,
+// the pass on it, and each round's report.
+struct Rounds {
+  segmentation::IntraopSegmentation seg;
+  SegmentationGates gates;
+  ScanResult result;
   bool result_prior_only = false;
-  ScanResult result = gates.failure.empty()
-                          ? run_pass(seg, ap.rematch_rounds > 0, result_prior_only)
-                          : run_intraop(warm, IntraopInput{seg.labels, image, read_seconds, seg.open_fluid_ml}, params, progress, false,
-                                        gates.failure);
-  nlohmann::json rounds = nlohmann::json::array();
-  rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
+  bool open_fluid_rule = true;
+  nlohmann::json report = nlohmann::json::array();
+  double segment_seconds = 0;
+};
+
+// The first round's segmentation and gates: the preop carried by the head's
+// placement as the prior. A segmentation the classifier refuses is returned
+// with its refusal (the caller decides). seconds_before: the scan's
+// segmentation time so far (the head's placement).
+Rounds first_segmentation(const ScanOnGrid& s, double seconds_before) {
+  const AutoSegmentationParameters& ap = s.params.auto_segmentation;
+  Rounds r;
+  Stopwatch watch;
+  r.seg = s.segment(s.carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
+  if (r.seg.refusal.empty()) r.gates = s.gates(r.seg, r.seg.open_fluid_ml);
+  r.segment_seconds = seconds_before + watch.lap();
+  if (s.progress) s.progress(std::string(stages::kSegment), 1.0, r.segment_seconds);
+  r.report.push_back({{"prior_width_mm", r.seg.report["prior_width_mm"]}, {"gates", r.gates.metrics}});
+  return r;
+}
+
+// The first round's pass on a segmentation the classifier accepted, and the
+// segmentation without the open-fluid rule where the stages refuse it.
+// rematch_follows: the pass is light (ScanOnGrid::run_pass).
+void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
+  const AutoSegmentationParameters& ap = s.params.auto_segmentation;
+  Stopwatch watch;
+  // The gates are checked before the stages, not beside them: every stage
+  // already splits its work over both cores (the affine in every iteration),
+  // and a third thread slowed them by more than the check costs.
+  r.result = r.gates.failure.empty() ? s.run_pass(r.seg, rematch_follows, r.result_prior_only)
+                                     : s.refused(r.seg, r.gates.failure);
   // The open-fluid rule reshapes the outline by shape, not by intensity
   // (docs/DESIGN.md "Automatic intraop segmentation", item 7); where the
   // stages refuse the field its outline gives (a fold: the cortex over a
   // resection cavity taken for the cap of a gap), the segmentation by the
   // image alone is tried once, and kept only if the stages accept it.
-  bool open_fluid_rule = true;
-  if (result.kind != ResultKind::nonrigid && gates.failure.empty() && seg.open_fluid_ml > 0) {
-    watch.lap();
-    auto plain = segment(carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, false);
-    SegmentationGates plain_gates = check_against(plain.labels, plain.confidence, carried_volumes, table, ap, 0.0);
-    segment_seconds += watch.lap();
-    rounds.push_back({{"prior_width_mm", plain.report["prior_width_mm"]}, {"gates", plain_gates.metrics},
+  if (r.result.kind == ResultKind::nonrigid || !r.gates.failure.empty() || r.seg.open_fluid_ml <= 0) return;
+  watch.lap();
+  auto plain = s.segment(s.carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, false);
+  SegmentationGates plain_gates = s.gates(plain, 0.0);
+  r.segment_seconds += watch.lap();
+  r.report.push_back({{"prior_width_mm", plain.report["prior_width_mm"]}, {"gates", plain_gates.metrics},
                       {"open_fluid_rule", false}, {"refusal", plain.refusal}});
-    if (plain.refusal.empty() && plain_gates.failure.empty()) {
-      bool pass_prior_only = false;
-      ScanResult pass = run_pass(plain, ap.rematch_rounds > 0, pass_prior_only);
-      if (pass.kind == ResultKind::nonrigid) {
-        rounds.front()["kept"] = false;
-        rounds.front()["fallback_reason"] = result.fallback_reason;
-        open_fluid_rule = false;
-        seg = std::move(plain);
-        gates = std::move(plain_gates);
-        result = std::move(pass);
-        result_prior_only = pass_prior_only;
-      } else {
-        rounds.back()["kept"] = false;
-      }
-    } else {
-      rounds.back()["kept"] = false;
-    }
-  }
-  for (int round = 1; round <= ap.rematch_rounds && result.kind == ResultKind::nonrigid; ++round) {
-    // Re-match: the preop carried by the non-rigid estimate (the pass's own
-    // warped labels), a narrower prior, a smaller box. The gap a sinking left
-    // was found against the head's placement, as the gates measure: the
-    // first round's finding stands for the next. rematch_reuses_fit: the
-    // classes and bias fitted before are reused (off by default).
-    watch.lap();
-    auto next = segment(result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, open_fluid_rule,
-                        ap.rematch_reuses_fit ? &seg : nullptr,
-                        ap.rematch_gaps_found_before ? &seg.open_fluid : nullptr);
-    next.open_fluid_ml = std::max(seg.open_fluid_ml, next.open_fluid_ml);
-    SegmentationGates next_gates =
-        check_against(next.labels, next.confidence, carried_volumes, table, ap, next.open_fluid_ml);
-    segment_seconds += watch.lap();
-    if (!next.refusal.empty() || !next_gates.failure.empty()) {  // the previous pass stands
-      rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
-                        {"refusal", next.refusal}, {"kept", false}});
-      break;
-    }
+  if (plain.refusal.empty() && plain_gates.failure.empty()) {
     bool pass_prior_only = false;
-    ScanResult pass = run_pass(next, round < ap.rematch_rounds, pass_prior_only, &result.intraop_from_preop);
-    if (pass.kind != ResultKind::nonrigid) {  // a re-match the stages refuse (a fold): the previous pass stands
-      rounds.push_back({{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
-                        {"fallback_reason", pass.fallback_reason}, {"kept", false}});
+    ScanResult pass = s.run_pass(plain, rematch_follows, pass_prior_only);
+    if (pass.kind == ResultKind::nonrigid) {
+      r.report.front()["kept"] = false;
+      r.report.front()["fallback_reason"] = r.result.fallback_reason;
+      r.open_fluid_rule = false;
+      r.seg = std::move(plain);
+      r.gates = std::move(plain_gates);
+      r.result = std::move(pass);
+      r.result_prior_only = pass_prior_only;
+      return;
+    }
+  }
+  r.report.back()["kept"] = false;
+}
+
+// The re-match rounds on s's grid: the preop carried by the non-rigid
+// estimate (the pass's own warped labels), a narrower prior, a smaller box.
+// The gap a sinking left was found against the head's placement, as the
+// gates measure: the first round's finding stands for the next.
+// rematch_reuses_fit: the classes and bias fitted before are reused (off by
+// default). A round the classifier, the gates or the stages refuse leaves
+// the pass before it standing; when that pass is not on s's grid
+// (first_round_elsewhere) there is none to stand and false is returned
+// (the refused round's report last in r.report).
+bool rematch(const ScanOnGrid& s, Rounds& r, bool first_round_elsewhere) {
+  const AutoSegmentationParameters& ap = s.params.auto_segmentation;
+  Stopwatch watch;
+  for (int round = 1; round <= ap.rematch_rounds && r.result.kind == ResultKind::nonrigid; ++round) {
+    watch.lap();
+    auto next = s.segment(r.result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, r.open_fluid_rule,
+                          ap.rematch_reuses_fit ? &r.seg : nullptr,
+                          ap.rematch_gaps_found_before ? &r.seg.open_fluid : nullptr);
+    next.open_fluid_ml = std::max(r.seg.open_fluid_ml, next.open_fluid_ml);
+    SegmentationGates next_gates = s.gates(next, next.open_fluid_ml);
+    r.segment_seconds += watch.lap();
+    nlohmann::json report = {{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics}};
+    ScanResult pass;
+    bool pass_prior_only = false;
+    if (!next.refusal.empty() || !next_gates.failure.empty()) {
+      report["refusal"] = next.refusal;
+    } else {
+      pass = s.run_pass(next, round < ap.rematch_rounds, pass_prior_only, &r.result.intraop_from_preop);
+      if (pass.kind != ResultKind::nonrigid) report["fallback_reason"] = pass.fallback_reason;  // a fold
+    }
+    if (pass.kind != ResultKind::nonrigid || !next.refusal.empty() || !next_gates.failure.empty()) {
+      report["kept"] = false;
+      r.report.push_back(report);
+      if (round == 1 && first_round_elsewhere) return false;
       break;
     }
-    seg = std::move(next);
-    gates = std::move(next_gates);
-    result = std::move(pass);
-    result_prior_only = pass_prior_only;
-    rounds.push_back({{"prior_width_mm", seg.report["prior_width_mm"]}, {"gates", gates.metrics}});
+    r.seg = std::move(next);
+    r.gates = std::move(next_gates);
+    r.result = std::move(pass);
+    r.result_prior_only = pass_prior_only;
+    r.report.push_back(report);
   }
-  if (result_prior_only && light_field_is_full) {  // the answer: the outputs the light pass skipped
-    complete_prior_pass(warm, result, progress);
-  } else if (result_prior_only) {  // the answer: the full pass on the segmentation that stands
-    const Eigen::Matrix4d same_labels_affine = result.intraop_from_preop;
+  return true;
+}
+
+// The answer from the rounds: the outputs a light pass skipped, the
+// segmentation's report and time.
+ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, const Stopwatch& scan_watch,
+                  bool with_quality_metrics) {
+  if (r.result_prior_only && s.light_field_is_full()) {
+    complete_prior_pass(s.warm, r.result, s.progress);
+  } else if (r.result_prior_only) {  // the full pass on the segmentation that stands
+    const Eigen::Matrix4d same_labels_affine = r.result.intraop_from_preop;
     bool unused = false;
-    result = run_pass(seg, false, unused, &same_labels_affine);
+    r.result = s.run_pass(r.seg, false, unused, &same_labels_affine);
   }
-  seg_metrics["classifier"] = seg.report;
-  seg_metrics["gates"] = gates.metrics;
-  seg_metrics["rounds"] = rounds;
+  ScanResult result = std::move(r.result);
+  seg_metrics["classifier"] = r.seg.report;
+  seg_metrics["gates"] = r.gates.metrics;
+  seg_metrics["rounds"] = r.report;
   result.metrics["segmentation"] = seg_metrics;
   auto& t = result.timings["intraop"];
-  t[std::string(stages::kSegment)] = segment_seconds;
+  t[std::string(stages::kSegment)] = r.segment_seconds;
   // Everything but the segmentation and the answer's own pass (whose total
   // includes the read) was an earlier pass.
-  const double scan_seconds = scan_watch.seconds(), answer_pass_seconds = t.value("total", 0.0) - read_seconds;
-  t["earlier_passes"] = std::max(0.0, scan_seconds - segment_seconds - answer_pass_seconds);
-  t["total"] = scan_seconds + read_seconds;
-  result.intraop_labels = std::move(seg.labels);
-  result.segmentation_confidence = std::move(seg.confidence);
+  const double scan_seconds = scan_watch.seconds(), answer_pass_seconds = t.value("total", 0.0) - s.read_seconds;
+  t["earlier_passes"] = std::max(0.0, scan_seconds - r.segment_seconds - answer_pass_seconds);
+  t["total"] = scan_seconds + s.read_seconds;
+  result.intraop_labels = std::move(r.seg.labels);
+  result.segmentation_confidence = std::move(r.seg.confidence);
   if (with_quality_metrics)
-    add_quality_metrics(warm, IntraopInput{*result.intraop_labels, image}, params, result, progress);
+    add_quality_metrics(s.warm, IntraopInput{*result.intraop_labels, s.image}, s.params, result, s.progress);
   return result;
+}
+
+Mask resample_mask_nearest(const Mask& m, const Grid3& target) {
+  return mask_of_labels(resample_nearest(as_labels(m), target), {1});
+}
+
+// The first round on a coarser grid (AutoSegmentationParameters::
+// first_round_spacing_mm): it only makes the re-match's prior, and a prior
+// as wide as a working voxel loses nothing (docs/DESIGN.md "The first round
+// on a coarser grid"). The head's placement, the first segmentation, its
+// gates and the light pass run there; the light pass's field is carried to
+// the image's grid, where the re-match, its gates and the answer's pass run.
+// Anything short of a re-match accepted on the image's grid returns nothing:
+// the caller then does the scan on the image's grid, so that no refusal and
+// no answer is ever decided on the coarser grid. After a refusal on the
+// coarser grid (the classifier, a gate, the light pass) that is the whole
+// scan as without the shortcut; after a re-match refused on the image's
+// grid (its report in refused_rematch) the first round there and its full
+// pass, the answer a refused re-match leaves standing.
+std::optional<ScanResult> register_first_round_coarser(WarmState& warm, const ImageF& image, const Grid3& first_grid,
+                                                       double read_seconds, const PipelineParameters& params,
+                                                       const ProgressFn& progress, bool with_quality_metrics,
+                                                       nlohmann::json& seg_metrics, const Stopwatch& scan_watch,
+                                                       double& segment_seconds, nlohmann::json& refused_rematch) {
+  Stopwatch watch;
+  const ImageF coarser = downsample_linear(image, first_grid);
+  const Eigen::Matrix4d placement =
+      place_preop_by_head(warm, coarser, params.affine, seg_metrics["head_placement"]);
+  const ScanOnGrid fine(warm, image, read_seconds, params, progress, placement);
+  fine.check_field_of_view();
+  const ScanOnGrid coarse(warm, coarser, read_seconds, params, progress, placement);
+  Rounds r = first_segmentation(coarse, watch.lap());
+  segment_seconds = r.segment_seconds;
+  const auto triple = [](const auto& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
+  auto& grid_metrics = seg_metrics["first_round_grid"];
+  grid_metrics = {{"dims", triple(first_grid.dims)}, {"spacing_mm", triple(first_grid.spacing_mm())}, {"kept", false}};
+  if (!r.seg.refusal.empty() || !r.gates.failure.empty()) return std::nullopt;
+  r.result = run_intraop(warm, IntraopInput{r.seg.labels, coarser, read_seconds, r.seg.open_fluid_ml}, params,
+                         progress, false, "", PassOptions{true, nullptr});
+  if (r.result.kind != ResultKind::nonrigid) return std::nullopt;
+  r.result_prior_only = true;
+  watch.lap();
+  r.result.warped_labels =
+      warp_labels_nearest(warm.preop.labels, resample_vector_linear(r.result.pullback_field_mm, image.grid));
+  if (r.seg.open_fluid.grid.voxel_count() > 0) r.seg.open_fluid = resample_mask_nearest(r.seg.open_fluid, image.grid);
+  grid_metrics["carry_seconds"] = watch.lap();
+  const bool kept = rematch(fine, r, true);
+  segment_seconds = r.segment_seconds;
+  if (!kept) {
+    refused_rematch = r.report.back();
+    refused_rematch["prior"] = "the light pass on the first round's coarser grid";
+    return std::nullopt;
+  }
+  grid_metrics["kept"] = true;
+  return answer(fine, std::move(r), std::move(seg_metrics), scan_watch, with_quality_metrics);
+}
+
+// The image-only scan on the image's own grid (see register_image_only).
+ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
+                            const ProgressFn& progress, bool with_quality_metrics) {
+  const AutoSegmentationParameters& ap = params.auto_segmentation;
+  if (image.grid.voxel_count() == 0) throw InputError("intraop image: the image has no voxels");
+  for (float v : image.voxels)
+    if (!std::isfinite(v)) throw InputError("intraop image: contains non-finite values");
+
+  Stopwatch watch, scan_watch;
+  nlohmann::json seg_metrics;
+  if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
+  double coarser_segment_seconds = 0;
+  nlohmann::json refused_rematch;
+  const Grid3 first_grid = working_grid(image.grid, ap.first_round_spacing_mm);
+  if (first_grid.dims != image.grid.dims && ap.rematch_rounds > 0 && !ap.rematch_reuses_fit) {
+    if (auto result = register_first_round_coarser(warm, image, first_grid, read_seconds, params, progress,
+                                                   with_quality_metrics, seg_metrics, scan_watch,
+                                                   coarser_segment_seconds, refused_rematch))
+      return std::move(*result);
+    watch.lap();
+  }
+  const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
+  const ScanOnGrid s(warm, image, read_seconds, params, progress, placement);
+  s.check_field_of_view();
+  Rounds r = first_segmentation(s, watch.lap() + coarser_segment_seconds);
+  if (!r.seg.refusal.empty()) throw InputError("intraop image: " + r.seg.refusal);
+  if (refused_rematch.is_null()) {
+    first_pass(s, r, ap.rematch_rounds > 0);
+    rematch(s, r, false);
+  } else {
+    first_pass(s, r, false);
+    r.report.push_back(std::move(refused_rematch));
+  }
+  return answer(s, std::move(r), std::move(seg_metrics), scan_watch, with_quality_metrics);
 }
 
 }  // namespace

@@ -16,6 +16,7 @@
 // affine-only result with the reason.
 #include <nlohmann/json.hpp>
 
+#include "pipeline/segmentation_gates.h"
 #include "pipeline/warm_state.h"
 
 namespace brainshift {
@@ -29,17 +30,5 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
 // the marked affine-only one.
 ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                                       const ProgressFn& progress, bool with_quality_metrics);
-
-// The gates of the automatic path on one segmentation: metrics (values and
-// limits) and the first reason not to trust it ("" when none). open_fluid_ml:
-// the fluid the segmentation found where sunken cortex was
-// (IntraopSegmentation::open_fluid_ml), by which the brain is smaller.
-struct SegmentationGates {
-  nlohmann::json metrics;
-  std::string failure;
-};
-SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
-                                     const LabelImage& carried_preop, const LabelTable& table,
-                                     const AutoSegmentationParameters& params, double open_fluid_ml = 0);
 
 }  // namespace brainshift

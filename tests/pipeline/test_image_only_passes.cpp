@@ -187,4 +187,71 @@ TEST_F(ImageOnlyPasses, AFineImageIsWorkedOnACoarserGridAndAnsweredOnItsOwn) {
   EXPECT_GT(r.timings["intraop"].value("working_grid", 0.0), 0.0);
 }
 
+// The first round on a coarser grid (AutoSegmentationParameters::
+// first_round_spacing_mm): the 1.4 mm scan's plane is coarsened to 2 mm for
+// the first segmentation and its light pass; the re-match and the answer are
+// on the image's grid, and the translation is recovered as without it.
+TEST_F(ImageOnlyPasses, TheFirstRoundRunsOnACoarserGridAndTheReMatchOnTheImages) {
+  const Eigen::Vector3d shift(3.0, -2.0, 2.0);
+  const IntraopInput truth = moved_scan(*preop_, shift, 0.0);
+  ScanInput scan;
+  scan.image = test::scanner_image(*truth.t1);
+  auto mean_error = [&](const ScanResult& r) {
+    double sum = 0;
+    std::size_t n = 0;
+    for (std::size_t v = 0; v < truth.labels.voxels.size(); ++v)
+      if (truth.labels.voxels[v] != 0) sum += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm(), ++n;
+    return sum / static_cast<double>(n);
+  };
+  PipelineParameters p = test::coarse_parameters();
+  ASSERT_EQ(p.auto_segmentation.first_round_spacing_mm, 2.0);
+  EngineSession session(MPI_COMM_WORLD, p);
+  session.load_preop(*preop_, nullptr);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
+  const auto& first = r.metrics["segmentation"]["first_round_grid"];
+  EXPECT_EQ(first["kept"], true) << first.dump();
+  EXPECT_EQ(first["dims"], nlohmann::json::array({70, 77, 44})) << "the plane at 2 mm, the 2.8 mm slices as they are";
+  ASSERT_TRUE(r.intraop_labels && r.segmentation_confidence);
+  for (const Grid3* g : {&r.pullback_field_mm.grid, &r.intraop_labels->grid, &r.segmentation_confidence->grid,
+                         &r.warped_labels.grid, &r.warped_t1.grid})
+    EXPECT_TRUE(g->same_geometry(truth.labels.grid));
+  EXPECT_FALSE(r.metrics.contains("pass")) << "the answer is a full pass";
+  EXPECT_GT(test::outline_dice(*r.intraop_labels, truth.labels), 0.95);
+  EXPECT_LT(mean_error(r), 0.5);
+
+  p.auto_segmentation.first_round_spacing_mm = 0;
+  EngineSession off(MPI_COMM_WORLD, p);
+  off.load_preop(*preop_, nullptr, session.mesh());
+  const ScanResult o = off.register_scan(scan, nullptr);
+  ASSERT_EQ(o.kind, ResultKind::nonrigid) << o.fallback_reason;
+  EXPECT_FALSE(o.metrics["segmentation"].contains("first_round_grid"));
+  EXPECT_LT(mean_error(o), 0.5);
+  EXPECT_NEAR(mean_error(r), mean_error(o), 0.2);
+}
+
+// No refusal is decided on the coarser grid: a segmentation the gates refuse
+// there is done again on the image's grid, and the answer and its reason are
+// those of the scan without the shortcut.
+TEST_F(ImageOnlyPasses, ARefusalOnTheCoarserGridIsDecidedAgainOnTheImages) {
+  ScanInput scan;
+  scan.image = test::scanner_image(*moved_scan(*preop_, {1.0, 0.0, -1.0}, 0.0).t1);
+  PipelineParameters p = test::coarse_parameters();
+  p.auto_segmentation.max_brain_volume_change = 0.001;  // no segmentation passes
+  EngineSession session(MPI_COMM_WORLD, p);
+  session.load_preop(*preop_, nullptr);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  p.auto_segmentation.first_round_spacing_mm = 0;
+  EngineSession off(MPI_COMM_WORLD, p);
+  off.load_preop(*preop_, nullptr, session.mesh());
+  const ScanResult o = off.register_scan(scan, nullptr);
+  ASSERT_EQ(o.kind, ResultKind::affine_only_fallback);
+  EXPECT_EQ(r.kind, ResultKind::affine_only_fallback);
+  EXPECT_EQ(r.metrics["segmentation"]["first_round_grid"]["kept"], false);
+  EXPECT_NE(r.fallback_reason.find("brain's volume"), std::string::npos) << r.fallback_reason;
+  EXPECT_EQ(r.fallback_reason, o.fallback_reason);
+  EXPECT_EQ(r.intraop_labels->voxels, o.intraop_labels->voxels) << "the segmentation of the image's grid";
+  EXPECT_GT(r.timings["intraop"]["total"].get<double>(), 0.0);
+}
+
 }  // namespace

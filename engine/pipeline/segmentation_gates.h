@@ -1,0 +1,38 @@
+#pragma once
+// The gates of the automatic segmentation (docs/DESIGN.md "Automatic intraop
+// segmentation"): a segmentation whose brain volume is far from the preop's,
+// that finds no ventricles, or whose outer surface is uncertain over a large
+// area is not trusted. The preop they compare with is the preop carried onto
+// the intraop grid by the head's placement.
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "pipeline/pipeline_parameters.h"
+
+namespace brainshift {
+
+// The gates of the automatic path on one segmentation: metrics (values and
+// limits) and the first reason not to trust it ("" when none). open_fluid_ml:
+// the fluid the segmentation found where sunken cortex was
+// (IntraopSegmentation::open_fluid_ml), by which the brain is smaller.
+struct SegmentationGates {
+  nlohmann::json metrics;
+  std::string failure;
+};
+SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
+                                     const LabelImage& carried_preop, const LabelTable& table,
+                                     const AutoSegmentationParameters& params, double open_fluid_ml = 0);
+
+// What the gates measure of the carried preop: the same for every round of a
+// scan, so measured once. The carried preop is on the intraop grid through
+// the placement, so its volumes include the affine's scale and the field of
+// view.
+struct CarriedPreopVolumes {
+  double brain_ml = 0, resectable_ml = 0, ventricles_ml = 0;
+};
+CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table);
+SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
+                                     const CarriedPreopVolumes& carried_preop, const LabelTable& table,
+                                     const AutoSegmentationParameters& params, double open_fluid_ml);
+
+}  // namespace brainshift
