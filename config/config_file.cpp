@@ -168,7 +168,6 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   s.read("ventricle_shift_affine_mm", p.ventricle_shift_affine_mm, Interval::closed(0, 30));
   s.read("ventricle_prior_width_mm", p.ventricle_prior_width_mm, Interval::above(0));
   s.read("working_spacing_mm", p.working_spacing_mm, Interval::closed(0, 3));
-  s.read("first_round_spacing_mm", p.first_round_spacing_mm, Interval::closed(0, 4));
   s.read("rematch_rounds", p.rematch_rounds, 0, 5);
   s.read("rematch_reuses_fit", p.rematch_reuses_fit);
   s.read("rematch_gaps_found_before", p.rematch_gaps_found_before);

@@ -3,6 +3,7 @@
 #include <string>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "image/interpolation.h"
 
 namespace brainshift {
@@ -18,7 +19,8 @@ void check(const Grid3& preop, const VectorImage3& pullback) {
 
 // Calls sink(v, preop_voxel_coordinate) for every output voxel v. The map from
 // output voxel to preop voxel coordinates is affine plus the field, so it is
-// evaluated without per-voxel matrix inversions.
+// evaluated without per-voxel matrix inversions. Each output voxel on its
+// own: the slices in two halves side by side (core/parallel.h).
 template <class Sink>
 void for_each_pullback(const Grid3& preop, const VectorImage3& pullback, Sink&& sink) {
   const Eigen::Matrix4d m = preop.voxel_from_world() * pullback.grid.world_from_voxel;
@@ -26,15 +28,17 @@ void for_each_pullback(const Grid3& preop, const VectorImage3& pullback, Sink&& 
   const Eigen::Vector3d off = m.topRightCorner<3, 1>();
   const Eigen::Matrix3d to_voxel = preop.voxel_from_world().topLeftCorner<3, 3>();
   const Grid3& g = pullback.grid;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j) {
-      Eigen::Vector3d base = lin * Eigen::Vector3d(0, j, k) + off;
-      std::size_t v = g.index(0, j, k);
-      for (int i = 0; i < g.dims[0]; ++i, ++v) {
-        const Eigen::Vector3d c = base + lin.col(0) * i + to_voxel * pullback.vectors[v].cast<double>();
-        sink(v, c);
+  parallel_halves(static_cast<std::size_t>(g.dims[2]), 4, [&](std::size_t k0, std::size_t k1) {
+    for (auto k = static_cast<int>(k0); k < static_cast<int>(k1); ++k)
+      for (int j = 0; j < g.dims[1]; ++j) {
+        const Eigen::Vector3d base = lin * Eigen::Vector3d(0, j, k) + off;
+        std::size_t v = g.index(0, j, k);
+        for (int i = 0; i < g.dims[0]; ++i, ++v) {
+          const Eigen::Vector3d c = base + lin.col(0) * i + to_voxel * pullback.vectors[v].cast<double>();
+          sink(v, c);
+        }
       }
-    }
+  });
 }
 
 }  // namespace

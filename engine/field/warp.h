@@ -3,7 +3,8 @@
 // output lives on the field's grid and its value at voxel centre x is the preop
 // image at x + u(x) (world RAS+ mm; the preop image's own geometry is used, so
 // the two grids need not match). Points outside the preop image (its voxels'
-// extent, as in image/resample.h) get outside_value.
+// extent, as in image/resample.h) get outside_value. Each splits its slices
+// over both cores (core/parallel.h); the result does not depend on it.
 #include <cstdint>
 
 #include "core/image.h"

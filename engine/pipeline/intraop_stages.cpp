@@ -269,16 +269,9 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   clock.done(stages::kField);
 
   clock.start(stages::kWarp);
-  if (pass.prior_only) {
-    result.warped_labels = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
-  } else {
-    // The two warps are independent: the labels on the second core.
-    auto warped_labels = std::async(std::launch::async, [&] {
-      return warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
-    });
-    result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
-    result.warped_labels = warped_labels.get();
-  }
+  // Each warp splits its slices over both cores (field/warp.h).
+  result.warped_labels = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
+  if (!pass.prior_only) result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
   clock.done(stages::kWarp);
 
   result.nonrigid_node_mm = deformation.nonrigid_mm;

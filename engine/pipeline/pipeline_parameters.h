@@ -98,13 +98,6 @@ struct AutoSegmentationParameters {
   // finest detail the mesh can take from a segmentation; and the finest
   // spacing the suites validated the segmentation at (0.94-1 mm). 0: off.
   double working_spacing_mm = 1.0;
-  // The first round's grid (prepare_stage.cpp): the first segmentation and
-  // its pass only make the re-match's prior, whose width (prior_width_
-  // nonrigid_mm, 1.5 mm) is about a voxel of this grid, so they run on axes
-  // coarsened to this spacing as working_spacing_mm does (1.25), and the re-
-  // match and the answer on the working grid. 0: off (docs/DESIGN.md "The
-  // first round on a coarser grid").
-  double first_round_spacing_mm = 2.0;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;
   PassShortcuts passes;

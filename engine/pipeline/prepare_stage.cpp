@@ -5,13 +5,10 @@
 #include <algorithm>
 #include <cmath>
 #include <future>
-#include <optional>
 
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "core/timer.h"
-#include "field/vector_sampling.h"
-#include "field/warp.h"
 #include "image/image_stats.h"
 #include "image/resample.h"
 #include "registration/affine_registration.h"
@@ -117,23 +114,22 @@ segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, 
   return seen;
 }
 
-// One image-only scan on one grid (the image's, or the coarser grid of the
-// first round): the preop carried there by the head's placement, and what
-// the segmentation rounds and the passes of the stages share.
+// One image-only scan on the grid it is worked on: the preop carried there
+// by the head's placement, and what the segmentation rounds and the passes
+// of the stages share.
 struct ScanOnGrid {
   WarmState& warm;
   const ImageF& image;
   double read_seconds;
   const PipelineParameters& params;
   const ProgressFn& progress;
-  Eigen::Matrix4d placement;
   LabelImage carried;
   segmentation::PreopSeen seen;
   CarriedPreopVolumes carried_volumes;
 
   ScanOnGrid(WarmState& w, const ImageF& im, double read_s, const PipelineParameters& p, const ProgressFn& pr,
              const Eigen::Matrix4d& intraop_from_preop)
-      : warm(w), image(im), read_seconds(read_s), params(p), progress(pr), placement(intraop_from_preop),
+      : warm(w), image(im), read_seconds(read_s), params(p), progress(pr),
         carried(resample_nearest(w.preop.labels, im.grid, intraop_from_preop.inverse())),
         seen(preop_as_seen(w, p.label_table, carried, intraop_from_preop)),
         carried_volumes(carried_preop_volumes(carried, p.label_table)) {}
@@ -273,16 +269,14 @@ void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
   r.report.back()["kept"] = false;
 }
 
-// The re-match rounds on s's grid: the preop carried by the non-rigid
-// estimate (the pass's own warped labels), a narrower prior, a smaller box.
-// The gap a sinking left was found against the head's placement, as the
-// gates measure: the first round's finding stands for the next.
+// The re-match rounds: the preop carried by the non-rigid estimate (the
+// pass's own warped labels), a narrower prior, a smaller box. The gap a
+// sinking left was found against the head's placement, as the gates
+// measure: the first round's finding stands for the next.
 // rematch_reuses_fit: the classes and bias fitted before are reused (off by
 // default). A round the classifier, the gates or the stages refuse leaves
-// the pass before it standing; when that pass is not on s's grid
-// (first_round_elsewhere) there is none to stand and false is returned
-// (the refused round's report last in r.report).
-bool rematch(const ScanOnGrid& s, Rounds& r, bool first_round_elsewhere) {
+// the pass before it standing.
+void rematch(const ScanOnGrid& s, Rounds& r) {
   const AutoSegmentationParameters& ap = s.params.auto_segmentation;
   Stopwatch watch;
   for (int round = 1; round <= ap.rematch_rounds && r.result.kind == ResultKind::nonrigid; ++round) {
@@ -305,7 +299,6 @@ bool rematch(const ScanOnGrid& s, Rounds& r, bool first_round_elsewhere) {
     if (pass.kind != ResultKind::nonrigid || !next.refusal.empty() || !next_gates.failure.empty()) {
       report["kept"] = false;
       r.report.push_back(report);
-      if (round == 1 && first_round_elsewhere) return false;
       break;
     }
     r.seg = std::move(next);
@@ -314,7 +307,6 @@ bool rematch(const ScanOnGrid& s, Rounds& r, bool first_round_elsewhere) {
     r.result_prior_only = pass_prior_only;
     r.report.push_back(report);
   }
-  return true;
 }
 
 // The answer from the rounds: the outputs a light pass skipped, the
@@ -347,61 +339,6 @@ ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, con
   return result;
 }
 
-Mask resample_mask_nearest(const Mask& m, const Grid3& target) {
-  return mask_of_labels(resample_nearest(as_labels(m), target), {1});
-}
-
-// The first round on a coarser grid (AutoSegmentationParameters::
-// first_round_spacing_mm): it only makes the re-match's prior, and a prior
-// as wide as a working voxel loses nothing (docs/DESIGN.md "The first round
-// on a coarser grid"). The head's placement, the first segmentation, its
-// gates and the light pass run there; the light pass's field is carried to
-// the image's grid, where the re-match, its gates and the answer's pass run.
-// Anything short of a re-match accepted on the image's grid returns nothing:
-// the caller then does the scan on the image's grid, so that no refusal and
-// no answer is ever decided on the coarser grid. After a refusal on the
-// coarser grid (the classifier, a gate, the light pass) that is the whole
-// scan as without the shortcut; after a re-match refused on the image's
-// grid (its report in refused_rematch) the first round there and its full
-// pass, the answer a refused re-match leaves standing.
-std::optional<ScanResult> register_first_round_coarser(WarmState& warm, const ImageF& image, const Grid3& first_grid,
-                                                       double read_seconds, const PipelineParameters& params,
-                                                       const ProgressFn& progress, bool with_quality_metrics,
-                                                       nlohmann::json& seg_metrics, const Stopwatch& scan_watch,
-                                                       double& segment_seconds, nlohmann::json& refused_rematch) {
-  Stopwatch watch;
-  const ImageF coarser = downsample_linear(image, first_grid);
-  const Eigen::Matrix4d placement =
-      place_preop_by_head(warm, coarser, params.affine, seg_metrics["head_placement"]);
-  const ScanOnGrid fine(warm, image, read_seconds, params, progress, placement);
-  fine.check_field_of_view();
-  const ScanOnGrid coarse(warm, coarser, read_seconds, params, progress, placement);
-  Rounds r = first_segmentation(coarse, watch.lap());
-  segment_seconds = r.segment_seconds;
-  const auto triple = [](const auto& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
-  auto& grid_metrics = seg_metrics["first_round_grid"];
-  grid_metrics = {{"dims", triple(first_grid.dims)}, {"spacing_mm", triple(first_grid.spacing_mm())}, {"kept", false}};
-  if (!r.seg.refusal.empty() || !r.gates.failure.empty()) return std::nullopt;
-  r.result = run_intraop(warm, IntraopInput{r.seg.labels, coarser, read_seconds, r.seg.open_fluid_ml}, params,
-                         progress, false, "", PassOptions{true, nullptr});
-  if (r.result.kind != ResultKind::nonrigid) return std::nullopt;
-  r.result_prior_only = true;
-  watch.lap();
-  r.result.warped_labels =
-      warp_labels_nearest(warm.preop.labels, resample_vector_linear(r.result.pullback_field_mm, image.grid));
-  if (r.seg.open_fluid.grid.voxel_count() > 0) r.seg.open_fluid = resample_mask_nearest(r.seg.open_fluid, image.grid);
-  grid_metrics["carry_seconds"] = watch.lap();
-  const bool kept = rematch(fine, r, true);
-  segment_seconds = r.segment_seconds;
-  if (!kept) {
-    refused_rematch = r.report.back();
-    refused_rematch["prior"] = "the light pass on the first round's coarser grid";
-    return std::nullopt;
-  }
-  grid_metrics["kept"] = true;
-  return answer(fine, std::move(r), std::move(seg_metrics), scan_watch, with_quality_metrics);
-}
-
 // The image-only scan on the image's own grid (see register_image_only).
 ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
                             const ProgressFn& progress, bool with_quality_metrics) {
@@ -413,28 +350,13 @@ ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_se
   Stopwatch watch, scan_watch;
   nlohmann::json seg_metrics;
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
-  double coarser_segment_seconds = 0;
-  nlohmann::json refused_rematch;
-  const Grid3 first_grid = working_grid(image.grid, ap.first_round_spacing_mm);
-  if (first_grid.dims != image.grid.dims && ap.rematch_rounds > 0 && !ap.rematch_reuses_fit) {
-    if (auto result = register_first_round_coarser(warm, image, first_grid, read_seconds, params, progress,
-                                                   with_quality_metrics, seg_metrics, scan_watch,
-                                                   coarser_segment_seconds, refused_rematch))
-      return std::move(*result);
-    watch.lap();
-  }
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
   const ScanOnGrid s(warm, image, read_seconds, params, progress, placement);
   s.check_field_of_view();
-  Rounds r = first_segmentation(s, watch.lap() + coarser_segment_seconds);
+  Rounds r = first_segmentation(s, watch.lap());
   if (!r.seg.refusal.empty()) throw InputError("intraop image: " + r.seg.refusal);
-  if (refused_rematch.is_null()) {
-    first_pass(s, r, ap.rematch_rounds > 0);
-    rematch(s, r, false);
-  } else {
-    first_pass(s, r, false);
-    r.report.push_back(std::move(refused_rematch));
-  }
+  first_pass(s, r, ap.rematch_rounds > 0);
+  rematch(s, r);
   return answer(s, std::move(r), std::move(seg_metrics), scan_watch, with_quality_metrics);
 }
 

@@ -1,7 +1,6 @@
 #include "pipeline/working_grid.h"
 
 #include <cmath>
-#include <future>
 
 #include "field/vector_sampling.h"
 #include "field/warp.h"
@@ -25,11 +24,9 @@ Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm) {
 
 void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image_grid) {
   result.pullback_field_mm = resample_vector_linear(result.pullback_field_mm, image_grid);
-  // The two warps are independent: the labels on the second core.
-  auto labels = std::async(std::launch::async,
-                           [&] { return warp_labels_nearest(warm.preop.labels, result.pullback_field_mm); });
+  // Each warp splits its slices over both cores (field/warp.h).
+  result.warped_labels = warp_labels_nearest(warm.preop.labels, result.pullback_field_mm);
   if (!result.warped_t1.voxels.empty()) result.warped_t1 = warp_image_linear(warm.preop.t1, result.pullback_field_mm);
-  result.warped_labels = labels.get();
   if (!result.warped_t1_affine_only.voxels.empty())
     result.warped_t1_affine_only =
         resample_linear(warm.preop.t1, image_grid, result.intraop_from_preop.inverse());

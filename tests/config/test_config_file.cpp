@@ -236,7 +236,6 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.prior_inward_width_affine_mm, code.prior_inward_width_affine_mm);
   EXPECT_DOUBLE_EQ(file.ventricle_prior_width_mm, code.ventricle_prior_width_mm);
   EXPECT_DOUBLE_EQ(file.working_spacing_mm, code.working_spacing_mm);
-  EXPECT_DOUBLE_EQ(file.first_round_spacing_mm, code.first_round_spacing_mm);
   EXPECT_EQ(file.rematch_rounds, code.rematch_rounds);
   EXPECT_EQ(file.rematch_reuses_fit, code.rematch_reuses_fit);
   EXPECT_DOUBLE_EQ(file.max_brain_volume_change, code.max_brain_volume_change);
@@ -286,8 +285,6 @@ TEST(Config, BadAutoSegmentationValuesAreErrorsNamingSectionAndKey) {
   EXPECT_NE(volume.find("max_brain_volume_change"), std::string::npos) << volume;
   EXPECT_NE(message_of("[auto_segmentation]\nrematch_rounds = 9\n").find("rematch_rounds"), std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\nworking_spacing_mm = -1\n").find("working_spacing_mm"), std::string::npos);
-  EXPECT_NE(message_of("[auto_segmentation]\nfirst_round_spacing_mm = 5\n").find("first_round_spacing_mm"),
-            std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\nprior_width_affine_mm = 0\n").find("prior_width_affine_mm"),
             std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\nventricle_shift_affine_mm = -1\n").find("ventricle_shift_affine_mm"),
