@@ -92,7 +92,8 @@ ScanResult EngineSession::register_scan(const ScanInput& scan, const ProgressFn&
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
   if (!scan.labels && !scan.image) throw InputError("a scan needs an intraop image, labels, or both");
   if (scan.labels && (!scan.image || !params_.auto_segmentation.check_given_labels))
-    return register_scan(IntraopInput{*scan.labels, scan.image, scan.read_seconds}, progress, defer_quality_metrics);
+    return register_given_labels(*warm_, IntraopInput{*scan.labels, scan.image, scan.read_seconds}, params_, progress,
+                                 !defer_quality_metrics);
   ScanResult result =
       scan.labels ? register_labels_with_image(*warm_, IntraopInput{*scan.labels, scan.image, scan.read_seconds}, params_, progress,
                                                !defer_quality_metrics)

@@ -377,13 +377,7 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   watch.lap();
   carry_to_grid(warm, result, image.grid);
   own_seconds += watch.lap();
-  const auto triple = [](const auto& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
-  result.metrics["segmentation"]["working_grid"] = {
-      {"dims", triple(work.dims)}, {"spacing_mm", triple(work.spacing_mm())},
-      {"image_dims", triple(image.grid.dims)}, {"image_spacing_mm", triple(image.grid.spacing_mm())}};
-  auto& t = result.timings["intraop"];
-  t["working_grid"] = own_seconds;
-  t[std::string(stages::kTotal)] = t.value(std::string(stages::kTotal), 0.0) + own_seconds;
+  report_working_grid(result, work, image.grid, own_seconds);
   if (with_quality_metrics)
     add_quality_metrics(warm, IntraopInput{*result.intraop_labels, image}, params, result, progress);
   return result;
@@ -405,18 +399,25 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     check_seconds = w.seconds();
     return c;
   });
-  ScanResult result = run_intraop(warm, input, params, progress, false);
+  ScanResult result = run_intraop_on_working_grid(warm, input, params, progress);
   segmentation::LabelImageCheck c = check.get();
   if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
     const nlohmann::json first_timings = result.timings["intraop"];
-    result = run_intraop(warm, input, params, progress, false,
-                         "the intraop labels disagree with the intraop image: " + c.failure);
+    result = run_intraop_on_working_grid(warm, input, params, progress,
+                                         "the intraop labels disagree with the intraop image: " + c.failure);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
   }
   // The answer waits for the check: the wait is part of what the surgeon waits for.
   result.timings["intraop"][std::string(stages::kTotal)] = watch.seconds() + input.read_seconds;
   c.metrics["seconds"] = check_seconds;
   result.metrics["label_image_check"] = c.metrics;
+  if (with_quality_metrics) add_quality_metrics(warm, input, params, result, progress);
+  return result;
+}
+
+ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                 const ProgressFn& progress, bool with_quality_metrics) {
+  ScanResult result = run_intraop_on_working_grid(warm, input, params, progress);
   if (with_quality_metrics) add_quality_metrics(warm, input, params, result, progress);
   return result;
 }

@@ -24,6 +24,12 @@ namespace brainshift {
 ScanResult register_image_only(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
                                const ProgressFn& progress, bool with_quality_metrics);
 
+// A scan given as labels (with or without its image) that are not checked
+// against the image: the stages on them, on the working grid when their grid
+// is much finer (pipeline/working_grid.h).
+ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                 const ProgressFn& progress, bool with_quality_metrics);
+
 // A scan given with both labels and an image: the stages run while the labels
 // are checked against the image on the other core; a gross disagreement
 // (metrics "label_image_check": where and how much) turns the result into

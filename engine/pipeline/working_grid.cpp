@@ -4,7 +4,9 @@
 
 #include "field/vector_sampling.h"
 #include "field/warp.h"
+#include "core/timer.h"
 #include "image/resample.h"
+#include "protocol/stage_names.h"
 
 namespace brainshift {
 
@@ -34,6 +36,35 @@ void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image
   if (result.segmentation_confidence)
     result.segmentation_confidence = resample_linear(*result.segmentation_confidence, image_grid);
   if (!result.uncertainty_mm.voxels.empty()) result.uncertainty_mm = resample_linear(result.uncertainty_mm, image_grid);
+}
+
+void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& image_grid, double seconds) {
+  const auto triple = [](const auto& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
+  result.metrics["working_grid"] = {{"dims", triple(work.dims)}, {"spacing_mm", triple(work.spacing_mm())},
+                                    {"image_dims", triple(image_grid.dims)},
+                                    {"image_spacing_mm", triple(image_grid.spacing_mm())}};
+  auto& t = result.timings["intraop"];
+  t["working_grid"] = seconds;
+  const std::string total(protocol::stages::kTotal);
+  t[total] = t.value(total, 0.0) + seconds;
+}
+
+ScanResult run_intraop_on_working_grid(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                       const ProgressFn& progress, const std::string& forced_fallback) {
+  const Grid3& grid = input.labels.grid;
+  const Grid3 work = working_grid(grid, params.auto_segmentation.working_spacing_mm);
+  if (work.dims == grid.dims) return run_intraop(warm, input, params, progress, false, forced_fallback);
+  validate_intraop_input(input, params.label_table);  // said of the labels as given
+  Stopwatch watch;
+  IntraopInput coarser{resample_nearest(input.labels, work), std::nullopt, input.read_seconds, input.open_fluid_ml};
+  if (input.t1) coarser.t1 = downsample_linear(*input.t1, work);
+  double own_seconds = watch.lap();
+  ScanResult result = run_intraop(warm, coarser, params, progress, false, forced_fallback);
+  watch.lap();
+  carry_to_grid(warm, result, grid);
+  own_seconds += watch.lap();
+  report_working_grid(result, work, grid, own_seconds);
+  return result;
 }
 
 }  // namespace brainshift

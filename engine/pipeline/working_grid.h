@@ -25,11 +25,26 @@ inline constexpr double kWorkingGridMinCoarsening = 1.25;
 Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm);
 
 // A result worked out on a coarser grid of the same extent, carried to the
-// image's grid: the field sampled trilinearly (it is smooth on the scale of
+// image's grid (given labels' grid too): the field sampled trilinearly (it is smooth on the scale of
 // the working voxels: the elastic solution between mesh nodes 2-3 mm apart),
 // the preop T1 and labels warped again through it, the segmentation by the
 // nearest working voxel, its confidence linearly. Models, the affine and the
 // per-node displacements do not depend on a grid.
 void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image_grid);
+
+// What a scan worked on a working grid reports: metrics "working_grid" (the
+// working grid's and the image's dims and spacing) and timings.intraop
+// "working_grid" (the seconds spent coarsening and carrying back), added to
+// the total.
+void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& image_grid, double seconds);
+
+// The stages on given labels (and their image): on the working grid when the
+// labels' grid has an axis much finer than working_spacing_mm (the labels by
+// the nearest voxel, the image smoothed and sampled as for the automatic
+// path), the answer carried back to the labels' grid; run_intraop as it is
+// otherwise. Without quality metrics: the caller adds them against the
+// labels as given.
+ScanResult run_intraop_on_working_grid(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                       const ProgressFn& progress, const std::string& forced_fallback = "");
 
 }  // namespace brainshift

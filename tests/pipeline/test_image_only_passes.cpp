@@ -32,6 +32,25 @@ IntraopInput moved_scan(const PreopInput& preop, const Eigen::Vector3d& shift_mm
   return scan;
 }
 
+// moved_scan's extent at half its spacing: 0.7 x 0.7 x 1.4 mm.
+Grid3 fine_grid() {
+  Grid3 fine;
+  fine.dims = {200, 220, 88};
+  fine.world_from_voxel.diagonal().head<3>() = Eigen::Vector3d(0.7, 0.7, 1.4);
+  fine.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-70.35, -77.35, -62.7);
+  return fine;
+}
+
+// Mean error of a recovered translation over the labelled voxels (the
+// pull-back field should be -shift everywhere).
+double mean_translation_error(const ScanResult& r, const LabelImage& truth, const Eigen::Vector3d& shift) {
+  double sum = 0;
+  std::size_t n = 0;
+  for (std::size_t v = 0; v < truth.voxels.size(); ++v)
+    if (truth.voxels[v] != 0) sum += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm(), ++n;
+  return sum / static_cast<double>(n);
+}
+
 class ImageOnlyPasses : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
@@ -110,12 +129,7 @@ TEST_F(ImageOnlyPasses, TheAnswerOfAnImageOnlyScanIsAFullPassWarmStartedFromTheL
   EXPECT_GT(t["earlier_passes"].get<double>(), 0.0);
   EXPECT_GE(t["total"].get<double>(), t["segment"].get<double>() + t["earlier_passes"].get<double>());
   // The recovered translation, from the image alone, as with one full pass.
-  const IntraopInput truth = moved_scan(*preop_, shift, 0.0);
-  double sum = 0;
-  std::size_t n = 0;
-  for (std::size_t v = 0; v < truth.labels.voxels.size(); ++v)
-    if (truth.labels.voxels[v] != 0) sum += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm(), ++n;
-  EXPECT_LT(sum / static_cast<double>(n), 0.5);
+  EXPECT_LT(mean_translation_error(r, moved_scan(*preop_, shift, 0.0).labels, shift), 0.5);
 
   // Without a re-match the only pass is the answer: full, from the full search.
   PipelineParameters one_round = test::coarse_parameters();
@@ -151,40 +165,43 @@ TEST(WorkingGrid, OnlyAxesMuchFinerThanTheWorkingSpacingAreCoarsened) {
 }
 
 // A scan finer than the working grid is segmented and registered on the
-// working grid and answered on its own: every output on the image's grid,
-// the translation recovered from the image alone as on the coarser scan
+// working grid and answered on its own, pushed as an image, as labels (a
+// site's correction of the automatic segmentation of a 3 T scan is drawn on
+// that scan's grid) or as both: every output on the scan's grid, the
+// translation recovered as on the coarser scan
 // (PipelineTest.AScanGivenAsAnImageAloneIsSegmentedAndRegistered).
-TEST_F(ImageOnlyPasses, AFineImageIsWorkedOnACoarserGridAndAnsweredOnItsOwn) {
+TEST_F(ImageOnlyPasses, AFineScanIsWorkedOnTheWorkingGridAndAnsweredOnItsOwn) {
   EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
   session.load_preop(*preop_, nullptr);
-  // moved_scan's extent at half its spacing: 0.7 x 0.7 x 1.4 mm.
-  Grid3 fine;
-  fine.dims = {200, 220, 88};
-  fine.world_from_voxel.diagonal().head<3>() = Eigen::Vector3d(0.7, 0.7, 1.4);
-  fine.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-70.35, -77.35, -62.7);
+  const Grid3 fine = fine_grid();
   const Eigen::Vector3d shift(3.0, -2.0, 2.0);
   const test::MovedHead truth = test::move_head(preop_->labels, preop_->t1, fine, shift);
-  ScanInput scan;
-  scan.image = test::scanner_image(truth.t1);
-  const ScanResult r = session.register_scan(scan, nullptr);
-  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
-  const auto& worked = r.metrics["segmentation"]["working_grid"];
-  EXPECT_EQ(worked["dims"], nlohmann::json::array({140, 154, 88})) << worked.dump();
-  EXPECT_EQ(worked["image_dims"], nlohmann::json::array({200, 220, 88}));
-  ASSERT_TRUE(r.intraop_labels && r.segmentation_confidence);
-  for (const Grid3* g : {&r.pullback_field_mm.grid, &r.intraop_labels->grid, &r.segmentation_confidence->grid,
-                         &r.warped_labels.grid, &r.warped_t1.grid, &r.warped_t1_affine_only.grid})
-    EXPECT_TRUE(g->same_geometry(fine));
-  EXPECT_GT(test::outline_dice(*r.intraop_labels, truth.labels), 0.95);
-  double mean = 0;
-  std::size_t n = 0;
-  for (std::size_t v = 0; v < truth.labels.voxels.size(); ++v)
-    if (truth.labels.voxels[v] != 0) {
-      mean += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm();
-      ++n;
-    }
-  EXPECT_LT(mean / static_cast<double>(n), 0.5) << "mean error of the recovered translation";
-  EXPECT_GT(r.timings["intraop"].value("working_grid", 0.0), 0.0);
+  enum class Pushed { image, labels, both };
+  for (const Pushed pushed : {Pushed::image, Pushed::labels, Pushed::both}) {
+    SCOPED_TRACE(static_cast<int>(pushed));
+    ScanInput scan;
+    if (pushed != Pushed::labels) scan.image = test::scanner_image(truth.t1);
+    if (pushed != Pushed::image) scan.labels = truth.labels;
+    const ScanResult r = session.register_scan(scan, nullptr);
+    ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics.dump();
+    const auto& worked = r.metrics["working_grid"];
+    EXPECT_EQ(worked["dims"], nlohmann::json::array({140, 154, 88})) << worked.dump();
+    EXPECT_EQ(worked["image_dims"], nlohmann::json::array({200, 220, 88}));
+    EXPECT_GT(r.timings["intraop"].value("working_grid", 0.0), 0.0);
+    for (const Grid3* g : {&r.pullback_field_mm.grid, &r.warped_labels.grid, &r.warped_t1.grid,
+                           &r.warped_t1_affine_only.grid})
+      EXPECT_TRUE(g->same_geometry(fine));
+    EXPECT_LT(mean_translation_error(r, truth.labels, shift), 0.5);
+    // The overlap figures judge the labels used, on the scan's grid.
+    EXPECT_GT(r.metrics["labels"]["brain"]["dice"].get<double>(), 0.95) << r.metrics["labels"].dump();
+    EXPECT_EQ(r.metrics.contains("label_image_check"), pushed == Pushed::both);
+    ASSERT_EQ(r.intraop_labels.has_value(), pushed == Pushed::image) << "the engine's segmentation, when it made one";
+    if (pushed != Pushed::image) continue;
+    ASSERT_TRUE(r.segmentation_confidence);
+    EXPECT_TRUE(r.intraop_labels->grid.same_geometry(fine));
+    EXPECT_TRUE(r.segmentation_confidence->grid.same_geometry(fine));
+    EXPECT_GT(test::outline_dice(*r.intraop_labels, truth.labels), 0.95);
+  }
 }
 
 }  // namespace
