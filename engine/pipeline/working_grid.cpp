@@ -2,9 +2,9 @@
 
 #include <cmath>
 
+#include "core/timer.h"
 #include "field/vector_sampling.h"
 #include "field/warp.h"
-#include "core/timer.h"
 #include "image/resample.h"
 #include "protocol/stage_names.h"
 
