@@ -94,9 +94,10 @@ struct AutoSegmentationParameters {
   // The grid a scan is worked on (pipeline/working_grid.h): an axis of the
   // image or given labels finer than this by more than a quarter is
   // coarsened to it for the segmentation and the stages, and the answer is
-  // carried back to the scan's own grid. Half the mesh's surface facet (about 2 mm): the
-  // finest detail the mesh can take from a segmentation; and the finest
-  // spacing the suites validated the segmentation at (0.94-1 mm). 0: off.
+  // carried back to the scan's own grid. Half the mesh's surface facet
+  // (about 2 mm): the finest detail the mesh can take from a segmentation;
+  // and the finest spacing the suites validated the segmentation at
+  // (0.94-1 mm). 0: off.
   double working_spacing_mm = 1.0;
   // Segment -> register rounds after the first (bounded; 0 = one pass).
   int rematch_rounds = 1;

@@ -290,13 +290,15 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
     nlohmann::json report = {{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics}};
     ScanResult pass;
     bool pass_prior_only = false;
-    if (!next.refusal.empty() || !next_gates.failure.empty()) {
+    bool refused = !next.refusal.empty() || !next_gates.failure.empty();
+    if (refused) {
       report["refusal"] = next.refusal;
     } else {
       pass = s.run_pass(next, round < ap.rematch_rounds, pass_prior_only, &r.result.intraop_from_preop);
-      if (pass.kind != ResultKind::nonrigid) report["fallback_reason"] = pass.fallback_reason;  // a fold
+      refused = pass.kind != ResultKind::nonrigid;  // a fold
+      if (refused) report["fallback_reason"] = pass.fallback_reason;
     }
-    if (pass.kind != ResultKind::nonrigid || !next.refusal.empty() || !next_gates.failure.empty()) {
+    if (refused) {
       report["kept"] = false;
       r.report.push_back(report);
       break;
