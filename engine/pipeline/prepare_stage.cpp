@@ -80,8 +80,11 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
     r = register_affine(samples, maps, p);
     placement = r.intraop_from_preop;
   }
+  // Its volume scale is not the brain's: the gates take it out
+  // (carried_preop_volumes).
   metrics = {{"converged", r.converged}, {"rms_surface_distance_mm", r.rms_surface_distance_mm},
-             {"inlier_fraction", r.inlier_fraction}, {"message", r.message}};
+             {"inlier_fraction", r.inlier_fraction}, {"message", r.message},
+             {"volume_scale", placement.topLeftCorner<3, 3>().determinant()}};
   return placement;
 }
 
@@ -132,7 +135,8 @@ struct ScanOnGrid {
       : warm(w), image(im), read_seconds(read_s), params(p), progress(pr),
         carried(resample_nearest(w.preop.labels, im.grid, intraop_from_preop.inverse())),
         seen(preop_as_seen(w, p.label_table, carried, intraop_from_preop)),
-        carried_volumes(carried_preop_volumes(carried, p.label_table)) {}
+        carried_volumes(carried_preop_volumes(carried, p.label_table,
+                                              intraop_from_preop.topLeftCorner<3, 3>().determinant())) {}
 
   // As for given labels (run_intraop), but said of the image and before the
   // segmentation's time is spent: the preop placed by the head shows how much

@@ -1,5 +1,8 @@
 #include "pipeline/segmentation_gates.h"
 
+#include <cmath>
+
+#include "core/errors.h"
 #include "image/image_stats.h"
 #include "segmentation/tissue_prior.h"
 
@@ -14,11 +17,16 @@ Mask inner_surface_band(const Mask& outline) {
 
 }  // namespace
 
-CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table) {
+CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table,
+                                          double placement_volume_scale) {
+  if (!(placement_volume_scale > 0) || !std::isfinite(placement_volume_scale))
+    throw ComputeError("the head's placement is degenerate (volume scale " + std::to_string(placement_volume_scale) +
+                       ")");
   CarriedPreopVolumes c;
-  c.brain_ml = volume_ml(outline_mask(carried_preop));
-  for (auto v : table.resectable_labels()) c.resectable_ml += volume_ml(mask_of_labels(carried_preop, {v}));
-  c.ventricles_ml = volume_ml(mask_of_labels(carried_preop, table.cavity_labels()));
+  c.brain_ml = volume_ml(outline_mask(carried_preop)) / placement_volume_scale;
+  for (auto v : table.resectable_labels())
+    c.resectable_ml += volume_ml(mask_of_labels(carried_preop, {v})) / placement_volume_scale;
+  c.ventricles_ml = volume_ml(mask_of_labels(carried_preop, table.cavity_labels())) / placement_volume_scale;
   return c;
 }
 

@@ -25,12 +25,17 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
 
 // What the gates measure of the carried preop: the same for every round of a
 // scan, so measured once. The carried preop is on the intraop grid through
-// the placement, so its volumes include the affine's scale and the field of
-// view.
+// the head's placement, so its volumes count the part of the preop in the
+// field of view; they are in the preop's own millilitres (the carried
+// volumes divided by placement_volume_scale, the placement's determinant):
+// one patient's skull does not change size between two scans, and the scale
+// a placement by the head's outline finds is the two images' thresholds at
+// the scalp's edge (docs/DESIGN.md "Automatic intraop segmentation", gates).
 struct CarriedPreopVolumes {
   double brain_ml = 0, resectable_ml = 0, ventricles_ml = 0;
 };
-CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table);
+CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table,
+                                          double placement_volume_scale = 1.0);
 SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
                                      const CarriedPreopVolumes& carried_preop, const LabelTable& table,
                                      const AutoSegmentationParameters& params, double open_fluid_ml);

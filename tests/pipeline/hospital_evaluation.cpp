@@ -56,9 +56,28 @@ nlohmann::json segmentation_agreement(const LabelImage& segmented, const LabelIm
     va += p;
     vt += q;
   }
+  const double voxel_ml = segmented.grid.spacing_mm().prod() / 1000.0;
   return {{"brain_dice", 2.0 * static_cast<double>(both) / static_cast<double>(std::max<std::size_t>(a + b, 1))},
-          {"ventricle_dice", 2.0 * static_cast<double>(vb) / static_cast<double>(std::max<std::size_t>(va + vt, 1))}};
+          {"ventricle_dice", 2.0 * static_cast<double>(vb) / static_cast<double>(std::max<std::size_t>(va + vt, 1))},
+          {"brain_ml", {{"segmented", voxel_ml * static_cast<double>(a)}, {"truth", voxel_ml * static_cast<double>(b)}}}};
 }
+
+namespace {
+
+// How near the brain-volume gate's bounds each round ran (change, bounds,
+// kept), and the head placement's volume scale the gates take out.
+nlohmann::json volume_gate_rounds(const nlohmann::json& segmentation_metrics) {
+  nlohmann::json out = {{"placement_volume_scale", segmentation_metrics["head_placement"].value("volume_scale", 0.0)},
+                        {"rounds", nlohmann::json::array()}};
+  for (const auto& round : segmentation_metrics.value("rounds", nlohmann::json::array())) {
+    const auto& v = round["gates"]["brain_volume"];
+    if (v.is_null()) continue;
+    out["rounds"].push_back({{"change", v["change"]}, {"allowed", v["allowed"]}, {"kept", round.value("kept", true)}});
+  }
+  return out;
+}
+
+}  // namespace
 
 ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) {
   ModeRun run;
@@ -70,6 +89,8 @@ ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) 
     ScanResult result = session.register_scan(input, nullptr);
     if (result.intraop_labels) run.segmentation = segmentation_agreement(*result.intraop_labels, c.true_labels,
                                                 session.parameters().label_table.cavity_labels());
+    if (result.metrics.contains("segmentation") && result.metrics["segmentation"].contains("rounds"))
+      run.segmentation["volume_gate"] = volume_gate_rounds(result.metrics["segmentation"]);
     // The uncertainty map, after the answer as the daemon makes it.
     const IntraopInput prepared{input.labels ? *input.labels : *result.intraop_labels, input.image};
     session.add_uncertainty(prepared, result, nullptr);

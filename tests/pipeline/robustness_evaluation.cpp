@@ -91,7 +91,10 @@ nlohmann::json segmentation_dice(const LabelImage& segmentation, const LabelImag
   const auto dice = [](std::size_t both, std::size_t a, std::size_t b) {
     return a + b ? 2.0 * static_cast<double>(both) / static_cast<double>(a + b) : 1.0;
   };
-  return {{"brain_dice", dice(both_b, seg_b, tru_b)}, {"ventricles_dice", dice(both_v, seg_v, tru_v)}};
+  const double voxel_ml = truth.grid.spacing_mm().prod() / 1000.0;
+  return {{"brain_dice", dice(both_b, seg_b, tru_b)},
+          {"ventricles_dice", dice(both_v, seg_v, tru_v)},
+          {"brain_ml", {{"segmented", voxel_ml * static_cast<double>(seg_b)}, {"truth", voxel_ml * static_cast<double>(tru_b)}}}};
 }
 
 }  // namespace brainshift::evaluation
