@@ -59,7 +59,8 @@ nlohmann::json segmentation_agreement(const LabelImage& segmented, const LabelIm
   const double voxel_ml = segmented.grid.spacing_mm().prod() / 1000.0;
   return {{"brain_dice", 2.0 * static_cast<double>(both) / static_cast<double>(std::max<std::size_t>(a + b, 1))},
           {"ventricle_dice", 2.0 * static_cast<double>(vb) / static_cast<double>(std::max<std::size_t>(va + vt, 1))},
-          {"brain_ml", {{"segmented", voxel_ml * static_cast<double>(a)}, {"truth", voxel_ml * static_cast<double>(b)}}}};
+          {"brain_ml",
+           {{"segmented", voxel_ml * static_cast<double>(a)}, {"truth", voxel_ml * static_cast<double>(b)}}}};
 }
 
 namespace {

@@ -94,7 +94,8 @@ nlohmann::json segmentation_dice(const LabelImage& segmentation, const LabelImag
   const double voxel_ml = truth.grid.spacing_mm().prod() / 1000.0;
   return {{"brain_dice", dice(both_b, seg_b, tru_b)},
           {"ventricles_dice", dice(both_v, seg_v, tru_v)},
-          {"brain_ml", {{"segmented", voxel_ml * static_cast<double>(seg_b)}, {"truth", voxel_ml * static_cast<double>(tru_b)}}}};
+          {"brain_ml",
+           {{"segmented", voxel_ml * static_cast<double>(seg_b)}, {"truth", voxel_ml * static_cast<double>(tru_b)}}}};
 }
 
 }  // namespace brainshift::evaluation
