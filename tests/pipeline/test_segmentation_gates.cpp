@@ -90,9 +90,9 @@ TEST(SegmentationGates, TheGapOfASinkingIsAllowedForByTheFluidFound) {
 // The head's placement by the outline of the head scales by the two images'
 // thresholds at the scalp's edge (5-8 % of volume on the robustness suite's
 // images), not by the brain: the gates compare in the preop's own
-// millilitres. A brain of the preop's size, carried by a placement 2.3 % too
-// large per axis, passes; the same 2.3 % in the segmentation (a leak all
-// round) does not cancel against it.
+// millilitres. The carried volumes divided by the placement's scale are the
+// preop's own; a brain that lost 8 %, refused against the scaled reference,
+// passes against the preop's own volume.
 TEST(SegmentationGates, ThePlacementsScaleIsNotReadAsBrainLostOrGained) {
   const double axis_scale = 1.023, volume_scale = axis_scale * axis_scale * axis_scale;
   const LabelImage carried = head(axis_scale, true);  // the preop as a scaled placement carries it
