@@ -30,7 +30,8 @@ std::string check_input_plausibility(const WarmState& warm, const IntraopInput& 
   if (!limits.enabled) return {};
   const LabelTable& table = params.label_table;
   std::vector<GateResult> gates;
-  const double in_view = preop_fraction_in_view(warm.preop.labels, input.labels.grid, A);
+  const PreopInView view = preop_in_view(warm.preop.labels, input.labels.grid, A);
+  const double in_view = view.fraction;
   GateResult volume = volume_gate(volume_ml(brain_region), in_view * warm.brain_volume_ml, A, limits, input.open_fluid_ml);
   volume.extra["preop_fraction_in_view"] = in_view;
   gates.push_back(std::move(volume));
@@ -43,7 +44,8 @@ std::string check_input_plausibility(const WarmState& warm, const IntraopInput& 
   if (!cavities.empty())
     gates.push_back(ventricle_volume_gate(label_volume_ml(input.labels, cavities.front()),
                                           label_volume_ml(warm.preop.labels, cavities.front()), A, limits));
-  for (auto& g : affine_gates(A, limits)) gates.push_back(std::move(g));
+  for (auto& g : affine_gates(A, limits, [&view](const Eigen::Vector3d& v) { return view.extent_mm(v); }))
+    gates.push_back(std::move(g));
   LeftRightInput lr{warm.preop.labels, input.labels, A, asymmetric};
   if (input.t1) {
     lr.preop_t1 = &warm.preop.t1;

@@ -56,21 +56,44 @@ nlohmann::json PlausibilityReport::to_json() const {
 
 // The part of the preop brain the affine places inside the intraop grid
 // (voxel centres within half a voxel of its border), from every second
-// voxel along each axis: a fraction good to a fraction of a percent.
-double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop) {
+// voxel along each axis: a fraction good to a fraction of a percent, and
+// extents good to a millimetre.
+PreopInView preop_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop) {
   const Eigen::Matrix4d voxel_from_preop_voxel = intraop.voxel_from_world() * intraop_from_preop * preop.grid.world_from_voxel;
-  std::size_t all = 0, in_view = 0;
+  PreopInView out;
+  std::size_t all = 0;
   for (int k = 0; k < preop.grid.dims[2]; k += 2)
     for (int j = 0; j < preop.grid.dims[1]; j += 2)
       for (int i = 0; i < preop.grid.dims[0]; i += 2) {
         if (preop.at(i, j, k) == 0) continue;
         ++all;
-        const Eigen::Vector3d v = (voxel_from_preop_voxel * Eigen::Vector4d(i, j, k, 1)).head<3>();
+        const Eigen::Vector4d ijk(i, j, k, 1);
+        const Eigen::Vector3d v = (voxel_from_preop_voxel * ijk).head<3>();
         bool inside = true;
         for (int a = 0; a < 3; ++a) inside = inside && v[a] >= -0.5 && v[a] <= intraop.dims[a] - 0.5;
-        in_view += inside;
+        if (inside) out.points_preop_mm.push_back((preop.grid.world_from_voxel * ijk).head<3>().cast<float>());
       }
-  return all ? static_cast<double>(in_view) / static_cast<double>(all) : 1.0;
+  out.fraction = all ? static_cast<double>(out.points_preop_mm.size()) / static_cast<double>(all) : 1.0;
+  return out;
+}
+
+double PreopInView::extent_mm(const Eigen::Vector3d& direction_preop) const {
+  if (points_preop_mm.size() < 2) return 0.0;
+  const Eigen::Vector3f d = direction_preop.normalized().cast<float>();
+  std::vector<float> along(points_preop_mm.size());
+  for (std::size_t n = 0; n < along.size(); ++n) along[n] = points_preop_mm[n].dot(d);
+  // Percentiles, not the ends: a stray labelled voxel is not the brain's extent.
+  const auto at = [&](double q) {
+    auto it = along.begin() + static_cast<std::ptrdiff_t>(q * static_cast<double>(along.size() - 1));
+    std::nth_element(along.begin(), it, along.end());
+    return static_cast<double>(*it);
+  };
+  const double low = at(0.01);
+  return at(0.99) - low;
+}
+
+double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop) {
+  return preop_in_view(preop, intraop, intraop_from_preop).fraction;
 }
 
 GateResult volume_gate(double intraop_ml, double preop_in_view_ml, const Eigen::Matrix4d& A,
@@ -108,19 +131,45 @@ GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen
   return g;
 }
 
-std::vector<GateResult> affine_gates(const Eigen::Matrix4d& A, const PlausibilityLimits& limits) {
+double affine_stretch_limit(double extent_mm, const PlausibilityLimits& limits) {
+  // No brain seen along a direction constrains nothing there: the base only
+  // would refuse, so an empty view gives the limit of a 1 mm sliver.
+  return limits.affine_stretch_base + limits.affine_sink_share * limits.max_sink_depth_mm / std::max(extent_mm, 1.0);
+}
+
+std::vector<GateResult> affine_gates(const Eigen::Matrix4d& A, const PlausibilityLimits& limits,
+                                     const ExtentAlong& visible_extent_mm) {
   const Eigen::Matrix3d L = A.topLeftCorner<3, 3>();
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(L, Eigen::ComputeFullU | Eigen::ComputeFullV);
   const Eigen::Vector3d s = svd.singularValues();
   GateResult stretch;
   stretch.name = "affine_stretch";
+  // Each principal stretch against its own direction's limit; the gate's
+  // value and limit are those of the direction nearest its limit.
+  nlohmann::json directions = nlohmann::json::array();
+  double worst_ratio = -1, worst = 0, worst_limit = 0;
+  for (int i = 0; i < 3; ++i) {
+    const Eigen::Vector3d v = svd.matrixV().col(i);
+    const double extent = visible_extent_mm(v);
+    const double limit = affine_stretch_limit(extent, limits);
+    const double deviation = std::max(s[i] - 1.0, 1.0 / s[i] - 1.0);
+    directions.push_back({{"stretch", s[i]}, {"direction_preop", {v[0], v[1], v[2]}}, {"brain_extent_in_view_mm", extent},
+                          {"limit", limit}});
+    if (deviation / limit > worst_ratio) {
+      worst_ratio = deviation / limit;
+      worst = deviation;
+      worst_limit = limit;
+    }
+  }
   // A mirror (det < 0) can never be a head moving: infinite deviation.
-  const double worst = L.determinant() <= 0 ? INFINITY : std::max(s.maxCoeff() - 1.0, 1.0 / s.minCoeff() - 1.0);
+  if (L.determinant() <= 0) worst = INFINITY;
   stretch.value = worst;
-  stretch.limit = "<= " + fixed(limits.max_affine_stretch_deviation);
-  stretch.passed = worst <= limits.max_affine_stretch_deviation;
-  stretch.detail = "largest principal stretch of the affine away from 1 (scale and shear; the same head)";
-  stretch.extra = {{"principal_stretches", {s[0], s[1], s[2]}}, {"determinant", L.determinant()}};
+  stretch.limit = "<= " + fixed(worst_limit);
+  stretch.passed = worst <= worst_limit;
+  stretch.detail = "largest principal stretch of the affine away from 1, against the limit its direction's brain "
+                   "extent in view allows (scale and shear; the same head)";
+  stretch.extra = {{"principal_stretches", {s[0], s[1], s[2]}}, {"determinant", L.determinant()},
+                   {"directions", directions}};
 
   // Rotation part of the polar decomposition L = R S.
   Eigen::Matrix3d R = svd.matrixU() * svd.matrixV().transpose();

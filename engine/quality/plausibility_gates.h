@@ -9,6 +9,7 @@
 // "plausibility", PROTOCOL.md); a failed gate turns the scan into the marked
 // affine-only fallback with the gate's reason. The limits and why they are
 // where they are: docs/DESIGN.md, "Plausibility gates".
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -28,8 +29,14 @@ struct PlausibilityLimits {
   // Intraop over affine-mapped preop ventricle volume: CSF drainage halves
   // them at most; a ventricle label covering brain tissue multiplies them.
   double max_ventricle_volume_ratio = 3.0;
-  // Principal stretches of the affine within [1/(1+d), 1+d] (scale and shear).
-  double max_affine_stretch_deviation = 0.15;
+  // Principal stretches of the affine within [1/(1+d), 1+d] (scale and
+  // shear), d along each principal direction = base + share x depth / extent:
+  // what the scanner and the segmentation allow (base), plus the part of the
+  // deepest plausible sink the affine absorbs, which grows as the brain seen
+  // along that direction shortens (a slab, a short coil). DESIGN.md.
+  double affine_stretch_base = 0.03;
+  double affine_sink_share = 0.65;
+  double max_sink_depth_mm = 25.0;
   // Rotation angle of the affine's rotation part.
   double max_head_rotation_deg = 90.0;
   // Left-right: a test prefers one side when its score beats the other's by
@@ -70,8 +77,16 @@ class PlausibilityReport {
   std::vector<GateResult> gates_;
 };
 
-// The fraction of the preop labels' voxels (any label) that
-// intraop_from_preop places inside the intraop grid (volume_gate's field of view).
+// The preop labels (any label) that intraop_from_preop places inside the
+// intraop grid, sampled at every second voxel along each axis.
+struct PreopInView {
+  double fraction = 1.0;                            // of all labelled voxels
+  std::vector<Eigen::Vector3f> points_preop_mm;     // the sampled voxels in view
+  // Extent along a preop-frame unit direction: 1st to 99th percentile (mm).
+  double extent_mm(const Eigen::Vector3d& direction_preop) const;
+};
+PreopInView preop_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop);
+// The fraction alone (volume_gate's field of view).
 double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop);
 
 // Brain volume: intraop outline (enclosed cavities filled) against the preop
@@ -87,7 +102,14 @@ GateResult volume_gate(double intraop_ml, double preop_in_view_ml, const Eigen::
 GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen::Matrix4d& intraop_from_preop,
                                  const PlausibilityLimits& limits);
 // Principal stretches and rotation angle of the affine (polar decomposition).
-std::vector<GateResult> affine_gates(const Eigen::Matrix4d& intraop_from_preop, const PlausibilityLimits& limits);
+// visible_extent_mm(v): the brain's extent in view along the preop-frame
+// principal direction v (PreopInView::extent_mm), which sets that
+// direction's limit.
+using ExtentAlong = std::function<double(const Eigen::Vector3d& direction_preop)>;
+std::vector<GateResult> affine_gates(const Eigen::Matrix4d& intraop_from_preop, const PlausibilityLimits& limits,
+                                     const ExtentAlong& visible_extent_mm);
+// The stretch limit along a direction whose brain extent in view is extent_mm.
+double affine_stretch_limit(double extent_mm, const PlausibilityLimits& limits);
 
 // The solved non-rigid displacement at the mesh nodes: largest displacement
 // and RMS small strain over the mesh volume.

@@ -92,6 +92,12 @@ ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) 
                                                 session.parameters().label_table.cavity_labels());
     if (result.metrics.contains("segmentation") && result.metrics["segmentation"].contains("rounds"))
       run.segmentation["volume_gate"] = volume_gate_rounds(result.metrics["segmentation"]);
+    if (result.metrics.contains("plausibility") && result.metrics["plausibility"].contains("affine_stretch")) {
+      const auto& g = result.metrics["plausibility"]["affine_stretch"];
+      run.affine_stretch = {{"value", g.value("value", 0.0)}, {"limit", g.value("limit", "")}};
+      for (const auto& d : g.value("directions", nlohmann::json::array()))
+        run.affine_stretch["brain_extent_in_view_mm"].push_back(d["brain_extent_in_view_mm"]);
+    }
     // The uncertainty map, after the answer as the daemon makes it.
     const IntraopInput prepared{input.labels ? *input.labels : *result.intraop_labels, input.image};
     session.add_uncertainty(prepared, result, nullptr);
@@ -123,7 +129,8 @@ nlohmann::json mode_json(const ModeRun& r) {
           {"min_jacobian", c.metrics.contains("jacobian") ? c.metrics["jacobian"].value("min", 0.0) : 0.0},
           {"errors_mm", c.nonrigid_errors_mm},
           {"uncertainty_band_mm", c.predicted_band_mm},
-          {"segmentation", r.segmentation}};
+          {"segmentation", r.segmentation},
+          {"affine_stretch", r.affine_stretch}};
 }
 
 nlohmann::json brief(const nlohmann::json& d) {

@@ -34,6 +34,7 @@ struct ModeRun {
   std::string note;   // why skipped, or the error
   CaseResult result;  // when ran
   nlohmann::json segmentation;  // image only: Dice of the automatic segmentation vs the true labels
+  nlohmann::json affine_stretch;  // the plausibility gate's value, limit and brain extents in view
 };
 
 // Brain (outline) and ventricle Dice of a segmentation against the truth.

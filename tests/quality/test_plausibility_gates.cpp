@@ -115,8 +115,10 @@ TEST(VolumeGate, VentriclesMayShrinkButNotCoverTheBrain) {
 
 TEST(AffineGates, AHeadMovingPassesScaleShearAndFlipsFail) {
   const PlausibilityLimits limits;
+  // A whole adult brain in view: about 130 mm along every direction.
+  const auto whole_brain = [](const Eigen::Vector3d&) { return 130.0; };
   const auto passes = [&](const Eigen::Matrix4d& A) {
-    const auto g = affine_gates(A, limits);
+    const auto g = affine_gates(A, limits, whole_brain);
     return g[0].passed && g[1].passed;
   };
   EXPECT_TRUE(passes(Eigen::Matrix4d::Identity()));
@@ -128,10 +130,51 @@ TEST(AffineGates, AHeadMovingPassesScaleShearAndFlipsFail) {
   shear(0, 1) = 0.4;
   EXPECT_FALSE(passes(linear(shear))) << "shear";
   EXPECT_FALSE(passes(linear(Eigen::Vector3d(-1, 1, 1).asDiagonal()))) << "mirror";
-  const auto turned = affine_gates(rotation_deg(120, {0, 0, 1}), limits);
+  const auto turned = affine_gates(rotation_deg(120, {0, 0, 1}), limits, whole_brain);
   EXPECT_TRUE(turned[0].passed);
   EXPECT_FALSE(turned[1].passed);
   EXPECT_NEAR(turned[1].value, 120.0, 1e-6);
+}
+
+TEST(AffineGates, AShortViewAllowsASinkItsShareOnlyAlongTheShortDirection) {
+  const PlausibilityLimits limits;
+  // 85 mm of brain seen head-foot (a short coil), 130 mm across.
+  const auto short_coil = [](const Eigen::Vector3d& v) { return std::abs(v.z()) > 0.9 ? 85.0 : 130.0; };
+  const auto whole_brain = [](const Eigen::Vector3d&) { return 130.0; };
+  // A 22 mm vertex sinking seen through it compresses the label affine by 13 % along gravity.
+  const Eigen::Matrix4d sink = linear(Eigen::Vector3d(1.01, 1.01, 0.866).asDiagonal());
+  const auto seen_short = affine_gates(sink, limits, short_coil);
+  EXPECT_TRUE(seen_short[0].passed) << seen_short[0].value << " " << seen_short[0].limit;
+  EXPECT_NEAR(seen_short[0].value, 1.0 / 0.866 - 1.0, 1e-9);
+  EXPECT_NEAR(seen_short[0].extra["directions"][2]["brain_extent_in_view_mm"].get<double>(), 85.0, 1e-9);
+  // 18 % along gravity (a 30 mm sink through the short view) passes there, but
+  // not across the head nor with the whole brain in view: there it is another head.
+  const Eigen::Matrix4d deeper = linear(Eigen::Vector3d(1.0, 1.0, 0.85).asDiagonal());
+  EXPECT_TRUE(affine_gates(deeper, limits, short_coil)[0].passed);
+  EXPECT_FALSE(affine_gates(deeper, limits, whole_brain)[0].passed);
+  const Eigen::Matrix4d across = linear(Eigen::Vector3d(0.85, 1.0, 1.0).asDiagonal());
+  EXPECT_FALSE(affine_gates(across, limits, short_coil)[0].passed);
+  // The limit falls with the extent seen and never below the scanner's and segmentation's own error.
+  EXPECT_GT(affine_stretch_limit(60, limits), affine_stretch_limit(130, limits));
+  EXPECT_GT(affine_stretch_limit(1e6, limits), limits.affine_stretch_base);
+  EXPECT_LT(affine_stretch_limit(1e6, limits), limits.affine_stretch_base + 1e-3);
+}
+
+TEST(VolumeGate, TheBrainsExtentInViewIsMeasuredAlongAnyDirection) {
+  LabelImage preop(cube_grid(64, 1.5));
+  for (int k = 8; k < 56; ++k)
+    for (int j = 8; j < 56; ++j)
+      for (int i = 8; i < 56; ++i) preop.at(i, j, k) = 1;
+  const PreopInView whole = preop_in_view(preop, preop.grid, Eigen::Matrix4d::Identity());
+  EXPECT_NEAR(whole.extent_mm({0, 0, 1}), 48 * 1.5, 3.0);
+  // Along the diagonal the corners are thin: the percentiles trim them.
+  EXPECT_GT(whole.extent_mm({1, 1, 0}), 48 * 1.5 + 10.0);
+  EXPECT_LE(whole.extent_mm({1, 1, 0}), 48 * 1.5 * std::sqrt(2.0));
+  Grid3 slab = preop.grid;
+  slab.dims[2] = 32;  // brain slices 8..31 of 8..55
+  const PreopInView cut = preop_in_view(preop, slab, Eigen::Matrix4d::Identity());
+  EXPECT_NEAR(cut.extent_mm({0, 0, 1}), 24 * 1.5, 3.0);
+  EXPECT_NEAR(cut.extent_mm({1, 0, 0}), 48 * 1.5, 3.0) << "across the slab, the whole cube";
 }
 
 TEST(FieldGates, RmsStrainOfAUniformStretchIsItsStrain) {
