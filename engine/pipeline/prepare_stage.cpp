@@ -227,9 +227,11 @@ Rounds first_segmentation(const ScanOnGrid& s, double seconds_before) {
   Stopwatch watch;
   r.seg = s.segment(s.carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
   if (r.seg.refusal.empty()) r.gates = s.gates(r.seg, r.seg.open_fluid_ml);
-  r.segment_seconds = seconds_before + watch.lap();
+  const double round_seconds = watch.lap();
+  r.segment_seconds = seconds_before + round_seconds;
   if (s.progress) s.progress(std::string(stages::kSegment), 1.0, r.segment_seconds);
-  r.report.push_back({{"prior_width_mm", r.seg.report["prior_width_mm"]}, {"gates", r.gates.metrics}});
+  r.report.push_back(
+      {{"prior_width_mm", r.seg.report["prior_width_mm"]}, {"gates", r.gates.metrics}, {"seconds", round_seconds}});
   return r;
 }
 
@@ -253,9 +255,10 @@ void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
   watch.lap();
   auto plain = s.segment(s.carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, false);
   SegmentationGates plain_gates = s.gates(plain, 0.0);
-  r.segment_seconds += watch.lap();
+  const double plain_seconds = watch.lap();
+  r.segment_seconds += plain_seconds;
   r.report.push_back({{"prior_width_mm", plain.report["prior_width_mm"]}, {"gates", plain_gates.metrics},
-                      {"open_fluid_rule", false}, {"refusal", plain.refusal}});
+                      {"open_fluid_rule", false}, {"refusal", plain.refusal}, {"seconds", plain_seconds}});
   if (plain.refusal.empty() && plain_gates.failure.empty()) {
     bool pass_prior_only = false;
     ScanResult pass = s.run_pass(plain, rematch_follows, pass_prior_only);
@@ -290,8 +293,10 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
                           ap.rematch_gaps_found_before ? &r.seg.open_fluid : nullptr);
     next.open_fluid_ml = std::max(r.seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates = s.gates(next, next.open_fluid_ml);
-    r.segment_seconds += watch.lap();
-    nlohmann::json report = {{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics}};
+    const double round_seconds = watch.lap();
+    r.segment_seconds += round_seconds;
+    nlohmann::json report = {{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
+                             {"seconds", round_seconds}};
     ScanResult pass;
     bool pass_prior_only = false;
     bool refused = !next.refusal.empty() || !next_gates.failure.empty();
@@ -358,6 +363,7 @@ ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_se
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
   const ScanOnGrid s(warm, image, read_seconds, params, progress, placement);
+  seg_metrics["head_placement"]["seconds"] = watch.seconds();
   s.check_field_of_view();
   Rounds r = first_segmentation(s, watch.lap());
   if (!r.seg.refusal.empty()) throw InputError("intraop image: " + r.seg.refusal);
