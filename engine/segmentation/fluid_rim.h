@@ -17,7 +17,11 @@ namespace brainshift::segmentation {
 // that outside through such voxels (face neighbours). Empty when the fitted
 // fluid is not brighter than the largest parenchyma class (not T2-like) or
 // max_depth_mm <= 0. All masks, and the bias, on one grid.
+// With it, the brain voxels beyond that fluid (caps_beyond_fluid, toward
+// centre_voxel, at most max_depth_mm thick): the fluid's partial volume with
+// the bone, darker than half fluid, which would otherwise hide the fluid
+// beneath it from the outside.
 Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, const std::vector<float>& bias,
-               const std::vector<GaussianClass>& classes, double max_depth_mm);
+               const std::vector<GaussianClass>& classes, double max_depth_mm, const Eigen::Vector3d& centre_voxel);
 
 }  // namespace brainshift::segmentation

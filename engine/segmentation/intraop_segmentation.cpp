@@ -13,6 +13,7 @@
 #include "image/morphology.h"
 #include "registration/boundary_samples.h"
 #include "registration/linear_sampler.h"
+#include "segmentation/fluid_caps.h"
 #include "segmentation/fluid_rim.h"
 
 namespace brainshift::segmentation {
@@ -314,48 +315,8 @@ void keep_gaps_found_before(Mask& moved, const Mask& found_before, const VoxelBo
 // brain; a lobe beyond a cistern is thicker than a cap.
 void drop_beyond_open_fluid(Mask& brain, const Mask& ventricle, const Mask& moved, const Eigen::Vector3d& centre_voxel,
                             double max_cap_mm, double max_sulcus_half_width_mm) {
-  const Grid3& g = brain.grid;
-  const Eigen::Vector3d spacing = g.spacing_mm();
-  const double step_mm = 0.5 * spacing.minCoeff();
-  const int steps = static_cast<int>(std::ceil(max_cap_mm / step_mm));
-  const Mask candidates = dilate(moved, max_cap_mm);
-  // Steps along dir (voxels per step) until the ray leaves brain tissue for
-  // what `stop` marks (or the grid); -1 when it does not within `steps`.
-  const auto run = [&](const Eigen::Vector3d& p, const Eigen::Vector3d& dir, int limit, const auto& stop) {
-    for (int s = 1; s <= limit; ++s) {
-      const Eigen::Vector3d q = p + s * dir;
-      const int a = static_cast<int>(std::lround(q.x())), b = static_cast<int>(std::lround(q.y())),
-                c = static_cast<int>(std::lround(q.z()));
-      if (!g.contains(a, b, c)) return s;
-      if (stop(g.index(a, b, c))) return s;
-      if (!brain.at(a, b, c) && !moved.at(a, b, c)) return -1;  // another way out of the brain
-    }
-    return -1;
-  };
-  std::vector<std::array<int, 3>> rays;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const std::size_t v = g.index(i, j, k);
-        if (brain.voxels[v] && !ventricle.voxels[v] && candidates.voxels[v]) rays.push_back({i, j, k});
-      }
-  // Each ray reads the masks and writes its own voxel: the two halves of the
-  // list side by side, the same voxels either way.
-  Mask beyond(g, 0);
-  parallel_halves(rays.size(), 4096, [&](std::size_t begin, std::size_t end) {
-    for (std::size_t r = begin; r < end; ++r) {
-      const auto [i, j, k] = rays[r];
-      const Eigen::Vector3d p(i, j, k);
-      const Eigen::Vector3d to_centre = centre_voxel - p;
-      const double length_mm = to_centre.cwiseProduct(spacing).norm();
-      if (length_mm < step_mm) continue;
-      const Eigen::Vector3d dir = to_centre * (step_mm / length_mm);
-      const int in = run(p, dir, steps, [&](std::size_t u) { return moved.voxels[u] != 0; });
-      if (in < 0) continue;
-      const int out = run(p, -dir, steps - in, [&](std::size_t u) { return !brain.voxels[u] && !moved.voxels[u]; });
-      if (out >= 0) beyond.voxels[g.index(i, j, k)] = 1;
-    }
-  });
+  const Eigen::Vector3d spacing = brain.grid.spacing_mm();
+  const Mask beyond = caps_beyond_fluid(brain, ventricle, moved, centre_voxel, max_cap_mm);
   for (std::size_t v = 0; v < brain.voxels.size(); ++v)
     if (beyond.voxels[v]) brain.voxels[v] = 0;
   // What is left of the cap where the gap thins out at its rim, and the falx
@@ -464,6 +425,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   Mask moved_out(g, 0), gap_fluid(g, 0);
   double open_fluid_ml = 0, ventricular_fluid_ml = 0, partial_fluid_ml = 0, fluid_before_ml = 0;
   nlohmann::json open_components = nlohmann::json::array();
+  // The caps' rays (items 7 and 11) look toward the carried brain's centre.
+  const Eigen::Vector3d centre_voxel = (g.voxel_from_world() * centroid_mm(outline_box).homogeneous()).head<3>();
   if (params.max_sulcus_half_width_mm > 0) {
     const Mask resectable_box = preop_seen && preop_seen->resectable.grid.same_geometry(image.grid)
                                     ? crop_to_box(preop_seen->resectable, box)
@@ -488,7 +451,6 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     }
     open_fluid_ml = volume_ml(moved_out);
     if (open_fluid_ml > 0) {
-      const Eigen::Vector3d centre_voxel = (g.voxel_from_world() * centroid_mm(outline_box).homogeneous()).head<3>();
       Mask before = brain;
       drop_beyond_open_fluid(brain, ventricle, moved_out, centre_voxel, params.max_cap_mm,
                              params.max_sulcus_half_width_mm);
@@ -501,7 +463,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     }
   }
   // The bright fluid rim around a T2-like brain (item 11); nothing in a T1.
-  const Mask rim = fluid_rim(brain, ventricle, image_box, em.bias, em.classes, params.max_fluid_rim_mm);
+  const Mask rim = fluid_rim(brain, ventricle, image_box, em.bias, em.classes, params.max_fluid_rim_mm, centre_voxel);
   for (std::size_t v = 0; v < rim.voxels.size(); ++v) {
     if (!rim.voxels[v]) continue;
     brain.voxels[v] = 0;

@@ -76,6 +76,16 @@ void register_once(EngineSession& session, const ScanInput& scan, StageSamples& 
   s.scan_wall.push_back(wall.seconds());
   for (const auto& [stage, seconds] : r.timings["intraop"].items())
     if (seconds.is_number()) s.wall[stage].push_back(seconds.get<double>());
+  // The segmentation's own split: the head's placement and each round.
+  if (r.metrics.contains("segmentation")) {
+    const auto& seg = r.metrics["segmentation"];
+    if (seg.contains("head_placement") && seg["head_placement"].contains("seconds"))
+      s.wall["segment.placement"].push_back(seg["head_placement"]["seconds"].get<double>());
+    const auto rounds = seg.value("rounds", nlohmann::json::array());
+    for (std::size_t i = 0; i < rounds.size(); ++i)
+      if (rounds[i].contains("seconds"))
+        s.wall["segment.round" + std::to_string(i + 1)].push_back(rounds[i]["seconds"].get<double>());
+  }
   kind = std::string(protocol::to_string(r.kind));
 }
 

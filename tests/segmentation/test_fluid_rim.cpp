@@ -13,6 +13,8 @@
 #include <utility>
 #include <vector>
 
+#include "image/image_stats.h"
+#include "segmentation/fluid_caps.h"
 #include "segmentation/intraop_segmentation.h"
 #include "misregistered_prior.h"
 
@@ -159,7 +161,9 @@ TEST(FluidRim, TheBrightRimsPartialVolumeIsNotBrain) {
   const Outcome t2 = segment({40, 55, 100, 10, 70, 2});
   std::printf("T2-like partial-volume head: outline Dice %.4f, rim called brain %.3f\n", t2.outline_dice,
               t2.rim_called_brain);
-  EXPECT_GE(t2.outline_dice, 0.97);
+  // 0.977 measured; grey matter's noise taken for fluid bodies (caps beyond
+  // single bright voxels) cost 0.0035.
+  EXPECT_GE(t2.outline_dice, 0.975);
   EXPECT_LE(t2.rim_called_brain, 0.3);
   // The fluid is the brightest tissue: the outside's fluid around the brain
   // is the ventricles' fluid, held to their class, with at least its share
@@ -234,4 +238,42 @@ TEST(FluidRim, ADarkFluidIsNeverPeeled) {
   const auto [off, on] = without_and_with_peel(Contrast{100, 70, 25, 8, 75, 2});
   EXPECT_EQ(off.outline_dice, on.outline_dice);
   EXPECT_EQ(off.rim_called_brain, on.rim_called_brain);
+}
+
+// caps_beyond_fluid on a ball of brain whose upper part holds a 2 mm layer of
+// fluid 2 mm beneath its surface: the 2 mm of "brain" beyond that fluid is a
+// cap; the brain beneath the fluid, and the surface where there is no fluid,
+// are not; nor is a cap thicker than the limit.
+TEST(FluidCaps, WhatLiesBeyondTheFluidIsACapWhatLiesBeneathIsBrain) {
+  Grid3 g;
+  g.dims = {64, 64, 64};
+  Mask brain(g, 0), fluid(g, 0), ventricle(g, 0);
+  const Eigen::Vector3d centre(32, 32, 32);
+  for (int k = 0; k < 64; ++k)
+    for (int j = 0; j < 64; ++j)
+      for (int i = 0; i < 64; ++i) {
+        const Eigen::Vector3d p(i, j, k);
+        const double r = (p - centre).norm();
+        brain.at(i, j, k) = r <= 24;
+        fluid.at(i, j, k) = r > 20 && r <= 22 && k > 37;
+      }
+  const Mask caps = caps_beyond_fluid(brain, ventricle, fluid, centre, 3.0);
+  std::size_t beyond = 0, found = 0, wrong = 0;
+  for (int k = 0; k < 64; ++k)
+    for (int j = 0; j < 64; ++j)
+      for (int i = 0; i < 64; ++i) {
+        const double r = (Eigen::Vector3d(i, j, k) - centre).norm();
+        const bool cap = caps.at(i, j, k) != 0;
+        if (cap && (r <= 22 || k <= 37)) ++wrong;  // beneath the fluid, or where there is none
+        // Well inside the fluid's patch: beyond it along every ray.
+        if (r > 22 && r <= 24 && k > 42 && (Eigen::Vector2d(i, j) - centre.head<2>()).norm() < 10) {
+          ++beyond;
+          found += cap;
+        }
+      }
+  EXPECT_EQ(wrong, 0u);
+  ASSERT_GT(beyond, 100u);
+  // Rays step half a voxel and round to voxels: a few graze the fluid's edge.
+  EXPECT_GE(found, 0.95 * static_cast<double>(beyond));
+  EXPECT_EQ(count_nonzero(caps_beyond_fluid(brain, ventricle, fluid, centre, 1.0)), 0u) << "a cap thicker than the limit";
 }
