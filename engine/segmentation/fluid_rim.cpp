@@ -5,8 +5,8 @@
 #include <vector>
 
 #include "image/distance_map.h"
-#include "segmentation/fluid_caps.h"
 #include "image/morphology.h"
+#include "segmentation/fluid_caps.h"
 
 namespace brainshift::segmentation {
 
