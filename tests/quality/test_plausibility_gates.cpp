@@ -156,6 +156,7 @@ TEST(AffineGates, AShortViewAllowsASinkItsShareOnlyAlongTheShortDirection) {
   EXPECT_FALSE(affine_gates(across, limits, short_coil)[0].passed);
   // The limit falls with the extent seen and never below the scanner's and segmentation's own error.
   EXPECT_GT(affine_stretch_limit(60, limits), affine_stretch_limit(130, limits));
+  EXPECT_LT(affine_stretch_limit(0, limits), 0.4) << "no brain in view licenses no stretch";
   EXPECT_GT(affine_stretch_limit(1e6, limits), limits.affine_stretch_base);
   EXPECT_LT(affine_stretch_limit(1e6, limits), limits.affine_stretch_base + 1e-3);
 }
