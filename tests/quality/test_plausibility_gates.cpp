@@ -147,8 +147,9 @@ TEST(AffineGates, AShortViewAllowsASinkItsShareOnlyAlongTheShortDirection) {
   EXPECT_TRUE(seen_short[0].passed) << seen_short[0].value << " " << seen_short[0].limit;
   EXPECT_NEAR(seen_short[0].value, 1.0 / 0.866 - 1.0, 1e-9);
   EXPECT_NEAR(seen_short[0].extra["directions"][2]["brain_extent_in_view_mm"].get<double>(), 85.0, 1e-9);
-  // 18 % along gravity (a 30 mm sink through the short view) passes there, but
-  // not across the head nor with the whole brain in view: there it is another head.
+  // 0.85 along gravity (deviation 0.176, under the 0.221 an 85 mm view allows)
+  // passes there, but not across the head nor with the whole brain in view
+  // (limit 0.155): there it is another head.
   const Eigen::Matrix4d deeper = linear(Eigen::Vector3d(1.0, 1.0, 0.85).asDiagonal());
   EXPECT_TRUE(affine_gates(deeper, limits, short_coil)[0].passed);
   EXPECT_FALSE(affine_gates(deeper, limits, whole_brain)[0].passed);
