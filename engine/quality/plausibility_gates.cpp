@@ -92,10 +92,6 @@ double PreopInView::extent_mm(const Eigen::Vector3d& direction_preop) const {
   return at(0.99) - low;
 }
 
-double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop) {
-  return preop_in_view(preop, intraop, intraop_from_preop).fraction;
-}
-
 GateResult volume_gate(double intraop_ml, double preop_in_view_ml, const Eigen::Matrix4d& A,
                        const PlausibilityLimits& limits, double open_fluid_ml) {
   if (preop_in_view_ml <= 0) return untested("volume", "no preop brain volume in the field of view");

@@ -86,8 +86,6 @@ struct PreopInView {
   double extent_mm(const Eigen::Vector3d& direction_preop) const;
 };
 PreopInView preop_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop);
-// The fraction alone (volume_gate's field of view).
-double preop_fraction_in_view(const LabelImage& preop, const Grid3& intraop, const Eigen::Matrix4d& intraop_from_preop);
 
 // Brain volume: intraop outline (enclosed cavities filled) against the preop
 // outline mapped by the affine. preop_in_view_ml: the part of the preop

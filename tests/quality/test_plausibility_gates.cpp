@@ -91,19 +91,19 @@ TEST(VolumeGate, OnlyThePreopInsideTheFieldOfViewIsCompared) {
   for (int k = 8; k < 56; ++k)
     for (int j = 8; j < 56; ++j)
       for (int i = 8; i < 56; ++i) preop.at(i, j, k) = 1;
-  EXPECT_NEAR(preop_fraction_in_view(preop, preop.grid, Eigen::Matrix4d::Identity()), 1.0, 1e-12);
+  EXPECT_NEAR(preop_in_view(preop, preop.grid, Eigen::Matrix4d::Identity()).fraction, 1.0, 1e-12);
   Grid3 slab = preop.grid;
   slab.dims[2] = 32;  // slices 0..31 only: brain slices 8..31 of 8..55
-  const double in_view = preop_fraction_in_view(preop, slab, Eigen::Matrix4d::Identity());
+  const double in_view = preop_in_view(preop, slab, Eigen::Matrix4d::Identity()).fraction;
   EXPECT_NEAR(in_view, 0.5, 0.03);
   // The same slab seen after the head moved up by 12 mm (8 voxels): less brain in view.
   Eigen::Matrix4d up = Eigen::Matrix4d::Identity();
   up(2, 3) = 12.0;
-  EXPECT_NEAR(preop_fraction_in_view(preop, slab, up), 16.0 / 48.0, 0.03);
+  EXPECT_NEAR(preop_in_view(preop, slab, up).fraction, 16.0 / 48.0, 0.03);
   // Nothing in view at all (the grid far away).
   Eigen::Matrix4d away = Eigen::Matrix4d::Identity();
   away(0, 3) = 500.0;
-  EXPECT_EQ(preop_fraction_in_view(preop, slab, away), 0.0);
+  EXPECT_EQ(preop_in_view(preop, slab, away).fraction, 0.0);
 }
 
 TEST(VolumeGate, VentriclesMayShrinkButNotCoverTheBrain) {
