@@ -5,10 +5,13 @@
 #include <algorithm>
 #include <cmath>
 #include <future>
+#include <optional>
 
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "core/timer.h"
+#include "field/vector_sampling.h"
+#include "field/warp.h"
 #include "image/image_stats.h"
 #include "image/resample.h"
 #include "registration/affine_registration.h"
@@ -350,6 +353,63 @@ ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, con
   return result;
 }
 
+// A mask on a grid of the same extent (same_extent_grid), nearest voxel.
+Mask resample_mask(const Mask& m, const Grid3& target) {
+  const LabelImage moved = resample_nearest(as_labels(m), target);
+  Mask out(target, 0);
+  for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] = moved.voxels[v] != 0;
+  return out;
+}
+
+// The image-only scan with its first round on the coarser prior grid
+// (PassShortcuts::prior_spacing_mm): the head's placement, the first
+// segmentation and its light pass there; the preop labels that pass carries
+// are brought to the image's grid as the re-match's prior, and the re-match
+// rounds and the answer are worked on the image's grid as before. The first
+// round only makes that prior (1.5 mm wide; docs/DESIGN.md "Automatic intraop
+// segmentation", item 9). nullopt when the first round ends in a refusal (of
+// the classifier, a gate or the stages): a refusal is decided on the image's
+// own grid (the caller's one-grid path).
+std::optional<ScanResult> register_with_coarse_prior(WarmState& warm, const ImageF& image, const Grid3& prior_grid,
+                                                     double read_seconds, const PipelineParameters& params,
+                                                     const ProgressFn& progress, bool with_quality_metrics,
+                                                     const Stopwatch& scan_watch, nlohmann::json& prior_report) {
+  Stopwatch watch;
+  nlohmann::json seg_metrics;
+  if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
+  const ImageF coarse = downsample_linear(image, prior_grid);
+  const Eigen::Matrix4d placement = place_preop_by_head(warm, coarse, params.affine, seg_metrics["head_placement"]);
+  const ScanOnGrid first(warm, coarse, read_seconds, params, progress, placement);
+  seg_metrics["head_placement"]["seconds"] = watch.seconds();
+  first.check_field_of_view();
+  Rounds r = first_segmentation(first, watch.lap());
+  if (!r.seg.refusal.empty()) {
+    prior_report["refused"] = "the classifier: " + r.seg.refusal;
+  } else if (!r.gates.failure.empty()) {
+    prior_report["refused"] = "the gates: " + r.gates.failure;
+  } else {
+    first_pass(first, r, true);
+    if (r.result.kind != ResultKind::nonrigid) prior_report["refused"] = "the stages: " + r.result.fallback_reason;
+  }
+  if (prior_report.contains("refused")) return std::nullopt;
+  watch.lap();
+  const ScanOnGrid s(warm, image, read_seconds, params, progress, placement);
+  r.result.warped_labels =
+      warp_labels_nearest(warm.preop.labels, resample_vector_linear(r.result.pullback_field_mm, image.grid));
+  if (r.seg.open_fluid.grid.voxel_count() > 0) r.seg.open_fluid = resample_mask(r.seg.open_fluid, image.grid);
+  prior_report["carry_seconds"] = watch.lap();
+  rematch(s, r);
+  seg_metrics["prior_grid"] = prior_report;
+  if (r.seg.labels.grid.same_geometry(image.grid))
+    return answer(s, std::move(r), std::move(seg_metrics), scan_watch, with_quality_metrics);
+  // Every re-match refused: the first round's answer, carried to the image's grid.
+  ScanResult result = answer(first, std::move(r), std::move(seg_metrics), scan_watch, false);
+  carry_to_grid(warm, result, image.grid);
+  if (with_quality_metrics)
+    add_quality_metrics(warm, IntraopInput{*result.intraop_labels, image}, params, result, progress);
+  return result;
+}
+
 // The image-only scan on the image's own grid (see register_image_only).
 ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
                             const ProgressFn& progress, bool with_quality_metrics) {
@@ -360,6 +420,16 @@ ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_se
 
   Stopwatch watch, scan_watch;
   nlohmann::json seg_metrics;
+  const Grid3 prior_grid = working_grid(image.grid, ap.passes.prior_spacing_mm);
+  if (ap.rematch_rounds > 0 && !ap.rematch_reuses_fit && prior_grid.dims != image.grid.dims) {
+    nlohmann::json& prior = seg_metrics["prior_grid"];
+    prior = {{"dims", {prior_grid.dims[0], prior_grid.dims[1], prior_grid.dims[2]}},
+             {"spacing_mm", {prior_grid.spacing_mm()[0], prior_grid.spacing_mm()[1], prior_grid.spacing_mm()[2]}}};
+    auto result = register_with_coarse_prior(warm, image, prior_grid, read_seconds, params, progress,
+                                             with_quality_metrics, scan_watch, prior);
+    if (result) return std::move(*result);
+    prior["seconds"] = watch.lap();
+  }
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
   const Eigen::Matrix4d placement = place_preop_by_head(warm, image, params.affine, seg_metrics["head_placement"]);
   const ScanOnGrid s(warm, image, read_seconds, params, progress, placement);

@@ -143,6 +143,52 @@ TEST_F(ImageOnlyPasses, TheAnswerOfAnImageOnlyScanIsAFullPassWarmStartedFromTheL
   EXPECT_FALSE(s.warped_t1.voxels.empty());
 }
 
+// The first round, which only makes the re-match's prior, is worked on the
+// coarser prior grid (PassShortcuts::prior_spacing_mm): 2 mm in-plane for
+// this 1.4 x 1.4 x 2.8 mm scan, its slices left as they are; the re-match and
+// the answer on the scan's own grid. A first round refused on the prior grid
+// is decided again on the scan's own grid.
+TEST_F(ImageOnlyPasses, TheFirstRoundIsWorkedOnTheCoarserPriorGridTheAnswerOnTheScans) {
+  PipelineParameters p = test::coarse_parameters();
+  p.auto_segmentation.passes.prior_spacing_mm = 2.0;
+  EngineSession session(MPI_COMM_WORLD, p);
+  session.load_preop(*preop_, nullptr);
+  const Eigen::Vector3d shift(3.0, -2.0, 2.0);
+  const IntraopInput moved = moved_scan(*preop_, shift, 0.0);
+  ScanInput scan;
+  scan.image = test::scanner_image(*moved.t1);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
+  const auto& prior = r.metrics["segmentation"]["prior_grid"];
+  EXPECT_EQ(prior["dims"], nlohmann::json::array({70, 77, 44})) << prior.dump();
+  EXPECT_FALSE(prior.contains("refused")) << prior.dump();
+  const auto& rounds = r.metrics["segmentation"]["rounds"];
+  ASSERT_EQ(rounds.size(), 2u) << rounds.dump();
+  for (const auto& round : rounds) EXPECT_FALSE(round.contains("kept")) << round.dump();
+  ASSERT_TRUE(r.intraop_labels);
+  for (const Grid3* g : {&r.intraop_labels->grid, &r.pullback_field_mm.grid, &r.warped_labels.grid, &r.warped_t1.grid})
+    EXPECT_TRUE(g->same_geometry(moved.labels.grid));
+  EXPECT_FALSE(r.metrics.contains("working_grid")) << "answered on the scan's own grid";
+  EXPECT_LT(mean_translation_error(r, moved.labels, shift), 0.5);
+  EXPECT_GT(test::outline_dice(*r.intraop_labels, moved.labels), 0.95);
+
+  // A gate no segmentation meets: refused on the prior grid, then on the
+  // scan's own grid, for the same reason.
+  PipelineParameters strict = p;
+  strict.auto_segmentation.max_brain_volume_change = 1e-6;
+  EngineSession strict_session(MPI_COMM_WORLD, strict);
+  strict_session.load_preop(*preop_, nullptr, session.mesh());
+  const ScanResult refused = strict_session.register_scan(scan, nullptr);
+  EXPECT_EQ(refused.kind, ResultKind::affine_only_fallback);
+  const auto& refused_prior = refused.metrics["segmentation"]["prior_grid"];
+  ASSERT_TRUE(refused_prior.contains("refused")) << refused_prior.dump();
+  EXPECT_NE(refused_prior["refused"].get<std::string>().find("the gates: automatic segmentation: the brain's volume"),
+            std::string::npos) << refused_prior.dump();
+  EXPECT_NE(refused.fallback_reason.find("the brain's volume"), std::string::npos) << refused.fallback_reason;
+  ASSERT_TRUE(refused.intraop_labels);
+  EXPECT_TRUE(refused.intraop_labels->grid.same_geometry(moved.labels.grid));
+}
+
 // The working grid (pipeline/working_grid.h): only an axis much finer than
 // the working spacing is coarsened, to whole voxels over the same extent.
 TEST(WorkingGrid, OnlyAxesMuchFinerThanTheWorkingSpacingAreCoarsened) {
