@@ -12,6 +12,7 @@
 #include "core/timer.h"
 #include "field/field_fill.h"
 #include "image/distance_map.h"
+#include "image/image_stats.h"
 #include "image/morphology.h"
 
 namespace brainshift {
@@ -243,10 +244,11 @@ struct AffinePullback {
 };
 
 // Extends the non-rigid remainder beyond the covered voxels and composes the
-// final field there (covered voxels keep their exact rasterised values).
-void continue_outside(const MeshDeformation& deformation, const FieldParameters& params,
-                      const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats,
-                      Mask* mesh_region) {
+// final field there (covered voxels keep their exact rasterised values), on a
+// grid that holds every voxel the continuation reaches (continue_outside).
+void continue_in_box(const MeshDeformation& deformation, const FieldParameters& params,
+                     const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats,
+                     Mask* mesh_region) {
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
@@ -274,6 +276,76 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
     if (!covered[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
   });
   if (mesh_region) *mesh_region = region;
+}
+
+// Inclusive index bounds of the covered voxels; empty when none is.
+VoxelBox covered_box(const Grid3& g, const std::vector<std::uint8_t>& covered) {
+  VoxelBox box;
+  box.lo = g.dims;
+  for_each_voxel(g, [&](std::size_t v, int i, int j, int k) {
+    if (!covered[v]) return;
+    box.lo = {std::min(box.lo[0], i), std::min(box.lo[1], j), std::min(box.lo[2], k)};
+    box.hi = {std::max(box.hi[0], i), std::max(box.hi[1], j), std::max(box.hi[2], k)};
+  });
+  box.empty = box.hi[0] < 0;
+  return box;
+}
+
+// The continuation reaches max(blend_distance_mm, relax_band_mm) beyond the
+// brain region, which lies in the covered voxels' bounding box (its cavities
+// are enclosed by covered voxels); farther out the field is the affine alone.
+// So it runs on that box grown by the reach and a voxel (a third to a half of
+// a scan's grid), and the rest of the grid takes the affine. The same field
+// as on the whole grid, but for the pyramid fill of the fading shell outside
+// the brain, whose coarse cells are aligned to the box instead of the grid.
+// The box's corner keeps the parity of i + j + k, so the Laplace sweeps'
+// red-black colours are the grid's.
+void continue_outside(const MeshDeformation& deformation, const FieldParameters& params,
+                      const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats,
+                      Mask* mesh_region) {
+  const Grid3& grid = field.grid;
+  const AffinePullback affine(deformation.intraop_from_preop, grid);
+  VoxelBox box = covered_box(grid, covered);
+  if (box.empty) {
+    for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) { field.vectors[v] = affine(i, j, k).cast<float>(); });
+    if (mesh_region) *mesh_region = Mask(grid, 0);
+    return;
+  }
+  const double reach_mm = std::max(params.blend_distance_mm, params.relax_band_mm);
+  box = grow_box(box, grid, reach_mm + grid.spacing_mm().maxCoeff());
+  if ((box.lo[0] + box.lo[1] + box.lo[2]) % 2 != 0) {
+    int a = 0;
+    while (box.lo[a] == 0) ++a;  // an odd sum has a positive term
+    --box.lo[a];
+  }
+  Grid3 sub;
+  for (int a = 0; a < 3; ++a) sub.dims[a] = box.hi[a] - box.lo[a] + 1;
+  sub.world_from_voxel = grid.world_from_voxel;
+  sub.world_from_voxel.block<3, 1>(0, 3) = grid.world_mm(box.lo[0], box.lo[1], box.lo[2]);
+  VectorImage3 part(sub);
+  std::vector<std::uint8_t> part_covered(sub.voxel_count());
+  const auto full_index = [&](int j, int k) { return grid.index(box.lo[0], j + box.lo[1], k + box.lo[2]); };
+  for (int k = 0; k < sub.dims[2]; ++k)
+    for (int j = 0; j < sub.dims[1]; ++j) {
+      const std::size_t from = full_index(j, k), to = sub.index(0, j, k);
+      std::copy_n(&field.vectors[from], sub.dims[0], &part.vectors[to]);
+      std::copy_n(&covered[from], sub.dims[0], &part_covered[to]);
+    }
+  Mask part_region;
+  continue_in_box(deformation, params, part_covered, part, stats, &part_region);
+  for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) {
+    const bool inside = i >= box.lo[0] && i <= box.hi[0] && j >= box.lo[1] && j <= box.hi[1] && k >= box.lo[2] &&
+                        k <= box.hi[2];
+    if (!inside) field.vectors[v] = affine(i, j, k).cast<float>();
+  });
+  for (int k = 0; k < sub.dims[2]; ++k)
+    for (int j = 0; j < sub.dims[1]; ++j)
+      std::copy_n(&part.vectors[sub.index(0, j, k)], sub.dims[0], &field.vectors[full_index(j, k)]);
+  if (!mesh_region) return;
+  *mesh_region = Mask(grid, 0);
+  for (int k = 0; k < sub.dims[2]; ++k)
+    for (int j = 0; j < sub.dims[1]; ++j)
+      std::copy_n(&part_region.voxels[sub.index(0, j, k)], sub.dims[0], &mesh_region->voxels[full_index(j, k)]);
 }
 
 }  // namespace

@@ -26,6 +26,10 @@
 //     Enclosed cavities (uncovered voxels not 6-connected to the grid border)
 //     keep the full non-rigid extension (weight 1). A cavity that reaches the
 //     grid border (field of view cut through a ventricle) is treated as outside.
+//     All of it runs on the covered voxels' bounding box grown by
+//     max(blend_distance_mm, relax_band_mm) and a voxel, the affine alone
+//     beyond: the work is the brain's neighbourhood, not the scan's field of
+//     view, and the field does not depend on how far the grid extends beyond it.
 #include <cstddef>
 #include <nlohmann/json_fwd.hpp>
 

@@ -245,7 +245,9 @@ std::optional<Eigen::Vector3d> forward_map(const TetMesh& mesh, const MeshDeform
 }
 
 // For a genuinely non-linear (piecewise-linear) deformation the rasterised
-// pull-back inverts phi: phi(x + u(x)) = x on covered voxels.
+// pull-back inverts phi: phi(x + u(x)) = x on covered voxels (the mesh's
+// image; an uncovered voxel's continuation may pull back just inside the
+// mesh, and is not an inversion).
 TEST(PullbackField, InvertsPiecewiseLinearForwardMap) {
   Scene s;
   MeshDeformation def;
@@ -255,23 +257,60 @@ TEST(PullbackField, InvertsPiecewiseLinearForwardMap) {
                                               -3.0 * std::exp(-p.squaredNorm() / 400.0)));
   }
   FieldStats stats;
-  const VectorImage3 u = pullback_field(s.mesh, def, s.grid, FieldParameters{}, &stats);
+  Mask covered;
+  const VectorImage3 u = pullback_field(s.mesh, def, s.grid, FieldParameters{}, &stats, &covered);
   EXPECT_EQ(stats.inverted_tets, 0u);
   std::size_t checked = 0;
   double worst = 0;
   for (std::size_t v = 0; v < u.vectors.size(); v += 37) {
+    if (!covered.voxels[v]) continue;
     const int i = static_cast<int>(v % s.grid.dims[0]);
     const int j = static_cast<int>((v / s.grid.dims[0]) % s.grid.dims[1]);
     const int k = static_cast<int>(v / (static_cast<std::size_t>(s.grid.dims[0]) * s.grid.dims[1]));
     const Eigen::Vector3d x = s.grid.world_mm(i, j, k);
     const Eigen::Vector3d p = x + field_at(u, v);
     const auto q = forward_map(s.mesh, def, p);
-    if (!q) continue;  // pulled back outside the mesh: continuation, not inversion
+    ASSERT_TRUE(q) << "a covered voxel pulled back outside the mesh";
     ++checked;
     worst = std::max(worst, (*q - x).norm());
   }
   EXPECT_GT(checked, 200u);
   EXPECT_LT(worst, 1e-3);
+}
+
+// The continuation reaches the blend distance beyond the brain, and is worked
+// on the box it reaches (continue_outside): the field does not depend on how
+// far the scan's grid extends beyond that, bit for bit but for the affine's
+// rounding. Before, its pyramid fill was aligned to the grid's corner.
+TEST(PullbackField, TheFieldDoesNotDependOnHowFarTheGridExtendsBeyondTheBrain) {
+  Scene s;
+  MeshDeformation def;
+  def.intraop_from_preop = some_affine();
+  for (const auto& p : s.mesh.nodes_mm)
+    def.nonrigid_mm.push_back(Eigen::Vector3d(1.5 * std::sin(p.y() / 9.0), -2.0 * std::cos(p.z() / 11.0),
+                                              -3.0 * std::exp(-p.squaredNorm() / 400.0)));
+  // The scene's grid padded so that it holds the whole fade (its corners cut
+  // it), and that grid padded again by an even number of voxels.
+  const auto padded = [&](int pad) {
+    Grid3 g = s.grid;
+    for (int a = 0; a < 3; ++a) g.dims[a] += 2 * pad;
+    g.world_from_voxel.topRightCorner<3, 1>() = s.grid.world_mm(-pad, -pad, -pad);
+    return g;
+  };
+  const int pad = 16, more = 10;
+  const Grid3 grid = padded(pad), wider = padded(pad + more);
+  FieldStats stats, wider_stats;
+  const VectorImage3 u = pullback_field(s.mesh, def, grid, FieldParameters{}, &stats);
+  const VectorImage3 w = pullback_field(s.mesh, def, wider, FieldParameters{}, &wider_stats);
+  EXPECT_EQ(stats.covered_voxels, wider_stats.covered_voxels);
+  EXPECT_EQ(stats.blended_voxels, wider_stats.blended_voxels);
+  double worst = 0;
+  for (int k = 0; k < grid.dims[2]; ++k)
+    for (int j = 0; j < grid.dims[1]; ++j)
+      for (int i = 0; i < grid.dims[0]; ++i)
+        worst = std::max(worst, (field_at(u, grid.index(i, j, k)) -
+                                 field_at(w, wider.index(i + more, j + more, k + more))).norm());
+  EXPECT_LT(worst, 1e-4) << "mm";
 }
 
 TEST(PullbackField, StatsAsJson) {
