@@ -182,19 +182,28 @@ void for_each_voxel(const Grid3& g, F&& f) {
       for (int i = 0; i < g.dims[0]; ++i, ++v) f(v, i, j, k);
 }
 
+// Inclusive index bounds of the covered voxels; empty when none is.
+VoxelBox covered_box(const Grid3& g, const std::vector<std::uint8_t>& covered) {
+  VoxelBox box;
+  box.lo = g.dims;
+  for_each_voxel(g, [&](std::size_t v, int i, int j, int k) {
+    if (!covered[v]) return;
+    box.lo = {std::min(box.lo[0], i), std::min(box.lo[1], j), std::min(box.lo[2], k)};
+    box.hi = {std::max(box.hi[0], i), std::max(box.hi[1], j), std::max(box.hi[2], k)};
+  });
+  box.empty = box.hi[0] < 0;
+  return box;
+}
+
 // Covered voxels plus the uncovered voxels not 6-connected to the grid border
 // (cavities). Everything outside the covered voxels' bounding box (grown by one
 // voxel) is outside, so the flood fill from the border only runs inside that
 // box; the stack carries voxel coordinates so no index divisions are needed.
 Mask brain_region(const Grid3& g, const std::vector<std::uint8_t>& covered) {
-  std::array<int, 3> lo{g.dims[0], g.dims[1], g.dims[2]}, hi{-1, -1, -1};
-  for_each_voxel(g, [&](std::size_t v, int i, int j, int k) {
-    if (!covered[v]) return;
-    lo = {std::min(lo[0], i), std::min(lo[1], j), std::min(lo[2], k)};
-    hi = {std::max(hi[0], i), std::max(hi[1], j), std::max(hi[2], k)};
-  });
+  const VoxelBox box = covered_box(g, covered);
   Mask region(g, 0);
-  if (hi[0] < 0) return region;
+  if (box.empty) return region;
+  std::array<int, 3> lo = box.lo, hi = box.hi;
   for (int a = 0; a < 3; ++a) {
     lo[a] = std::max(lo[a] - 1, 0);
     hi[a] = std::min(hi[a] + 1, g.dims[a] - 1);
@@ -276,19 +285,6 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
     if (!covered[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
   });
   if (mesh_region) *mesh_region = region;
-}
-
-// Inclusive index bounds of the covered voxels; empty when none is.
-VoxelBox covered_box(const Grid3& g, const std::vector<std::uint8_t>& covered) {
-  VoxelBox box;
-  box.lo = g.dims;
-  for_each_voxel(g, [&](std::size_t v, int i, int j, int k) {
-    if (!covered[v]) return;
-    box.lo = {std::min(box.lo[0], i), std::min(box.lo[1], j), std::min(box.lo[2], k)};
-    box.hi = {std::max(box.hi[0], i), std::max(box.hi[1], j), std::max(box.hi[2], k)};
-  });
-  box.empty = box.hi[0] < 0;
-  return box;
 }
 
 // The continuation reaches max(blend_distance_mm, relax_band_mm) beyond the
