@@ -8,6 +8,7 @@
 #include <string>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "field/vector_sampling.h"
 #include "image/distance_map.h"
 
@@ -101,15 +102,16 @@ float jacobian_at(const VectorImage3& field, const Eigen::Matrix3d& index_from_w
   return static_cast<float>(jac.determinant());
 }
 
-// Visits every voxel (or only those in mask) with its determinant.
+// Visits every voxel (or only those in mask) of slices [k_begin, k_end) with
+// its determinant.
 template <class Visit>
-void for_each_jacobian(const VectorImage3& field, const Mask* mask, Visit&& visit) {
+void for_each_jacobian(const VectorImage3& field, const Mask* mask, int k_begin, int k_end, Visit&& visit) {
   const Grid3& g = field.grid;
   // d(world)/d(index) = M, so grad_world u = (du/d index) * M^-1.
   const Eigen::Matrix3d index_from_world = g.world_from_voxel.topLeftCorner<3, 3>().inverse();
   const std::array<std::size_t, 3> stride{1, static_cast<std::size_t>(g.dims[0]),
                                           static_cast<std::size_t>(g.dims[0]) * g.dims[1]};
-  for (int k = 0; k < g.dims[2]; ++k)
+  for (int k = k_begin; k < k_end; ++k)
     for (int j = 0; j < g.dims[1]; ++j)
       for (int i = 0; i < g.dims[0]; ++i) {
         const std::size_t v = g.index(i, j, k);
@@ -130,23 +132,36 @@ double jacobian_determinant_at(const VectorImage3& field, int i, int j, int k) {
 
 ImageF jacobian_determinant(const VectorImage3& field) {
   ImageF det(field.grid, 0.f);
-  for_each_jacobian(field, nullptr, [&det](std::size_t v, float d) { det.voxels[v] = d; });
+  for_each_jacobian(field, nullptr, 0, field.grid.dims[2], [&det](std::size_t v, float d) { det.voxels[v] = d; });
   return det;
 }
 
 JacobianStats jacobian_stats(const VectorImage3& field, const Mask* mask) {
   if (mask) require_same_grid(field.grid, mask->grid, "jacobian_stats");
-  JacobianStats s;
-  s.min_det = std::numeric_limits<double>::infinity();
-  s.max_det = -std::numeric_limits<double>::infinity();
-  // Only the masked voxels are evaluated: the brain is a fraction of the grid.
-  for_each_jacobian(field, mask, [&s](std::size_t, float det) {
-    const double d = det;
-    s.min_det = std::min(s.min_det, d);
-    s.max_det = std::max(s.max_det, d);
-    s.folded_voxels += d <= 0.0;
-    ++s.voxels;
+  // Only the masked voxels are evaluated: the brain is a fraction of the
+  // grid. The two halves' slices side by side; minima, maxima and counts
+  // merge exactly.
+  std::array<JacobianStats, 2> half;
+  for (auto& h : half) {
+    h.min_det = std::numeric_limits<double>::infinity();
+    h.max_det = -std::numeric_limits<double>::infinity();
+  }
+  const int nz = field.grid.dims[2];
+  on_two_halves(static_cast<std::size_t>(nz), [&](std::size_t k0, std::size_t k1, std::size_t h) {
+    JacobianStats& s = half[h];
+    for_each_jacobian(field, mask, static_cast<int>(k0), static_cast<int>(k1), [&s](std::size_t, float det) {
+      const double d = det;
+      s.min_det = std::min(s.min_det, d);
+      s.max_det = std::max(s.max_det, d);
+      s.folded_voxels += d <= 0.0;
+      ++s.voxels;
+    });
   });
+  JacobianStats s = half[0];
+  s.min_det = std::min(half[0].min_det, half[1].min_det);
+  s.max_det = std::max(half[0].max_det, half[1].max_det);
+  s.folded_voxels += half[1].folded_voxels;
+  s.voxels += half[1].voxels;
   if (s.voxels == 0) s.min_det = s.max_det = 0.0;
   return s;
 }

@@ -1,5 +1,7 @@
 #include "pipeline/plausibility_stage.h"
 
+#include <optional>
+
 #include "image/image_stats.h"
 #include "quality/left_right_check.h"
 
@@ -21,7 +23,22 @@ std::string add_all(PlausibilityReport& report, std::vector<GateResult> gates) {
   return these.first_failure();
 }
 
+// The structures whose sides the left-right gate compares: the cavities
+// (lateral ventricles) and what may be resected (the tumour).
+std::vector<std::pair<std::string, std::uint16_t>> asymmetric_structures(const LabelTable& table) {
+  std::vector<std::pair<std::string, std::uint16_t>> asymmetric;
+  for (const auto& e : table.entries)
+    if (e.role == LabelRole::cavity || e.resectable) asymmetric.emplace_back(e.name, e.value);
+  return asymmetric;
+}
+
 }  // namespace
+
+PlausibilityPreop plausibility_preop(const LabelImage& preop_labels, const LabelTable& table) {
+  const auto cavities = table.cavity_labels();
+  return {left_right_preop(preop_labels, asymmetric_structures(table)),
+          cavities.empty() ? 0.0 : label_volume_ml(preop_labels, cavities.front())};
+}
 
 std::string check_input_plausibility(const WarmState& warm, const IntraopInput& input, const Mask& brain_region,
                                      const Eigen::Matrix4d& A, const PipelineParameters& params,
@@ -35,18 +52,17 @@ std::string check_input_plausibility(const WarmState& warm, const IntraopInput& 
   GateResult volume = volume_gate(volume_ml(brain_region), in_view * warm.brain_volume_ml, A, limits, input.open_fluid_ml);
   volume.extra["preop_fraction_in_view"] = in_view;
   gates.push_back(std::move(volume));
-  // The asymmetric structures: the cavities (lateral ventricles) and what may
-  // be resected (the tumour); the left-right test needs them.
-  std::vector<std::pair<std::string, std::uint16_t>> asymmetric;
-  for (const auto& e : table.entries)
-    if (e.role == LabelRole::cavity || e.resectable) asymmetric.emplace_back(e.name, e.value);
+  std::optional<PlausibilityPreop> own;
+  if (!warm.plausibility_preop) own = plausibility_preop(warm.preop.labels, table);
+  const PlausibilityPreop& preop = own ? *own : *warm.plausibility_preop;
   const auto cavities = table.cavity_labels();
   if (!cavities.empty())
-    gates.push_back(ventricle_volume_gate(label_volume_ml(input.labels, cavities.front()),
-                                          label_volume_ml(warm.preop.labels, cavities.front()), A, limits));
+    gates.push_back(ventricle_volume_gate(label_volume_ml(input.labels, cavities.front()), preop.ventricle_volume_ml,
+                                          A, limits));
   for (auto& g : affine_gates(A, limits, [&view](const Eigen::Vector3d& v) { return view.extent_mm(v); }))
     gates.push_back(std::move(g));
-  LeftRightInput lr{warm.preop.labels, input.labels, A, asymmetric};
+  LeftRightInput lr{warm.preop.labels, input.labels, A, asymmetric_structures(table)};
+  lr.preop_side = &preop.left_right;
   if (input.t1) {
     lr.preop_t1 = &warm.preop.t1;
     lr.intraop_t1 = &*input.t1;

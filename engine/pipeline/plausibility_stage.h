@@ -14,6 +14,8 @@
 
 namespace brainshift {
 
+PlausibilityPreop plausibility_preop(const LabelImage& preop_labels, const LabelTable& table);
+
 std::string check_input_plausibility(const WarmState& warm, const IntraopInput& input, const Mask& brain_region,
                                      const Eigen::Matrix4d& intraop_from_preop, const PipelineParameters& params,
                                      PlausibilityReport& report);

@@ -12,6 +12,7 @@
 #include "mesh/surface_contacts.h"
 #include "mesh/surface_extraction.h"
 #include "models/surface_models.h"
+#include "pipeline/plausibility_stage.h"
 #include "pipeline/warm_state.h"
 #include "protocol/stage_names.h"
 
@@ -185,6 +186,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
     PreopBoundarySamples affine_samples;
     std::map<std::string, PreopModel> models;
     double brain_volume_ml = 0;
+    PlausibilityPreop plausibility;
     double seconds = 0;
   };
   auto models_job = std::async(std::launch::async, [&input, &table, &params, &mesh, &ventricles] {
@@ -198,6 +200,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
       m.models.emplace(name, std::move(model));
     }
     m.brain_volume_ml = volume_ml(outline_mask(input.labels));
+    m.plausibility = plausibility_preop(input.labels, table);
     m.seconds = watch.seconds();
     return m;
   });
@@ -227,6 +230,7 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   warm->affine_samples = std::move(models.affine_samples);
   warm->models = std::move(models.models);
   warm->brain_volume_ml = models.brain_volume_ml;
+  warm->plausibility_preop = std::move(models.plausibility);
   // What the models cost beyond the factorisation (their own time is
   // "surfaces_and_models_work").
   const double models_seconds = stage.lap();

@@ -14,6 +14,7 @@
 #include "models/carry.h"
 #include "pipeline/engine_session.h"
 #include "pipeline/fem_cluster.h"
+#include "quality/left_right_check.h"
 #include "registration/boundary_samples.h"
 
 namespace brainshift {
@@ -42,6 +43,13 @@ struct PreopModel {
   ModelBinding binding;   // where each vertex sits in the mesh
 };
 
+// What the input's plausibility gates need of the preop alone, the same for
+// every scan (pipeline/plausibility_stage.h): made with the models.
+struct PlausibilityPreop {
+  LeftRightPreop left_right;       // the table's asymmetric structures
+  double ventricle_volume_ml = 0;  // the table's first cavity label
+};
+
 struct WarmState {
   explicit WarmState(MPI_Comm comm) : fem(comm) {}
 
@@ -53,6 +61,7 @@ struct WarmState {
   PreopBoundarySamples affine_samples;     // boundary points for the affine stage
   std::map<std::string, PreopModel> models;
   double brain_volume_ml = 0;
+  std::optional<PlausibilityPreop> plausibility_preop;
   nlohmann::json timings;                  // preop stage seconds
   // The preop head (coarse grid), for placing the preop on a scan given
   // without labels (prepare_stage.h); made on the first such scan.

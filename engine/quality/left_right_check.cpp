@@ -1,6 +1,7 @@
 #include "quality/left_right_check.h"
 
 #include <algorithm>
+#include <optional>
 
 #include "image/resample.h"
 
@@ -76,11 +77,19 @@ Eigen::Matrix4d preop_mirror(const LabelImage& labels) {
   return M;
 }
 
+LeftRightPreop left_right_preop(const LabelImage& preop_labels,
+                                const std::vector<std::pair<std::string, std::uint16_t>>& structures) {
+  return {structures, preop_mirror(preop_labels), points_of(preop_labels, structures)};
+}
+
 GateResult left_right_gate(const LeftRightInput& in, const PlausibilityLimits& limits) {
   GateResult g;
   g.name = "left_right";
+  std::optional<LeftRightPreop> own;
+  if (!in.preop_side || in.preop_side->structures != in.structures) own = left_right_preop(in.preop_labels, in.structures);
+  const LeftRightPreop& preop = own ? *own : *in.preop_side;
   const Eigen::Matrix4d& A = in.intraop_from_preop;
-  const Eigen::Matrix4d AM = A * preop_mirror(in.preop_labels);
+  const Eigen::Matrix4d AM = A * preop.mirror;
   int prefer_mirror = 0, prefer_direct = 0;
   const auto vote = [&](double direct, double mirrored, double margin) {
     if (mirrored > direct + margin) ++prefer_mirror;
@@ -88,7 +97,7 @@ GateResult left_right_gate(const LeftRightInput& in, const PlausibilityLimits& l
   };
   // A structure needs a few hundred voxels on both sides to say anything.
   constexpr std::size_t kMinVoxels = 200;
-  const auto preop_points_of = points_of(in.preop_labels, in.structures);
+  const auto& preop_points_of = preop.points_mm;
   const auto intraop_points_of = points_of(in.intraop_labels, in.structures);
   for (std::size_t s = 0; s < in.structures.size(); ++s) {
     const auto& [name, label] = in.structures[s];

@@ -17,6 +17,17 @@
 
 namespace brainshift {
 
+// What the gate needs of the preop alone (its mirror, each structure's voxel
+// centres): the same for every scan of that preop, so the warm state makes
+// it once (about 25 ms a scan on the default atlas otherwise).
+struct LeftRightPreop {
+  std::vector<std::pair<std::string, std::uint16_t>> structures;  // those the points are of
+  Eigen::Matrix4d mirror = Eigen::Matrix4d::Identity();          // preop_mirror
+  std::vector<std::vector<Eigen::Vector3d>> points_mm;           // per structure, preop world
+};
+LeftRightPreop left_right_preop(const LabelImage& preop_labels,
+                                const std::vector<std::pair<std::string, std::uint16_t>>& structures);
+
 struct LeftRightInput {
   const LabelImage& preop_labels;
   const LabelImage& intraop_labels;
@@ -26,6 +37,9 @@ struct LeftRightInput {
   const ImageF* preop_t1 = nullptr;    // both images or neither
   const ImageF* intraop_t1 = nullptr;
   const Mask* intraop_brain = nullptr; // where the images are compared
+  // Made before from preop_labels (left_right_preop); used when made for
+  // the same structures, else the gate makes its own.
+  const LeftRightPreop* preop_side = nullptr;
 };
 
 // The preop's mirror about the plane x = (centroid of its labelled voxels).x,

@@ -466,10 +466,15 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
       // partial sums: the same likelihood on one core or two.
       std::array<double, 2> partial{0, 0};
       on_two_halves(N, [&](std::size_t begin, std::size_t end, std::size_t half) {
+        // Summed here and stored once: both halves' partial sums share a
+        // cache line, and adding into it per sample made the E-step half as
+        // fast on two cores (the same sums in the same order).
+        double sum = 0;
         for (std::size_t n = begin; n < end; ++n) {
           corrected[n] = s.intensity[n] * std::exp(-log_b[n]);
-          partial[half] += responsibilities(corrected[n], s.log_prior[n], terms, s.band[n], gamma[n]) - log_b[n];
+          sum += responsibilities(corrected[n], s.log_prior[n], terms, s.band[n], gamma[n]) - log_b[n];
         }
+        partial[half] = sum;
       });
       const double ll = (partial[0] + partial[1]) / static_cast<double>(N);
       out.iterations += 1;

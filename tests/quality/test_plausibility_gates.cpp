@@ -230,6 +230,17 @@ TEST(LeftRightGate, TheScanAsGivenPassesItsMirrorImageFails) {
   const GateResult blind = left_right_gate({preop, mirrored(intraop), A, {}}, limits);
   EXPECT_TRUE(blind.passed);
   EXPECT_EQ(blind.value, 0);
+
+  // The preop's side made once (the warm state's) decides the same; made for
+  // other structures it is not used.
+  const LeftRightPreop made = left_right_preop(preop, kAsymmetric);
+  LeftRightInput with_made{preop, mirrored(intraop), A, kAsymmetric};
+  with_made.preop_side = &made;
+  EXPECT_EQ(left_right_gate(with_made, limits).extra.dump(), flipped.extra.dump());
+  const LeftRightPreop other = left_right_preop(preop, {kAsymmetric.front()});
+  with_made.preop_side = &other;
+  EXPECT_EQ(left_right_gate(with_made, limits).extra.dump(), flipped.extra.dump());
+  EXPECT_FALSE(left_right_gate(with_made, limits).passed);
 }
 
 TEST(ImageGate, AFieldThatScramblesTheImageFailsTheIdentityPasses) {
