@@ -148,7 +148,8 @@ JacobianStats jacobian_stats(const VectorImage3& field, const Mask* mask) {
   }
   const int nz = field.grid.dims[2];
   on_two_halves(static_cast<std::size_t>(nz), [&](std::size_t k0, std::size_t k1, std::size_t h) {
-    JacobianStats& s = half[h];
+    // Kept here and stored once: the two halves' stats share a cache line.
+    JacobianStats s = half[h];
     for_each_jacobian(field, mask, static_cast<int>(k0), static_cast<int>(k1), [&s](std::size_t, float det) {
       const double d = det;
       s.min_det = std::min(s.min_det, d);
@@ -156,6 +157,7 @@ JacobianStats jacobian_stats(const VectorImage3& field, const Mask* mask) {
       s.folded_voxels += d <= 0.0;
       ++s.voxels;
     });
+    half[h] = s;
   });
   JacobianStats s = half[0];
   s.min_det = std::min(half[0].min_det, half[1].min_det);
