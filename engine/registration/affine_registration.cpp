@@ -82,9 +82,13 @@ void accumulate(const std::vector<Term>& terms, const AffineState& s, double c, 
 // core is idle during the intraop stages at one MPI rank).
 Evaluation evaluate(const std::vector<Term>& terms, const AffineState& s, double c) {
   std::array<Evaluation, 2> part;
+  // Each half sums into its own and stores it once: the two parts are
+  // adjacent, and the end of one shares a cache line with the start of the other.
   auto half = [&](int h) {
+    Evaluation own;
     accumulate(terms, s, c, [h](std::size_t n) { return h == 0 ? std::pair{std::size_t{0}, n / 2} : std::pair{n / 2, n}; },
-               part[h]);
+               own);
+    part[h] = own;
   };
   std::size_t points = 0;
   for (const Term& term : terms) points += term.q.size();

@@ -87,10 +87,12 @@ CorrectionStats apply_correction(VectorImage3& u, const Lattice& l, const ImageF
   CorrectionStats halves[2];
   on_two_halves(static_cast<std::size_t>(nz), [&](std::size_t begin, std::size_t end, std::size_t half) {
     const Composer composer(u, l, sdf_mm, box, fade_mm);
+    // Kept here and stored once: the two halves' stats share a cache line.
+    CorrectionStats stats;
     for (std::size_t z = begin; z < end; ++z)
       for (int y = 0; y < composer.ny(); ++y)
-        composer.row(box.lo[1] + y, box.lo[2] + static_cast<int>(z), &refined[z * slice + y * composer.nx()],
-                     &halves[half]);
+        composer.row(box.lo[1] + y, box.lo[2] + static_cast<int>(z), &refined[z * slice + y * composer.nx()], &stats);
+    halves[half] = stats;
   });
   on_two_halves(static_cast<std::size_t>(nz), [&](std::size_t begin, std::size_t end, std::size_t) {
     for (std::size_t z = begin; z < end; ++z)

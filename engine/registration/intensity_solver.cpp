@@ -67,6 +67,10 @@ struct DataTerm {
 
   void accumulate(std::size_t begin, std::size_t end, NodeSystem* out) const {
     const double scale = robust_scale * sigma;
+    // The sums per sample kept here and added once: the two halves'
+    // systems lie next to each other, their scalars on shared cache lines.
+    double sum_r2 = 0;
+    std::size_t used = 0;
     for_samples(begin, end, 1, [&](std::size_t n, const Vec3& y) {
       const Sample& s = samples[n];
       double value;
@@ -74,8 +78,8 @@ struct DataTerm {
       if (!preop.sample(y, &value, &g)) return;
       double slope;
       const double r = s.intensity - (s.bias * transfer.at(value, &slope) + offset);
-      out->sum_r2 += r * r;
-      ++out->used;
+      sum_r2 += r * r;
+      ++used;
       const double w = s.weight * geman_mcclure_weight(r, scale) / (sigma * sigma);
       const Vec3 dr = -static_cast<double>(s.bias) * slope * (s.jac.cast<double>().transpose() * g);  // d r / d v
       NodeSystem::Sym3 h;
@@ -87,6 +91,8 @@ struct DataTerm {
         out->gradient[node] += phi * grad;
       });
     });
+    out->sum_r2 += sum_r2;
+    out->used += used;
   }
 
   NodeSystem evaluate() const {
