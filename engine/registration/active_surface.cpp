@@ -266,11 +266,16 @@ SurfaceMatchResult match_surface(const TriSurface& surface, const ImageF& target
   Points x = surface.vertices_mm;
   Points from(n), to(n);
   const FoldLimiter limiter(surface, p.fold_guard);
+  // Every level's system has the membrane's pattern: its ordering and
+  // elimination tree are worked out once, each level factorises its values
+  // (the same factors as a full compute() per level).
+  Eigen::SimplicialLDLT<SpMat> solver;
   for (int level = 0; level < p.stiffness_levels; ++level) {
     const double alpha = p.membrane_stiffness * std::pow(p.stiffness_ratio, p.stiffness_levels - 1 - level);
     SpMat system = p.step * alpha * stiffness;
     system.diagonal() += mass;
-    Eigen::SimplicialLDLT<SpMat> solver(system);
+    if (level == 0) solver.analyzePattern(system);
+    solver.factorize(system);
     if (solver.info() != Eigen::Success) {
       r.displacement_mm.assign(n, Eigen::Vector3d::Zero());
       r.message = "failed: membrane matrix factorisation failed (degenerate surface?)";
