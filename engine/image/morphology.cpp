@@ -1,6 +1,7 @@
 #include "image/morphology.h"
 
 #include <algorithm>
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -55,6 +56,91 @@ void flood(const Grid3& g, std::size_t seed, std::int32_t id, const std::vector<
   }
 }
 
+// The 6-connected components of the voxels where `in(index)` holds within a
+// box of the grid, by runs: each row's runs of such voxels are joined to the
+// runs they overlap in the row before (j - 1) and the slice before (k - 1)
+// (the only 6-neighbours of a row before it), by union-find over the runs.
+// A run visits its voxels once and a row's neighbours by run, not by voxel:
+// several times faster than a voxel flood on the masks of a scan.
+class RunComponents {
+ public:
+  struct Run {
+    int i0, i1;        // inclusive, box coordinates
+    std::size_t row;   // j + ny * k, box coordinates
+  };
+
+  template <class In>
+  RunComponents(const std::array<int, 3>& dims, In&& in) : dims_(dims) {
+    const int nx = dims[0], ny = dims[1], nz = dims[2];
+    row_start_.assign(static_cast<std::size_t>(ny) * nz + 1, 0);
+    for (int k = 0; k < nz; ++k)
+      for (int j = 0; j < ny; ++j) {
+        const std::size_t row = static_cast<std::size_t>(j) + static_cast<std::size_t>(ny) * k;
+        row_start_[row] = runs_.size();
+        for (int i = 0; i < nx;) {
+          if (!in(i, j, k)) {
+            ++i;
+            continue;
+          }
+          const int i0 = i;
+          while (i < nx && in(i, j, k)) ++i;
+          runs_.push_back({i0, i - 1, row});
+        }
+      }
+    row_start_.back() = runs_.size();
+    parent_.resize(runs_.size());
+    for (std::size_t r = 0; r < parent_.size(); ++r) parent_[r] = r;
+    for (int k = 0; k < nz; ++k)
+      for (int j = 0; j < ny; ++j) {
+        const std::size_t row = static_cast<std::size_t>(j) + static_cast<std::size_t>(ny) * k;
+        if (j > 0) join_rows(row - 1, row);
+        if (k > 0) join_rows(row - static_cast<std::size_t>(ny), row);
+      }
+  }
+
+  const std::vector<Run>& runs() const { return runs_; }
+
+  std::size_t root(std::size_t r) {
+    while (parent_[r] != r) r = parent_[r] = parent_[parent_[r]];
+    return r;
+  }
+
+  // Component numbers 1..count in the raster order of each component's first
+  // voxel (runs are made in raster order): as a flood from each first voxel
+  // numbers them.
+  std::vector<std::int32_t> numbers(std::int32_t* count) {
+    std::vector<std::int32_t> of_root(runs_.size(), 0), out(runs_.size());
+    std::int32_t n = 0;
+    for (std::size_t r = 0; r < runs_.size(); ++r) {
+      std::int32_t& id = of_root[root(r)];
+      if (id == 0) id = ++n;
+      out[r] = id;
+    }
+    if (count) *count = n;
+    return out;
+  }
+
+ private:
+  void join_rows(std::size_t a_row, std::size_t b_row) {
+    std::size_t a = row_start_[a_row], b = row_start_[b_row];
+    const std::size_t a_end = row_start_[a_row + 1], b_end = row_start_[b_row + 1];
+    while (a < a_end && b < b_end) {
+      if (runs_[a].i0 <= runs_[b].i1 && runs_[b].i0 <= runs_[a].i1) unite(a, b);
+      if (runs_[a].i1 < runs_[b].i1) ++a;
+      else ++b;
+    }
+  }
+  void unite(std::size_t a, std::size_t b) {
+    a = root(a), b = root(b);
+    if (a != b) parent_[std::max(a, b)] = std::min(a, b);
+  }
+
+  std::array<int, 3> dims_;
+  std::vector<Run> runs_;
+  std::vector<std::size_t> row_start_;
+  std::vector<std::size_t> parent_;
+};
+
 // Slack so that a voxel exactly at radius_mm is inside despite float rounding.
 double radius_squared(double radius_mm) {
   if (!(radius_mm >= 0.0)) throw InputError("morphology radius must be >= 0 mm, got " + std::to_string(radius_mm));
@@ -85,6 +171,20 @@ Mask threshold(const ImageF& image, float lower, float upper) {
 Image3<std::int32_t> connected_components(const Mask& mask, int connectivity, int* count) {
   const auto offs = neighbourhood(connectivity);
   Image3<std::int32_t> comp(mask.grid, 0);
+  if (connectivity == 6) {
+    const Grid3& g = mask.grid;
+    const std::uint8_t* m = mask.voxels.data();
+    RunComponents runs(g.dims, [&](int i, int j, int k) { return m[g.index(i, j, k)] != 0; });
+    std::int32_t n = 0;
+    const std::vector<std::int32_t> id = runs.numbers(&n);
+    for (std::size_t r = 0; r < id.size(); ++r) {
+      const auto& run = runs.runs()[r];
+      std::int32_t* row = &comp.voxels[run.row * static_cast<std::size_t>(g.dims[0])];
+      std::fill(row + run.i0, row + run.i1 + 1, id[r]);
+    }
+    if (count) *count = n;
+    return comp;
+  }
   std::vector<std::size_t> stack;
   std::int32_t n = 0;
   const std::uint8_t* m = mask.voxels.data();
@@ -108,58 +208,40 @@ Mask largest_component(const Mask& mask, int connectivity) {
   return out;
 }
 
-// The background reached from outside the grid, 6-connected. The grid is
-// padded by two layers: the outer one is a wall, the inner one a background
-// shell that touches every border voxel, so one flood from a shell voxel
-// reaches what a flood from every background border voxel would, and no
-// neighbour needs a bounds check (this runs on every outline mask of a scan).
+// The holes: background 6-connected components that never reach the grid's
+// border. Only the mask's bounding box needs looking at: every voxel outside
+// it reaches the border along an axis, and a path from inside the box to the
+// border leaves the box through its own border voxels. So a hole is a
+// background component of the box that touches none of the box's faces (a
+// brain fills a third of a scan's grid: a fraction of the work). Components
+// by runs (RunComponents); this runs on every outline mask of a scan.
 Mask fill_holes(const Mask& mask) {
-  // Only the mask's bounding box needs the flood: every voxel outside it
-  // reaches the border along an axis, and a path from inside the box to the
-  // border leaves the box through the ring around it. A brain fills a third
-  // of a scan's grid, so this is a fraction of the work.
   const Grid3& g = mask.grid;
   Mask out = mask;
   const VoxelBox box = bounding_box_voxels(mask);
   if (box.empty) return out;
-  const std::ptrdiff_t nx = box.hi[0] - box.lo[0] + 1, ny = box.hi[1] - box.lo[1] + 1, nz = box.hi[2] - box.lo[2] + 1;
-  const std::ptrdiff_t px = nx + 4, py = ny + 4, pz = nz + 4, pxy = px * py;
-  enum : std::uint8_t { kOpen = 0, kWall = 1, kReached = 2 };
-  std::vector<std::uint8_t> state(static_cast<std::size_t>(pxy * pz), kOpen);
-  for (std::ptrdiff_t k = 0; k < pz; ++k)
-    for (std::ptrdiff_t j = 0; j < py; ++j)
-      for (std::ptrdiff_t i = 0; i < px; ++i)
-        if (i == 0 || j == 0 || k == 0 || i == px - 1 || j == py - 1 || k == pz - 1)
-          state[static_cast<std::size_t>(k * pxy + j * px + i)] = kWall;
+  const std::array<int, 3> dims{box.hi[0] - box.lo[0] + 1, box.hi[1] - box.lo[1] + 1, box.hi[2] - box.lo[2] + 1};
   const std::uint8_t* m = mask.voxels.data();
-  auto padded = [&](std::ptrdiff_t i, std::ptrdiff_t j, std::ptrdiff_t k) {
-    return static_cast<std::size_t>((k + 2) * pxy + (j + 2) * px + (i + 2));
+  const auto full = [&](int i, int j, int k) {
+    return g.index(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
   };
-  auto full = [&](std::ptrdiff_t i, std::ptrdiff_t j, std::ptrdiff_t k) {
-    return g.index(static_cast<int>(i) + box.lo[0], static_cast<int>(j) + box.lo[1], static_cast<int>(k) + box.lo[2]);
-  };
-  for (std::ptrdiff_t k = 0; k < nz; ++k)
-    for (std::ptrdiff_t j = 0; j < ny; ++j)
-      for (std::ptrdiff_t i = 0; i < nx; ++i)
-        if (m[full(i, j, k)]) state[padded(i, j, k)] = kWall;
-  const std::ptrdiff_t step[6] = {1, -1, px, -px, pxy, -pxy};
-  std::vector<std::size_t> stack{static_cast<std::size_t>(pxy + px + 1)};
-  state[stack.back()] = kReached;
-  while (!stack.empty()) {
-    const std::size_t at = stack.back();
-    stack.pop_back();
-    for (std::ptrdiff_t s : step) {
-      const std::size_t n = static_cast<std::size_t>(static_cast<std::ptrdiff_t>(at) + s);
-      if (state[n] == kOpen) {
-        state[n] = kReached;
-        stack.push_back(n);
-      }
-    }
+  RunComponents background(dims, [&](int i, int j, int k) { return m[full(i, j, k)] == 0; });
+  const auto& runs = background.runs();
+  std::vector<std::uint8_t> open(runs.size(), 0);
+  for (std::size_t r = 0; r < runs.size(); ++r) {
+    const auto& run = runs[r];
+    const int j = static_cast<int>(run.row % static_cast<std::size_t>(dims[1]));
+    const int k = static_cast<int>(run.row / static_cast<std::size_t>(dims[1]));
+    if (run.i0 == 0 || run.i1 == dims[0] - 1 || j == 0 || j == dims[1] - 1 || k == 0 || k == dims[2] - 1)
+      open[background.root(r)] = 1;
   }
-  for (std::ptrdiff_t k = 0; k < nz; ++k)
-    for (std::ptrdiff_t j = 0; j < ny; ++j)
-      for (std::ptrdiff_t i = 0; i < nx; ++i)
-        if (state[padded(i, j, k)] == kOpen) out.voxels[full(i, j, k)] = 1;
+  for (std::size_t r = 0; r < runs.size(); ++r) {
+    if (open[background.root(r)]) continue;
+    const auto& run = runs[r];
+    const int j = static_cast<int>(run.row % static_cast<std::size_t>(dims[1]));
+    const int k = static_cast<int>(run.row / static_cast<std::size_t>(dims[1]));
+    std::fill_n(&out.voxels[full(run.i0, j, k)], run.i1 - run.i0 + 1, std::uint8_t{1});
+  }
   return out;
 }
 

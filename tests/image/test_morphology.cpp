@@ -141,6 +141,51 @@ Mask holes_filled_by_definition(const Mask& m) {
   return out;
 }
 
+// 6-connected components by the definition: a breadth-first search from each
+// unnumbered mask voxel in raster order, numbered in that order.
+Image3<std::int32_t> components_by_definition(const Mask& m, int* count) {
+  const auto& d = m.grid.dims;
+  Image3<std::int32_t> out(m.grid, 0);
+  std::int32_t n = 0;
+  std::vector<std::array<int, 3>> queue;
+  for (int k = 0; k < d[2]; ++k)
+    for (int j = 0; j < d[1]; ++j)
+      for (int i = 0; i < d[0]; ++i) {
+        if (!m.at(i, j, k) || out.at(i, j, k)) continue;
+        out.at(i, j, k) = ++n;
+        queue.assign(1, {i, j, k});
+        for (std::size_t q = 0; q < queue.size(); ++q) {
+          const auto [a, b, c] = queue[q];
+          for (const auto& [da, db, dc] : {std::array<int, 3>{1, 0, 0}, {-1, 0, 0}, {0, 1, 0}, {0, -1, 0}, {0, 0, 1}, {0, 0, -1}}) {
+            const int x = a + da, y = b + db, z = c + dc;
+            if (x < 0 || y < 0 || z < 0 || x >= d[0] || y >= d[1] || z >= d[2]) continue;
+            if (!m.at(x, y, z) || out.at(x, y, z)) continue;
+            out.at(x, y, z) = n;
+            queue.push_back({x, y, z});
+          }
+        }
+      }
+  *count = n;
+  return out;
+}
+
+TEST(Morphology, ComponentsAgreeWithTheDefinitionOnRandomMasks) {
+  // Runs that touch at one voxel, U shapes joined only in a later row or
+  // slice, and numbering in raster order of each component's first voxel.
+  std::uint32_t state = 777;
+  auto next = [&state] { return state = state * 1664525u + 1013904223u; };
+  for (const std::array<int, 3> dims : {std::array<int, 3>{17, 13, 11}, {9, 21, 1}, {1, 1, 7}, {31, 4, 6}})
+    for (const unsigned percent : {15u, 35u, 50u, 65u, 85u}) {
+      Mask m(grid(dims), 0);
+      for (auto& v : m.voxels) v = (next() >> 8) % 100 < percent;
+      int n = 0, n_def = 0;
+      const auto c = connected_components(m, 6, &n);
+      const auto c_def = components_by_definition(m, &n_def);
+      EXPECT_EQ(n, n_def) << dims[0] << "x" << dims[1] << "x" << dims[2] << " at " << percent << " %";
+      EXPECT_EQ(c.voxels, c_def.voxels) << dims[0] << "x" << dims[1] << "x" << dims[2] << " at " << percent << " %";
+    }
+}
+
 TEST(Morphology, FillHolesAgreesWithTheDefinitionOnRandomMasks) {
   // Random masks of several densities on odd grids (including a single
   // slice and a single row, where every voxel is on a face).
