@@ -182,6 +182,19 @@ void for_each_voxel(const Grid3& g, F&& f) {
       for (int i = 0; i < g.dims[0]; ++i, ++v) f(v, i, j, k);
 }
 
+// As for_each_voxel, the two halves of the slices side by side: for f that
+// writes only its own voxel.
+template <class F>
+void for_each_voxel_on_both_cores(const Grid3& g, F&& f) {
+  parallel_halves(static_cast<std::size_t>(g.dims[2]), 2, [&](std::size_t k0, std::size_t k1) {
+    for (int k = static_cast<int>(k0); k < static_cast<int>(k1); ++k) {
+      std::size_t v = g.index(0, 0, k);
+      for (int j = 0; j < g.dims[1]; ++j)
+        for (int i = 0; i < g.dims[0]; ++i, ++v) f(v, i, j, k);
+    }
+  });
+}
+
 // Inclusive index bounds of the covered voxels; empty when none is.
 VoxelBox covered_box(const Grid3& g, const std::vector<std::uint8_t>& covered) {
   VoxelBox box;
@@ -196,47 +209,11 @@ VoxelBox covered_box(const Grid3& g, const std::vector<std::uint8_t>& covered) {
 }
 
 // Covered voxels plus the uncovered voxels not 6-connected to the grid border
-// (cavities). Everything outside the covered voxels' bounding box (grown by one
-// voxel) is outside, so the flood fill from the border only runs inside that
-// box; the stack carries voxel coordinates so no index divisions are needed.
+// (cavities): the covered voxels with their holes filled.
 Mask brain_region(const Grid3& g, const std::vector<std::uint8_t>& covered) {
-  const VoxelBox box = covered_box(g, covered);
-  Mask region(g, 0);
-  if (box.empty) return region;
-  std::array<int, 3> lo = box.lo, hi = box.hi;
-  for (int a = 0; a < 3; ++a) {
-    lo[a] = std::max(lo[a] - 1, 0);
-    hi[a] = std::min(hi[a] + 1, g.dims[a] - 1);
-  }
-  for (int k = lo[2]; k <= hi[2]; ++k)
-    for (int j = lo[1]; j <= hi[1]; ++j)
-      for (int i = lo[0]; i <= hi[0]; ++i) region.at(i, j, k) = 1;
-  struct Voxel {
-    int i, j, k;
-  };
-  std::vector<Voxel> stack;
-  const auto seed = [&](int i, int j, int k) {
-    const std::size_t v = g.index(i, j, k);
-    if (!covered[v] && region.voxels[v]) {
-      region.voxels[v] = 0;
-      stack.push_back({i, j, k});
-    }
-  };
-  for (int k = lo[2]; k <= hi[2]; ++k)
-    for (int j = lo[1]; j <= hi[1]; ++j)
-      for (int i = lo[0]; i <= hi[0]; ++i)
-        if (i == lo[0] || j == lo[1] || k == lo[2] || i == hi[0] || j == hi[1] || k == hi[2]) seed(i, j, k);
-  while (!stack.empty()) {
-    const Voxel p = stack.back();
-    stack.pop_back();
-    if (p.i > lo[0]) seed(p.i - 1, p.j, p.k);
-    if (p.i < hi[0]) seed(p.i + 1, p.j, p.k);
-    if (p.j > lo[1]) seed(p.i, p.j - 1, p.k);
-    if (p.j < hi[1]) seed(p.i, p.j + 1, p.k);
-    if (p.k > lo[2]) seed(p.i, p.j, p.k - 1);
-    if (p.k < hi[2]) seed(p.i, p.j, p.k + 1);
-  }
-  return region;
+  Mask m(g, 0);
+  m.voxels = covered;
+  return fill_holes(m);
 }
 
 // u = A^-1 x - x at voxel (i,j,k), evaluated as one affine map of the index.
@@ -261,7 +238,7 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
-  for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) {
+  for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
     if (covered[v]) rest[v] = (field.vectors[v].cast<double>() - affine(i, j, k)).cast<float>();
   });
   const Mask region = brain_region(grid, covered);
@@ -269,9 +246,12 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
   const ImageF distance = distance_to_mask_mm(region, std::max(params.blend_distance_mm, params.relax_band_mm));
   std::vector<std::uint32_t> free_voxels, relax_voxels;
   std::vector<float> weight(grid.voxel_count(), 0.f);
+  parallel_halves(weight.size(), 1 << 16, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t v = begin; v < end; ++v)
+      if (!covered[v]) weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
+  });
   for (std::size_t v = 0; v < grid.voxel_count(); ++v) {
     if (covered[v]) continue;
-    weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
     if (region.voxels[v]) ++stats.cavity_voxels;
     else if (weight[v] > 0.f) ++stats.blended_voxels;
     if (weight[v] > 0.f) free_voxels.push_back(static_cast<std::uint32_t>(v));
@@ -281,7 +261,7 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
   }
   fill_push_pull(grid, covered, free_voxels, rest);
   relax_laplace(grid, relax_voxels, params.smoothing_sweeps, rest);
-  for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) {
+  for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
     if (!covered[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
   });
   if (mesh_region) *mesh_region = region;
@@ -303,7 +283,7 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   VoxelBox box = covered_box(grid, covered);
   if (box.empty) {
-    for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) { field.vectors[v] = affine(i, j, k).cast<float>(); });
+    for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) { field.vectors[v] = affine(i, j, k).cast<float>(); });
     if (mesh_region) *mesh_region = Mask(grid, 0);
     return;
   }
@@ -329,7 +309,7 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
     }
   Mask part_region;
   continue_in_box(deformation, params, part_covered, part, stats, &part_region);
-  for_each_voxel(grid, [&](std::size_t v, int i, int j, int k) {
+  for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
     const bool inside = i >= box.lo[0] && i <= box.hi[0] && j >= box.lo[1] && j <= box.hi[1] && k >= box.lo[2] &&
                         k <= box.hi[2];
     if (!inside) field.vectors[v] = affine(i, j, k).cast<float>();
