@@ -165,11 +165,13 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
   // gap opens to. Counted as outside, it made the fluid around the posterior
   // third ventricle 51 mm deep a "gap" (docs/PERFORMANCE.md 12.9).
   Mask fluid(brain.grid, 0), outside = fill_holes(brain);
-  for (std::size_t v = 0; v < fluid.voxels.size(); ++v) {
-    outside.voxels[v] = !outside.voxels[v];
-    if (!brain.voxels[v] || ventricle.voxels[v]) continue;
-    fluid.voxels[v] = likelier_fluid(classes, image.voxels[v] / bias[v]);
-  }
+  parallel_halves(fluid.voxels.size(), 1 << 16, [&](std::size_t begin, std::size_t end) {  // each voxel on its own
+    for (std::size_t v = begin; v < end; ++v) {
+      outside.voxels[v] = !outside.voxels[v];
+      if (!brain.voxels[v] || ventricle.voxels[v]) continue;
+      fluid.voxels[v] = likelier_fluid(classes, image.voxels[v] / bias[v]);
+    }
+  });
   // Noise makes single voxels of a fluid layer look like tissue (a few per
   // cent at the lowest SNR), and each such hole would erode the opening by
   // its radius: holes of one voxel are closed first.
@@ -415,11 +417,13 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
                              : fit_tissue_mixture(image_box, prior, em_params);
 
   Mask brain(g, 0), ventricle(g, 0);
-  for (std::size_t v = 0; v < g.voxel_count(); ++v) {
-    const float p = em.posterior[0][v], vent = em.posterior[1][v], out = em.posterior[2][v];
-    brain.voxels[v] = std::max(p, vent) > out;
-    ventricle.voxels[v] = vent > p && vent > out;
-  }
+  parallel_halves(g.voxel_count(), 1 << 16, [&](std::size_t begin, std::size_t end) {  // each voxel on its own
+    for (std::size_t v = begin; v < end; ++v) {
+      const float p = em.posterior[0][v], vent = em.posterior[1][v], out = em.posterior[2][v];
+      brain.voxels[v] = std::max(p, vent) > out;
+      ventricle.voxels[v] = vent > p && vent > out;
+    }
+  });
   keep_carried_ventricles(brain, ventricle, ventricle_box);
   std::array<std::vector<float>, kTissues> posterior = em.posterior;
   Mask moved_out(g, 0), gap_fluid(g, 0);
@@ -477,16 +481,18 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.confidence = ImageF(image.grid, 1.f);
   result.bias = ImageF(image.grid, 1.f);
   const std::uint16_t ventricle_value = ventricle_labels.empty() ? brain_label : ventricle_labels.front();
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const std::size_t v = g.index(i, j, k);
-        const std::size_t w = image.grid.index(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
-        const int chosen = ventricle.voxels[v] ? 1 : brain.voxels[v] ? 0 : 2;
-        result.labels.voxels[w] = chosen == 1 ? ventricle_value : chosen == 0 ? brain_label : 0;
-        result.confidence.voxels[w] = posterior[chosen][v];
-        result.bias.voxels[w] = em.bias[v];
-      }
+  parallel_halves(static_cast<std::size_t>(g.dims[2]), 2, [&](std::size_t k0, std::size_t k1) {  // each slice on its own
+    for (int k = static_cast<int>(k0); k < static_cast<int>(k1); ++k)
+      for (int j = 0; j < g.dims[1]; ++j)
+        for (int i = 0; i < g.dims[0]; ++i) {
+          const std::size_t v = g.index(i, j, k);
+          const std::size_t w = image.grid.index(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
+          const int chosen = ventricle.voxels[v] ? 1 : brain.voxels[v] ? 0 : 2;
+          result.labels.voxels[w] = chosen == 1 ? ventricle_value : chosen == 0 ? brain_label : 0;
+          result.confidence.voxels[w] = posterior[chosen][v];
+          result.bias.voxels[w] = em.bias[v];
+        }
+  });
   result.open_fluid_ml = open_fluid_ml;
   if (params.max_sulcus_half_width_mm > 0) {
     result.open_fluid = Mask(image.grid, 0);
