@@ -205,15 +205,49 @@ void smooth_along_surface(Points* f, const std::vector<std::vector<int>>& nb, in
   }
 }
 
-// The three coordinates' membrane solves are independent (Eigen solves a
-// multi-column right-hand side column by column): two threads, the same result.
+// x = A^-1 b for the columns [c0, c1) of b, as SimplicialLDLT::solve does it
+// (permute, unit-lower solve, divide by D, unit-upper solve, permute back)
+// with the same operations in the same order for each column, but the
+// columns side by side in each substitution: the factor is read once for
+// all of them instead of once per column (the solves are memory-bound).
+void solve_ldlt_columns(const Eigen::SimplicialLDLT<SpMat>& solver, const Eigen::MatrixXd& b, Eigen::Index c0,
+                        Eigen::Index c1, Eigen::MatrixXd& out) {
+  const Eigen::Index n = b.rows(), m = c1 - c0;
+  if (m <= 0) return;
+  const SpMat& L = solver.matrixL().nestedExpression();  // unit lower, column-major
+  const Eigen::VectorXd& d = solver.vectorD();
+  Eigen::MatrixXd x = solver.permutationP() * b.middleCols(c0, m);
+  const int* start = L.outerIndexPtr();
+  const int* row = L.innerIndexPtr();
+  const double* value = L.valuePtr();
+  const auto end_of = [&](Eigen::Index i) { return L.isCompressed() ? start[i + 1] : start[i] + L.innerNonZeroPtr()[i]; };
+  for (Eigen::Index i = 0; i < n; ++i)  // L y = P b: column i of L updates the rows below i
+    for (Eigen::Index c = 0; c < m; ++c) {
+      const double t = x(i, c);
+      if (t == 0.0) continue;
+      for (int p = start[i]; p < end_of(i); ++p)
+        if (row[p] > i) x(row[p], c) -= t * value[p];
+    }
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const double inverse = 1.0 / d[i];
+    for (Eigen::Index c = 0; c < m; ++c) x(i, c) = inverse * x(i, c);
+  }
+  for (Eigen::Index i = n - 1; i >= 0; --i)  // L^T z = y: row i of L^T is column i of L
+    for (Eigen::Index c = 0; c < m; ++c) {
+      double t = x(i, c);
+      for (int p = start[i]; p < end_of(i); ++p)
+        if (row[p] > i) t -= value[p] * x(row[p], c);
+      x(i, c) = t;
+    }
+  out.middleCols(c0, m) = solver.permutationPinv() * x;
+}
+
+// The three coordinates' membrane solves are independent: one on this core,
+// two side by side on the other (solve_ldlt_columns), the same result.
 Eigen::MatrixXd solve_columns(const Eigen::SimplicialLDLT<SpMat>& solver, const Eigen::MatrixXd& rhs) {
   Eigen::MatrixXd out(rhs.rows(), rhs.cols());
   parallel_halves(static_cast<std::size_t>(rhs.cols()), 1, [&](std::size_t begin, std::size_t end) {
-    for (std::size_t c = begin; c < end; ++c) {
-      const auto col = static_cast<Eigen::Index>(c);
-      out.col(col) = solver.solve(rhs.col(col));
-    }
+    solve_ldlt_columns(solver, rhs, static_cast<Eigen::Index>(begin), static_cast<Eigen::Index>(end), out);
   });
   return out;
 }
