@@ -56,8 +56,8 @@ void flood(const Grid3& g, std::size_t seed, std::int32_t id, const std::vector<
   }
 }
 
-// The 6-connected components of the voxels where `in(index)` holds within a
-// box of the grid, by runs: each row's runs of such voxels are joined to the
+// The 6-connected components of the voxels (i, j, k) of a box of dims where
+// in(i, j, k) holds, by runs: each row's runs of such voxels are joined to the
 // runs they overlap in the row before (j - 1) and the slice before (k - 1)
 // (the only 6-neighbours of a row before it), by union-find over the runs.
 // A run visits its voxels once and a row's neighbours by run, not by voxel:
@@ -70,7 +70,7 @@ class RunComponents {
   };
 
   template <class In>
-  RunComponents(const std::array<int, 3>& dims, In&& in) : dims_(dims) {
+  RunComponents(const std::array<int, 3>& dims, In&& in) {
     const int nx = dims[0], ny = dims[1], nz = dims[2];
     row_start_.assign(static_cast<std::size_t>(ny) * nz + 1, 0);
     for (int k = 0; k < nz; ++k)
@@ -135,7 +135,6 @@ class RunComponents {
     if (a != b) parent_[std::max(a, b)] = std::min(a, b);
   }
 
-  std::array<int, 3> dims_;
   std::vector<Run> runs_;
   std::vector<std::size_t> row_start_;
   std::vector<std::size_t> parent_;
