@@ -174,16 +174,8 @@ void rasterise(const TetMesh& mesh, const MeshDeformation& def, const Grid3& gri
   });
 }
 
-template <class F>
-void for_each_voxel(const Grid3& g, F&& f) {
-  std::size_t v = 0;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i, ++v) f(v, i, j, k);
-}
-
-// As for_each_voxel, the two halves of the slices side by side: for f that
-// writes only its own voxel.
+// f(v, i, j, k) for every voxel, the two halves of the slices side by side:
+// for f that writes only its own voxel.
 template <class F>
 void for_each_voxel_on_both_cores(const Grid3& g, F&& f) {
   parallel_halves(static_cast<std::size_t>(g.dims[2]), 2, [&](std::size_t k0, std::size_t k1) {
@@ -193,27 +185,6 @@ void for_each_voxel_on_both_cores(const Grid3& g, F&& f) {
         for (int i = 0; i < g.dims[0]; ++i, ++v) f(v, i, j, k);
     }
   });
-}
-
-// Inclusive index bounds of the covered voxels; empty when none is.
-VoxelBox covered_box(const Grid3& g, const std::vector<std::uint8_t>& covered) {
-  VoxelBox box;
-  box.lo = g.dims;
-  for_each_voxel(g, [&](std::size_t v, int i, int j, int k) {
-    if (!covered[v]) return;
-    box.lo = {std::min(box.lo[0], i), std::min(box.lo[1], j), std::min(box.lo[2], k)};
-    box.hi = {std::max(box.hi[0], i), std::max(box.hi[1], j), std::max(box.hi[2], k)};
-  });
-  box.empty = box.hi[0] < 0;
-  return box;
-}
-
-// Covered voxels plus the uncovered voxels not 6-connected to the grid border
-// (cavities): the covered voxels with their holes filled.
-Mask brain_region(const Grid3& g, const std::vector<std::uint8_t>& covered) {
-  Mask m(g, 0);
-  m.voxels = covered;
-  return fill_holes(m);
 }
 
 // u = A^-1 x - x at voxel (i,j,k), evaluated as one affine map of the index.
@@ -233,25 +204,25 @@ struct AffinePullback {
 // final field there (covered voxels keep their exact rasterised values), on a
 // grid that holds every voxel the continuation reaches (continue_outside).
 void continue_in_box(const MeshDeformation& deformation, const FieldParameters& params,
-                     const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats,
-                     Mask* mesh_region) {
+                     const Mask& covered, VectorImage3& field, FieldStats& stats, Mask* mesh_region) {
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
   for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
-    if (covered[v]) rest[v] = (field.vectors[v].cast<double>() - affine(i, j, k)).cast<float>();
+    if (covered.voxels[v]) rest[v] = (field.vectors[v].cast<double>() - affine(i, j, k)).cast<float>();
   });
-  const Mask region = brain_region(grid, covered);
+  // The brain region: the covered voxels and the cavities they enclose.
+  const Mask region = fill_holes(covered);
   // Beyond the blend and the relaxed band the distance decides nothing.
   const ImageF distance = distance_to_mask_mm(region, std::max(params.blend_distance_mm, params.relax_band_mm));
   std::vector<std::uint32_t> free_voxels, relax_voxels;
   std::vector<float> weight(grid.voxel_count(), 0.f);
   parallel_halves(weight.size(), 1 << 16, [&](std::size_t begin, std::size_t end) {
     for (std::size_t v = begin; v < end; ++v)
-      if (!covered[v]) weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
+      if (!covered.voxels[v]) weight[v] = static_cast<float>(1.0 - smoothstep(distance.voxels[v] / params.blend_distance_mm));
   });
   for (std::size_t v = 0; v < grid.voxel_count(); ++v) {
-    if (covered[v]) continue;
+    if (covered.voxels[v]) continue;
     if (region.voxels[v]) ++stats.cavity_voxels;
     else if (weight[v] > 0.f) ++stats.blended_voxels;
     if (weight[v] > 0.f) free_voxels.push_back(static_cast<std::uint32_t>(v));
@@ -259,10 +230,10 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
       relax_voxels.push_back(static_cast<std::uint32_t>(v));
     }
   }
-  fill_push_pull(grid, covered, free_voxels, rest);
+  fill_push_pull(grid, covered.voxels, free_voxels, rest);
   relax_laplace(grid, relax_voxels, params.smoothing_sweeps, rest);
   for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
-    if (!covered[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
+    if (!covered.voxels[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
   });
   if (mesh_region) *mesh_region = region;
 }
@@ -277,11 +248,10 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
 // The box's corner keeps the parity of i + j + k, so the Laplace sweeps'
 // red-black colours are the grid's.
 void continue_outside(const MeshDeformation& deformation, const FieldParameters& params,
-                      const std::vector<std::uint8_t>& covered, VectorImage3& field, FieldStats& stats,
-                      Mask* mesh_region) {
+                      const Mask& covered, VectorImage3& field, FieldStats& stats, Mask* mesh_region) {
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
-  VoxelBox box = covered_box(grid, covered);
+  VoxelBox box = bounding_box_voxels(covered);
   if (box.empty) {
     for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) { field.vectors[v] = affine(i, j, k).cast<float>(); });
     if (mesh_region) *mesh_region = Mask(grid, 0);
@@ -299,13 +269,13 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
   sub.world_from_voxel = grid.world_from_voxel;
   sub.world_from_voxel.block<3, 1>(0, 3) = grid.world_mm(box.lo[0], box.lo[1], box.lo[2]);
   VectorImage3 part(sub);
-  std::vector<std::uint8_t> part_covered(sub.voxel_count());
+  Mask part_covered(sub, 0);
   const auto full_index = [&](int j, int k) { return grid.index(box.lo[0], j + box.lo[1], k + box.lo[2]); };
   for (int k = 0; k < sub.dims[2]; ++k)
     for (int j = 0; j < sub.dims[1]; ++j) {
       const std::size_t from = full_index(j, k), to = sub.index(0, j, k);
       std::copy_n(&field.vectors[from], sub.dims[0], &part.vectors[to]);
-      std::copy_n(&covered[from], sub.dims[0], &part_covered[to]);
+      std::copy_n(&covered.voxels[from], sub.dims[0], &part_covered.voxels[to]);
     }
   Mask part_region;
   continue_in_box(deformation, params, part_covered, part, stats, &part_region);
@@ -335,10 +305,10 @@ VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& de
   VectorImage3 field(intraop_grid);
   Raster raster{&field, std::vector<float>(intraop_grid.voxel_count(), kUncovered)};
   rasterise(preop_mesh, deformation, intraop_grid, params.barycentric_tolerance, raster, stats);
-  std::vector<std::uint8_t> covered(intraop_grid.voxel_count(), 0);
-  for (std::size_t v = 0; v < covered.size(); ++v) {
-    covered[v] = raster.depth[v] != kUncovered;
-    stats.covered_voxels += covered[v];
+  Mask covered(intraop_grid, 0);
+  for (std::size_t v = 0; v < covered.voxels.size(); ++v) {
+    covered.voxels[v] = raster.depth[v] != kUncovered;
+    stats.covered_voxels += covered.voxels[v];
   }
   stats.rasterise_seconds = total.seconds();
   Stopwatch fill_timer;
