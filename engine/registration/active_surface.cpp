@@ -222,10 +222,10 @@ void solve_ldlt_columns(const Eigen::SimplicialLDLT<SpMat>& solver, const Eigen:
   const double* value = L.valuePtr();
   const auto end_of = [&](Eigen::Index i) { return L.isCompressed() ? start[i + 1] : start[i] + L.innerNonZeroPtr()[i]; };
   for (Eigen::Index i = 0; i < n; ++i)  // L y = P b: column i of L updates the rows below i
-    for (Eigen::Index c = 0; c < m; ++c) {
+    for (Eigen::Index c = 0, end = end_of(i); c < m; ++c) {
       const double t = x(i, c);
       if (t == 0.0) continue;
-      for (int p = start[i]; p < end_of(i); ++p)
+      for (int p = start[i]; p < end; ++p)
         if (row[p] > i) x(row[p], c) -= t * value[p];
     }
   for (Eigen::Index i = 0; i < n; ++i) {
@@ -233,9 +233,9 @@ void solve_ldlt_columns(const Eigen::SimplicialLDLT<SpMat>& solver, const Eigen:
     for (Eigen::Index c = 0; c < m; ++c) x(i, c) = inverse * x(i, c);
   }
   for (Eigen::Index i = n - 1; i >= 0; --i)  // L^T z = y: row i of L^T is column i of L
-    for (Eigen::Index c = 0; c < m; ++c) {
+    for (Eigen::Index c = 0, end = end_of(i); c < m; ++c) {
       double t = x(i, c);
-      for (int p = start[i]; p < end_of(i); ++p)
+      for (int p = start[i]; p < end; ++p)
         if (row[p] > i) t -= value[p] * x(row[p], c);
       x(i, c) = t;
     }
