@@ -191,6 +191,7 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   passes.read("prior_surface_max_iterations", p.passes.prior_surface_max_iterations, 0, 1000);
   passes.read("warm_start_affine", p.passes.warm_start_affine);
   passes.read("prior_spacing_mm", p.passes.prior_spacing_mm, Interval::at_least(0));
+  passes.read("stage_spacing_mm", p.passes.stage_spacing_mm, Interval::at_least(0));
   passes.reject_unknown_keys();
   s.reject_unknown_keys();
 }

@@ -75,6 +75,13 @@ struct PassShortcuts {
   // sinking's gap, which narrowed the re-match's volume-gate margin by
   // up to 1.3 points (docs/PERFORMANCE.md 12.26).
   double prior_spacing_mm = 0.0;
+  // The stages of every pass (affine, surfaces, solve, field, refinement,
+  // gates) on a grid coarsened to this spacing (as pipeline/working_grid.h
+  // coarsens), the segmentation staying on the scan's working grid: the
+  // segmentation by the nearest voxel, the image smoothed, the field carried
+  // back trilinearly (the elastic solution is linear within tetrahedra
+  // 3-4 mm across) and the preop warped again on the scan's grid. 0: off.
+  double stage_spacing_mm = 0.0;
 };
 
 // The automatic path: a scan given as an image alone (pipeline/prepare_stage.h;

@@ -132,6 +132,10 @@ struct ScanOnGrid {
   LabelImage carried;
   segmentation::PreopSeen seen;
   CarriedPreopVolumes carried_volumes;
+  // The grid the passes' stages work on (PassShortcuts::stage_spacing_mm)
+  // and the image there; the image's own grid (and no copy) when off.
+  Grid3 stage_grid;
+  std::optional<ImageF> stage_image;
 
   ScanOnGrid(WarmState& w, const ImageF& im, double read_s, const PipelineParameters& p, const ProgressFn& pr,
              const Eigen::Matrix4d& intraop_from_preop)
@@ -139,7 +143,10 @@ struct ScanOnGrid {
         carried(resample_nearest(w.preop.labels, im.grid, intraop_from_preop.inverse())),
         seen(preop_as_seen(w, p.label_table, carried, intraop_from_preop)),
         carried_volumes(carried_preop_volumes(carried, p.label_table,
-                                              intraop_from_preop.topLeftCorner<3, 3>().determinant())) {}
+                                              intraop_from_preop.topLeftCorner<3, 3>().determinant())),
+        stage_grid(working_grid(im.grid, p.auto_segmentation.passes.stage_spacing_mm)) {
+    if (stage_grid.dims != im.grid.dims) stage_image = downsample_linear(im, stage_grid);
+  }
 
   // As for given labels (run_intraop), but said of the image and before the
   // segmentation's time is spent: the preop placed by the head shows how much
@@ -188,11 +195,10 @@ struct ScanOnGrid {
   }
   ScanResult run_pass(const segmentation::IntraopSegmentation& s, bool rematch_follows, bool& prior_only,
                       const Eigen::Matrix4d* affine_start = nullptr) const {
-    const IntraopInput input{s.labels, image, read_seconds, s.open_fluid_ml};
     if (!params.auto_segmentation.passes.warm_start_affine) affine_start = nullptr;
     prior_only = false;
     if (rematch_follows) {
-      ScanResult light = run_intraop(warm, input, params, progress, false, "", PassOptions{true, affine_start});
+      ScanResult light = stages(s, "", PassOptions{true, affine_start});
       prior_only = light.kind == ResultKind::nonrigid;
       if (prior_only) return light;
       if (light_field_is_full()) {
@@ -200,11 +206,28 @@ struct ScanOnGrid {
         return light;
       }
     }
-    return run_intraop(warm, input, params, progress, false, "", PassOptions{false, affine_start});
+    return stages(s, "", PassOptions{false, affine_start});
   }
   ScanResult refused(const segmentation::IntraopSegmentation& s, const std::string& reason) const {
-    return run_intraop(warm, IntraopInput{s.labels, image, read_seconds, s.open_fluid_ml}, params, progress, false,
-                       reason);
+    return stages(s, reason, PassOptions{});
+  }
+  // One pass of the stages on a segmentation: on the stage grid when that
+  // is coarser, the answer carried back to the image's grid (metrics and
+  // timings "stage_grid"; the carrying counted in the pass's total).
+  ScanResult stages(const segmentation::IntraopSegmentation& s, const std::string& forced,
+                    const PassOptions& pass) const {
+    if (!stage_image)
+      return run_intraop(warm, IntraopInput{s.labels, image, read_seconds, s.open_fluid_ml}, params, progress, false,
+                         forced, pass);
+    Stopwatch watch;
+    const IntraopInput coarser{resample_nearest(s.labels, stage_grid), *stage_image, read_seconds, s.open_fluid_ml};
+    double own_seconds = watch.lap();
+    ScanResult result = run_intraop(warm, coarser, params, progress, false, forced, pass);
+    watch.lap();
+    carry_to_grid(warm, result, image.grid);
+    own_seconds += watch.lap();
+    report_working_grid(result, stage_grid, image.grid, own_seconds, "stage_grid");
+    return result;
   }
 };
 

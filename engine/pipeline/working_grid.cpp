@@ -38,13 +38,14 @@ void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image
   if (!result.uncertainty_mm.voxels.empty()) result.uncertainty_mm = resample_linear(result.uncertainty_mm, image_grid);
 }
 
-void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& image_grid, double seconds) {
+void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& image_grid, double seconds,
+                         const std::string& key) {
   const auto triple = [](const auto& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
-  result.metrics["working_grid"] = {{"dims", triple(work.dims)}, {"spacing_mm", triple(work.spacing_mm())},
+  result.metrics[key] = {{"dims", triple(work.dims)}, {"spacing_mm", triple(work.spacing_mm())},
                                     {"image_dims", triple(image_grid.dims)},
                                     {"image_spacing_mm", triple(image_grid.spacing_mm())}};
   auto& t = result.timings["intraop"];
-  t["working_grid"] = seconds;
+  t[key] = seconds;
   const std::string total(protocol::stages::kTotal);
   t[total] = t.value(total, 0.0) + seconds;
 }

@@ -7,6 +7,8 @@
 // AutoSegmentationParameters::working_spacing_mm is coarsened to it for the
 // work, and the answer is carried back to the image's own grid, the grid
 // every output is defined on (docs/DESIGN.md "The working grid").
+#include <string>
+
 #include "pipeline/warm_state.h"
 
 namespace brainshift {
@@ -32,11 +34,13 @@ Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm);
 // per-node displacements do not depend on a grid.
 void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image_grid);
 
-// What a scan worked on a working grid reports: metrics "working_grid" (the
-// working grid's and the image's dims and spacing) and timings.intraop
-// "working_grid" (the seconds spent coarsening and carrying back), added to
-// the total.
-void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& image_grid, double seconds);
+// What a scan worked on a working grid reports: metrics `key` (the working
+// grid's and the image's dims and spacing) and timings.intraop `key` (the
+// seconds spent coarsening and carrying back), added to the total. The
+// image-only passes' stage grid (PassShortcuts::stage_spacing_mm) reports
+// the same way under "stage_grid".
+void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& image_grid, double seconds,
+                         const std::string& key = "working_grid");
 
 // The stages on given labels (and their image): on the working grid when the
 // labels' grid has an axis much finer than working_spacing_mm (the labels by
