@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <stdexcept>
+#include <vector>
 
 #include "core/parallel.h"
 #include "image/gaussian_smooth.h"
@@ -84,6 +86,65 @@ ImageF downsample_linear(const ImageF& image, const Grid3& coarser) {
   ImageF smoothed = image;
   gaussian_smooth_voxels(smoothed, sigma_voxels);
   return resample_linear(smoothed, coarser);
+}
+
+namespace {
+
+// The source voxels a coarser voxel's box overlaps along one axis, with the
+// overlap in source voxels: coarser voxel j spans source coordinates
+// [j r - 0.5, (j + 1) r - 0.5], r = n_source / n_coarser.
+struct Overlap {
+  int index;
+  double weight;
+};
+std::vector<std::vector<Overlap>> axis_overlaps(int n_source, int n_coarser) {
+  const double r = static_cast<double>(n_source) / n_coarser;
+  std::vector<std::vector<Overlap>> out(static_cast<std::size_t>(n_coarser));
+  for (int j = 0; j < n_coarser; ++j) {
+    const double lo = j * r - 0.5, hi = (j + 1) * r - 0.5;
+    for (int i = std::max(0, static_cast<int>(std::floor(lo + 0.5))); i < n_source && i - 0.5 < hi; ++i) {
+      const double w = std::min(hi, i + 0.5) - std::max(lo, i - 0.5);
+      if (w > 1e-9) out[static_cast<std::size_t>(j)].push_back({i, w});
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
+LabelImage downsample_labels(const LabelImage& labels, const Grid3& coarser) {
+  const Grid3 expected = same_extent_grid(labels.grid, coarser.dims);
+  if (!expected.world_from_voxel.isApprox(coarser.world_from_voxel, 1e-9))
+    throw std::invalid_argument("downsample_labels: the coarser grid does not span the labels' box");
+  std::array<std::vector<std::vector<Overlap>>, 3> axis;
+  for (int a = 0; a < 3; ++a) axis[a] = axis_overlaps(labels.grid.dims[a], coarser.dims[a]);
+  LabelImage out(coarser, 0);
+  const auto& g = labels.grid;
+  parallel_halves(static_cast<std::size_t>(coarser.dims[2]), 4, [&](std::size_t k0, std::size_t k1) {
+    std::vector<std::pair<std::uint16_t, double>> cover;  // label, overlap
+    for (auto k = static_cast<int>(k0); k < static_cast<int>(k1); ++k)
+      for (int j = 0; j < coarser.dims[1]; ++j)
+        for (int i = 0; i < coarser.dims[0]; ++i) {
+          cover.clear();
+          for (const Overlap& z : axis[2][static_cast<std::size_t>(k)])
+            for (const Overlap& y : axis[1][static_cast<std::size_t>(j)])
+              for (const Overlap& x : axis[0][static_cast<std::size_t>(i)]) {
+                const std::uint16_t l = labels.voxels[g.index(x.index, y.index, z.index)];
+                const double w = x.weight * y.weight * z.weight;
+                auto it = std::find_if(cover.begin(), cover.end(), [l](const auto& c) { return c.first == l; });
+                if (it == cover.end()) cover.emplace_back(l, w);
+                else it->second += w;
+              }
+          // Most cover; an exact tie (the same sums of the same overlaps)
+          // to the lowest label on even voxels, the highest on odd ones.
+          const bool odd = (i + j + k) % 2 != 0;
+          std::pair<std::uint16_t, double> best{0, -1.0};
+          for (const auto& c : cover)
+            if (c.second > best.second || (c.second == best.second && (c.first < best.first) != odd)) best = c;
+          out.voxels[coarser.index(i, j, k)] = best.first;
+        }
+  });
+  return out;
 }
 
 }  // namespace brainshift

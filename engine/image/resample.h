@@ -62,4 +62,14 @@ Grid3 same_extent_grid(const Grid3& grid, const std::array<int, 3>& dims);
 // voxels' profile first, then sampled linearly.
 ImageF downsample_linear(const ImageF& image, const Grid3& coarser);
 
+// labels on a coarser grid of the same extent (same_extent_grid of theirs):
+// each coarser voxel takes the label covering most of its box (the source
+// voxels' overlaps with it, per axis). The nearest source voxel to a coarser
+// centre is no rule for a whole ratio: at 2:1 every centre falls halfway
+// between two source voxels, and rounding the halves one way moves every
+// outline by half a source voxel along each axis. An exact tie alternates
+// between the tied labels in a checkerboard, so that no direction is
+// favoured. Throws std::invalid_argument for a grid of another extent.
+LabelImage downsample_labels(const LabelImage& labels, const Grid3& coarser);
+
 }  // namespace brainshift

@@ -211,16 +211,21 @@ struct ScanOnGrid {
   ScanResult refused(const segmentation::IntraopSegmentation& s, const std::string& reason) const {
     return stages(s, reason, PassOptions{});
   }
-  // One pass of the stages on a segmentation: on the stage grid when that
-  // is coarser, the answer carried back to the image's grid (metrics and
-  // timings "stage_grid"; the carrying counted in the pass's total).
+  // One pass of the stages on a segmentation. A full pass works on the stage
+  // grid when that is coarser, its answer carried back to the image's grid
+  // (metrics and timings "stage_grid"; the carrying counted in the pass's
+  // total). A light pass stays on the image's grid: its warped labels are
+  // the re-match's prior, whose outline at a deep sinking's edge the field
+  // carried from 2 mm voxels moved by about a millimetre (the fade beyond the
+  // mesh is steep there), enough to cost the re-match (docs/PERFORMANCE.md
+  // 12.29).
   ScanResult stages(const segmentation::IntraopSegmentation& s, const std::string& forced,
                     const PassOptions& pass) const {
-    if (!stage_image)
+    if (!stage_image || pass.prior_only)
       return run_intraop(warm, IntraopInput{s.labels, image, read_seconds, s.open_fluid_ml}, params, progress, false,
                          forced, pass);
     Stopwatch watch;
-    const IntraopInput coarser{resample_nearest(s.labels, stage_grid), *stage_image, read_seconds, s.open_fluid_ml};
+    const IntraopInput coarser{downsample_labels(s.labels, stage_grid), *stage_image, read_seconds, s.open_fluid_ml};
     double own_seconds = watch.lap();
     ScanResult result = run_intraop(warm, coarser, params, progress, false, forced, pass);
     watch.lap();

@@ -57,7 +57,7 @@ ScanResult run_intraop_on_working_grid(WarmState& warm, const IntraopInput& inpu
   if (work.dims == grid.dims) return run_intraop(warm, input, params, progress, false, forced_fallback);
   validate_intraop_input(input, params.label_table);  // said of the labels as given
   Stopwatch watch;
-  IntraopInput coarser{resample_nearest(input.labels, work), std::nullopt, input.read_seconds, input.open_fluid_ml};
+  IntraopInput coarser{downsample_labels(input.labels, work), std::nullopt, input.read_seconds, input.open_fluid_ml};
   if (input.t1) coarser.t1 = downsample_linear(*input.t1, work);
   double own_seconds = watch.lap();
   ScanResult result = run_intraop(warm, coarser, params, progress, false, forced_fallback);

@@ -43,10 +43,10 @@ void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& ima
                          const std::string& key = "working_grid");
 
 // The stages on given labels (and their image): on the working grid when the
-// labels' grid has an axis much finer than working_spacing_mm (the labels by
-// the nearest voxel, the image smoothed and sampled as for the automatic
-// path), the answer carried back to the labels' grid; run_intraop as it is
-// otherwise. Without quality metrics: the caller adds them against the
+// labels' grid has an axis much finer than working_spacing_mm (each working
+// voxel takes the label covering most of it, downsample_labels; the image
+// smoothed and sampled as for the automatic path), the answer carried back
+// to the labels' grid; run_intraop as it is otherwise. Without quality metrics: the caller adds them against the
 // labels as given.
 ScanResult run_intraop_on_working_grid(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                                        const ProgressFn& progress, const std::string& forced_fallback = "");

@@ -189,11 +189,11 @@ TEST_F(ImageOnlyPasses, TheFirstRoundIsWorkedOnTheCoarserPriorGridTheAnswerOnThe
   EXPECT_TRUE(refused.intraop_labels->grid.same_geometry(moved.labels.grid));
 }
 
-// Every pass's stages on the coarser stage grid
+// The answer's stages on the coarser stage grid
 // (PassShortcuts::stage_spacing_mm), the segmentation on the scan's own grid:
 // both rounds' segmentations and every output on the scan's grid, the stages'
 // grid reported, the translation recovered as on the scan's own grid.
-TEST_F(ImageOnlyPasses, ThePassesStagesAreWorkedOnTheStageGridTheSegmentationOnTheScans) {
+TEST_F(ImageOnlyPasses, TheAnswersStagesAreWorkedOnTheStageGridTheSegmentationOnTheScans) {
   PipelineParameters p = test::coarse_parameters();
   p.auto_segmentation.passes.stage_spacing_mm = 2.0;
   EngineSession session(MPI_COMM_WORLD, p);
