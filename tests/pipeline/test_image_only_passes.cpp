@@ -6,6 +6,7 @@
 #include <mpi.h>
 
 #include <cstring>
+#include <optional>
 
 #include "coarse_parameters.h"  // tests/support
 #include "pipeline/engine_session.h"
@@ -190,34 +191,39 @@ TEST_F(ImageOnlyPasses, TheFirstRoundIsWorkedOnTheCoarserPriorGridTheAnswerOnThe
 }
 
 // The answer's stages on the coarser stage grid
-// (PassShortcuts::stage_spacing_mm), the segmentation on the scan's own grid:
-// both rounds' segmentations and every output on the scan's grid, the stages'
-// grid reported, the translation recovered as on the scan's own grid.
+// (PassShortcuts::stage_spacing_mm, 2 mm by default; 0 turns it off), the
+// segmentation on the scan's own grid: both rounds' segmentations and every
+// output on the scan's grid, the stages' grid reported only when used, the
+// translation recovered either way.
 TEST_F(ImageOnlyPasses, TheAnswersStagesAreWorkedOnTheStageGridTheSegmentationOnTheScans) {
-  PipelineParameters p = test::coarse_parameters();
-  p.auto_segmentation.passes.stage_spacing_mm = 2.0;
-  EngineSession session(MPI_COMM_WORLD, p);
-  session.load_preop(*preop_, nullptr);
   const Eigen::Vector3d shift(3.0, -2.0, 2.0);
   const IntraopInput moved = moved_scan(*preop_, shift, 0.0);
   ScanInput scan;
   scan.image = test::scanner_image(*moved.t1);
-  const ScanResult r = session.register_scan(scan, nullptr);
-  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
-  ASSERT_TRUE(r.metrics.contains("stage_grid")) << r.metrics.dump();
-  EXPECT_EQ(r.metrics["stage_grid"]["dims"], nlohmann::json::array({70, 77, 44}));
-  EXPECT_GT(r.timings["intraop"].value("stage_grid", 0.0), 0.0);
-  EXPECT_FALSE(r.metrics.contains("working_grid"));
-  const auto& rounds = r.metrics["segmentation"]["rounds"];
-  ASSERT_EQ(rounds.size(), 2u) << rounds.dump();
-  for (const auto& round : rounds) EXPECT_FALSE(round.contains("kept")) << round.dump();
-  ASSERT_TRUE(r.intraop_labels);
-  for (const Grid3* g : {&r.intraop_labels->grid, &r.pullback_field_mm.grid, &r.warped_labels.grid, &r.warped_t1.grid,
-                         &r.segmentation_confidence->grid})
-    EXPECT_TRUE(g->same_geometry(moved.labels.grid));
-  EXPECT_LT(mean_translation_error(r, moved.labels, shift), 0.5);
-  EXPECT_GT(test::outline_dice(*r.intraop_labels, moved.labels), 0.95);
-  EXPECT_GT(test::outline_dice(r.warped_labels, moved.labels), 0.95);
+  std::optional<TetMesh> mesh;
+  for (const double spacing_mm : {2.0, 0.0}) {
+    SCOPED_TRACE(spacing_mm);
+    PipelineParameters p = test::coarse_parameters();
+    p.auto_segmentation.passes.stage_spacing_mm = spacing_mm;
+    EngineSession session(MPI_COMM_WORLD, p);
+    session.load_preop(*preop_, nullptr, mesh);
+    if (!mesh) mesh = session.mesh();
+    const ScanResult r = session.register_scan(scan, nullptr);
+    ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
+    EXPECT_EQ(r.metrics.contains("stage_grid"), spacing_mm > 0) << r.metrics.dump();
+    EXPECT_EQ(r.timings["intraop"].contains("stage_grid"), spacing_mm > 0);
+    if (spacing_mm > 0) {
+      EXPECT_EQ(r.metrics["stage_grid"]["dims"], nlohmann::json::array({70, 77, 44}));
+    }
+    EXPECT_EQ(r.metrics["segmentation"]["rounds"].size(), 2u);
+    ASSERT_TRUE(r.intraop_labels && r.segmentation_confidence);
+    for (const Grid3* g : {&r.intraop_labels->grid, &r.segmentation_confidence->grid, &r.pullback_field_mm.grid,
+                           &r.warped_labels.grid, &r.warped_t1.grid})
+      EXPECT_TRUE(g->same_geometry(moved.labels.grid));
+    EXPECT_LT(mean_translation_error(r, moved.labels, shift), 0.5);
+    EXPECT_GT(test::outline_dice(*r.intraop_labels, moved.labels), 0.95);
+    EXPECT_GT(test::outline_dice(r.warped_labels, moved.labels), 0.95);
+  }
 }
 
 // The working grid (pipeline/working_grid.h): only an axis much finer than
