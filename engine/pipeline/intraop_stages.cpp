@@ -342,6 +342,15 @@ void add_quality_metrics(const WarmState& warm, const IntraopInput& input, const
     return resample_linear(warm.preop.t1, input.labels.grid, preop_from_intraop);
   });
   result.metrics["labels"] = label_metrics(result.warped_labels, input.labels, table);
+  // A field worked on a coarser grid (the working or the stage grid) was
+  // judged there by the fold gate; the field delivered, carried to the
+  // scan's grid, is measured here too, over the scan's outline.
+  if (result.metrics.contains("working_grid") || result.metrics.contains("stage_grid")) {
+    const Mask outline = outline_mask(input.labels);
+    const JacobianStats delivered = jacobian_stats(result.pullback_field_mm, &outline);
+    result.metrics["jacobian"]["delivered_min"] = delivered.min_det;
+    result.metrics["jacobian"]["delivered_folded_voxels"] = delivered.folded_voxels;
+  }
   result.metrics["labels_affine_only"] = affine_only.get();
   result.warped_t1_affine_only = affine_t1.get();
   clock.done(stages::kQualityMetrics);

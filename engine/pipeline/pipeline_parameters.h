@@ -78,9 +78,10 @@ struct PassShortcuts {
   // A full pass (the answer's) works its stages (affine, surfaces, solve,
   // field, refinement, gates) on a grid coarsened to this spacing (as
   // pipeline/working_grid.h coarsens), the segmentation staying on the
-  // scan's working grid: the segmentation taken by the nearest voxel, the
-  // image smoothed to the coarser voxels, the field carried back
-  // trilinearly and the preop warped again on the scan's grid. 2 mm, the
+  // scan's working grid: each stage voxel takes the segmentation's label
+  // covering most of it, the image smoothed to the coarser voxels, the
+  // field carried back trilinearly and the preop warped again on the
+  // scan's grid (its Jacobian there reported as jacobian.delivered_min). 2 mm, the
   // mesh's surface facet ([mesh] facet_size_mm): what the stages make is the
   // mesh's nodal displacement, linear within each tetrahedron (cells
   // 3.4 mm), which a grid at the facet size samples at its own scale. The

@@ -42,8 +42,8 @@ void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& ima
                          const std::string& key) {
   const auto triple = [](const auto& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
   result.metrics[key] = {{"dims", triple(work.dims)}, {"spacing_mm", triple(work.spacing_mm())},
-                                    {"image_dims", triple(image_grid.dims)},
-                                    {"image_spacing_mm", triple(image_grid.spacing_mm())}};
+                         {"image_dims", triple(image_grid.dims)},
+                         {"image_spacing_mm", triple(image_grid.spacing_mm())}};
   auto& t = result.timings["intraop"];
   t[key] = seconds;
   const std::string total(protocol::stages::kTotal);

@@ -214,7 +214,11 @@ TEST_F(ImageOnlyPasses, TheAnswersStagesAreWorkedOnTheStageGridTheSegmentationOn
     EXPECT_EQ(r.timings["intraop"].contains("stage_grid"), spacing_mm > 0);
     if (spacing_mm > 0) {
       EXPECT_EQ(r.metrics["stage_grid"]["dims"], nlohmann::json::array({70, 77, 44}));
+      // The fold gate judged the stage grid's field; the delivered one is measured too.
+      EXPECT_GT(r.metrics["jacobian"]["delivered_min"].get<double>(), 0.5) << r.metrics["jacobian"].dump();
+      EXPECT_EQ(r.metrics["jacobian"]["delivered_folded_voxels"], 0);
     }
+    EXPECT_EQ(r.metrics["jacobian"].contains("delivered_min"), spacing_mm > 0);
     EXPECT_EQ(r.metrics["segmentation"]["rounds"].size(), 2u);
     ASSERT_TRUE(r.intraop_labels && r.segmentation_confidence);
     for (const Grid3* g : {&r.intraop_labels->grid, &r.segmentation_confidence->grid, &r.pullback_field_mm.grid,
