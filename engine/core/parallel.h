@@ -4,6 +4,7 @@
 // waits, and at two ranks the workers sleep between commands (see
 // mpi_commands.cpp), so rank 0 may use both.
 #include <algorithm>
+#include <array>
 #include <cstddef>
 #include <exception>
 #include <thread>
@@ -69,6 +70,19 @@ void on_two_halves(std::size_t n, Fn&& fn) {
   const std::size_t mid = n / 2;
   parallel_halves(2, 1, [&](std::size_t begin, std::size_t end) {
     for (std::size_t h = begin; h < end; ++h) fn(h == 0 ? 0 : mid, h == 0 ? mid : n, h);
+  });
+}
+
+// f(v, i, j, k) for every voxel of a grid of dims (v its raster index), the
+// slices in two halves side by side: for f that writes only its own voxel.
+template <class F>
+void for_each_voxel_on_both_cores(const std::array<int, 3>& dims, F&& f) {
+  parallel_halves(static_cast<std::size_t>(dims[2]), 2, [&](std::size_t k0, std::size_t k1) {
+    for (int k = static_cast<int>(k0); k < static_cast<int>(k1); ++k) {
+      std::size_t v = static_cast<std::size_t>(k) * static_cast<std::size_t>(dims[0]) * static_cast<std::size_t>(dims[1]);
+      for (int j = 0; j < dims[1]; ++j)
+        for (int i = 0; i < dims[0]; ++i, ++v) f(v, i, j, k);
+    }
   });
 }
 

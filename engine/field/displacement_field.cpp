@@ -174,19 +174,6 @@ void rasterise(const TetMesh& mesh, const MeshDeformation& def, const Grid3& gri
   });
 }
 
-// f(v, i, j, k) for every voxel, the two halves of the slices side by side:
-// for f that writes only its own voxel.
-template <class F>
-void for_each_voxel_on_both_cores(const Grid3& g, F&& f) {
-  parallel_halves(static_cast<std::size_t>(g.dims[2]), 2, [&](std::size_t k0, std::size_t k1) {
-    for (int k = static_cast<int>(k0); k < static_cast<int>(k1); ++k) {
-      std::size_t v = g.index(0, 0, k);
-      for (int j = 0; j < g.dims[1]; ++j)
-        for (int i = 0; i < g.dims[0]; ++i, ++v) f(v, i, j, k);
-    }
-  });
-}
-
 // u = A^-1 x - x at voxel (i,j,k), evaluated as one affine map of the index.
 struct AffinePullback {
   Eigen::Matrix3d lin;
@@ -208,7 +195,7 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
-  for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
+  for_each_voxel_on_both_cores(grid.dims, [&](std::size_t v, int i, int j, int k) {
     if (covered.voxels[v]) rest[v] = (field.vectors[v].cast<double>() - affine(i, j, k)).cast<float>();
   });
   // The brain region: the covered voxels and the cavities they enclose.
@@ -232,7 +219,7 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
   }
   fill_push_pull(grid, covered.voxels, free_voxels, rest);
   relax_laplace(grid, relax_voxels, params.smoothing_sweeps, rest);
-  for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
+  for_each_voxel_on_both_cores(grid.dims, [&](std::size_t v, int i, int j, int k) {
     if (!covered.voxels[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
   });
   if (mesh_region) *mesh_region = region;
@@ -253,7 +240,7 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   VoxelBox box = bounding_box_voxels(covered);
   if (box.empty) {
-    for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) { field.vectors[v] = affine(i, j, k).cast<float>(); });
+    for_each_voxel_on_both_cores(grid.dims, [&](std::size_t v, int i, int j, int k) { field.vectors[v] = affine(i, j, k).cast<float>(); });
     if (mesh_region) *mesh_region = Mask(grid, 0);
     return;
   }
@@ -279,7 +266,7 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
     }
   Mask part_region;
   continue_in_box(deformation, params, part_covered, part, stats, &part_region);
-  for_each_voxel_on_both_cores(grid, [&](std::size_t v, int i, int j, int k) {
+  for_each_voxel_on_both_cores(grid.dims, [&](std::size_t v, int i, int j, int k) {
     const bool inside = i >= box.lo[0] && i <= box.hi[0] && j >= box.lo[1] && j <= box.hi[1] && k >= box.lo[2] &&
                         k <= box.hi[2];
     if (!inside) field.vectors[v] = affine(i, j, k).cast<float>();

@@ -72,6 +72,7 @@ class RunComponents {
   template <class In>
   RunComponents(const std::array<int, 3>& dims, In&& in) {
     const int nx = dims[0], ny = dims[1], nz = dims[2];
+    ny_ = static_cast<std::size_t>(ny);
     row_start_.assign(static_cast<std::size_t>(ny) * nz + 1, 0);
     for (int k = 0; k < nz; ++k)
       for (int j = 0; j < ny; ++j) {
@@ -99,6 +100,10 @@ class RunComponents {
   }
 
   const std::vector<Run>& runs() const { return runs_; }
+  // (j, k) of a run's row.
+  std::array<int, 2> row_jk(const Run& run) const {
+    return {static_cast<int>(run.row % ny_), static_cast<int>(run.row / ny_)};
+  }
 
   std::size_t root(std::size_t r) {
     while (parent_[r] != r) r = parent_[r] = parent_[parent_[r]];
@@ -135,6 +140,7 @@ class RunComponents {
     if (a != b) parent_[std::max(a, b)] = std::min(a, b);
   }
 
+  std::size_t ny_ = 1;
   std::vector<Run> runs_;
   std::vector<std::size_t> row_start_;
   std::vector<std::size_t> parent_;
@@ -229,16 +235,14 @@ Mask fill_holes(const Mask& mask) {
   std::vector<std::uint8_t> open(runs.size(), 0);
   for (std::size_t r = 0; r < runs.size(); ++r) {
     const auto& run = runs[r];
-    const int j = static_cast<int>(run.row % static_cast<std::size_t>(dims[1]));
-    const int k = static_cast<int>(run.row / static_cast<std::size_t>(dims[1]));
+    const auto [j, k] = background.row_jk(run);
     if (run.i0 == 0 || run.i1 == dims[0] - 1 || j == 0 || j == dims[1] - 1 || k == 0 || k == dims[2] - 1)
       open[background.root(r)] = 1;
   }
   for (std::size_t r = 0; r < runs.size(); ++r) {
     if (open[background.root(r)]) continue;
     const auto& run = runs[r];
-    const int j = static_cast<int>(run.row % static_cast<std::size_t>(dims[1]));
-    const int k = static_cast<int>(run.row / static_cast<std::size_t>(dims[1]));
+    const auto [j, k] = background.row_jk(run);
     std::fill_n(&out.voxels[full(run.i0, j, k)], run.i1 - run.i0 + 1, std::uint8_t{1});
   }
   return out;

@@ -488,17 +488,12 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.confidence = ImageF(image.grid, 1.f);
   result.bias = ImageF(image.grid, 1.f);
   const std::uint16_t ventricle_value = ventricle_labels.empty() ? brain_label : ventricle_labels.front();
-  parallel_halves(static_cast<std::size_t>(g.dims[2]), 2, [&](std::size_t k0, std::size_t k1) {  // each slice on its own
-    for (int k = static_cast<int>(k0); k < static_cast<int>(k1); ++k)
-      for (int j = 0; j < g.dims[1]; ++j)
-        for (int i = 0; i < g.dims[0]; ++i) {
-          const std::size_t v = g.index(i, j, k);
-          const std::size_t w = image.grid.index(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
-          const int chosen = ventricle.voxels[v] ? 1 : brain.voxels[v] ? 0 : 2;
-          result.labels.voxels[w] = chosen == 1 ? ventricle_value : chosen == 0 ? brain_label : 0;
-          result.confidence.voxels[w] = posterior[chosen][v];
-          result.bias.voxels[w] = em.bias[v];
-        }
+  for_each_voxel_on_both_cores(g.dims, [&](std::size_t v, int i, int j, int k) {
+    const std::size_t w = image.grid.index(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
+    const int chosen = ventricle.voxels[v] ? 1 : brain.voxels[v] ? 0 : 2;
+    result.labels.voxels[w] = chosen == 1 ? ventricle_value : chosen == 0 ? brain_label : 0;
+    result.confidence.voxels[w] = posterior[chosen][v];
+    result.bias.voxels[w] = em.bias[v];
   });
   result.open_fluid_ml = open_fluid_ml;
   if (params.max_sulcus_half_width_mm > 0) {
