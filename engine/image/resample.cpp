@@ -112,6 +112,20 @@ std::vector<std::vector<Overlap>> axis_overlaps(int n_source, int n_coarser) {
 
 }  // namespace
 
+Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm) {
+  if (!(working_spacing_mm > 0)) return image_grid;
+  const Eigen::Vector3d spacing = image_grid.spacing_mm();
+  std::array<int, 3> dims = image_grid.dims;
+  bool coarser = false;
+  for (int a = 0; a < 3; ++a) {
+    if (spacing[a] * kWorkingGridMinCoarsening >= working_spacing_mm) continue;
+    const double extent_mm = spacing[a] * image_grid.dims[a];
+    dims[a] = std::max(1, static_cast<int>(std::lround(extent_mm / working_spacing_mm)));
+    coarser = coarser || dims[a] < image_grid.dims[a];
+  }
+  return coarser ? same_extent_grid(image_grid, dims) : image_grid;
+}
+
 LabelImage downsample_labels(const LabelImage& labels, const Grid3& coarser) {
   const Grid3 expected = same_extent_grid(labels.grid, coarser.dims);
   if (!expected.world_from_voxel.isApprox(coarser.world_from_voxel, 1e-9))

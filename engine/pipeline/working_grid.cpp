@@ -10,20 +10,6 @@
 
 namespace brainshift {
 
-Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm) {
-  if (!(working_spacing_mm > 0)) return image_grid;
-  const Eigen::Vector3d spacing = image_grid.spacing_mm();
-  std::array<int, 3> dims = image_grid.dims;
-  bool coarser = false;
-  for (int a = 0; a < 3; ++a) {
-    if (spacing[a] * kWorkingGridMinCoarsening >= working_spacing_mm) continue;
-    const double extent_mm = spacing[a] * image_grid.dims[a];
-    dims[a] = std::max(1, static_cast<int>(std::lround(extent_mm / working_spacing_mm)));
-    coarser = coarser || dims[a] < image_grid.dims[a];
-  }
-  return coarser ? same_extent_grid(image_grid, dims) : image_grid;
-}
-
 void carry_to_grid(const WarmState& warm, ScanResult& result, const Grid3& image_grid) {
   result.pullback_field_mm = resample_vector_linear(result.pullback_field_mm, image_grid);
   // Each warp splits its slices over both cores (field/warp.h).

@@ -9,22 +9,13 @@
 // every output is defined on (docs/DESIGN.md "The working grid").
 #include <string>
 
+#include "image/resample.h"
 #include "pipeline/warm_state.h"
 
 namespace brainshift {
 
-// An axis is coarsened only when its spacing is below working_spacing_mm by
-// more than this factor: a smaller change saves little (under a fifth of the
-// voxels along that axis) while the smoothing blurs the partial volume the
-// classifier reads; scans at 0.94-1 mm, as validated, are worked on as they
-// are.
-inline constexpr double kWorkingGridMinCoarsening = 1.25;
-
-// The image's grid, or the grid of the same extent and axes whose spacing is
-// working_spacing_mm (to a whole number of voxels) along each axis finer than
-// working_spacing_mm / kWorkingGridMinCoarsening. working_spacing_mm 0: the
-// image's grid.
-Grid3 working_grid(const Grid3& image_grid, double working_spacing_mm);
+// working_grid and kWorkingGridMinCoarsening: image/resample.h (the label
+// check coarsens by the same rule).
 
 // A result worked out on a coarser grid of the same extent, carried to the
 // image's grid (given labels' grid too): the field sampled trilinearly (it is smooth on the scale of

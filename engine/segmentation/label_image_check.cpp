@@ -7,7 +7,6 @@
 #include "image/image_stats.h"
 #include "image/resample.h"
 #include "registration/boundary_samples.h"
-#include "segmentation/head_mask.h"
 
 namespace brainshift::segmentation {
 namespace {
@@ -42,12 +41,16 @@ LabelImageCheck check_labels_against_image(const ImageF& full_image, const Label
                                            const LabelImageCheckParameters& params) {
   if (!full_image.grid.same_geometry(full_labels.grid))
     throw InputError("label check: the image and the labels are on different grids");
-  // Trilinear resampling: near a spacing ratio of 2 a coarse centre lies
-  // about midway between fine ones and averages their noise down.
-  const bool coarse = params.grid_spacing_mm > 0;
-  const Grid3 grid = coarse ? coarse_grid(full_image.grid, params.grid_spacing_mm) : full_image.grid;
+  // The working grid's rule (image/resample.h): the same extent, whole
+  // voxels. The image trilinearly: at a ratio of 2 a coarse centre lies
+  // midway between fine ones and averages their noise down. The labels by
+  // cover (downsample_labels): the nearest voxel to a centre midway between
+  // two rounds the half one way and moved the given outline by half a
+  // voxel per axis before it was compared.
+  const Grid3 grid = working_grid(full_image.grid, params.grid_spacing_mm);
+  const bool coarse = grid.dims != full_image.grid.dims;
   const ImageF image = coarse ? resample_linear(full_image, grid) : full_image;
-  const LabelImage labels = coarse ? resample_nearest(full_labels, grid) : full_labels;
+  const LabelImage labels = coarse ? downsample_labels(full_labels, grid) : full_labels;
   SegmentationParameters sp = params.classifier;
   sp.prior_width_mm = params.prior_width_mm;
   sp.em.fit_samples = params.fit_samples;

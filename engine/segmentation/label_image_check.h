@@ -36,8 +36,9 @@ struct LabelImageCheckParameters {
   // the surface some 100 ml; physiological brain shift moves no tissue out of
   // the image's brain).
   double max_disagreement_fraction = 0.02;
-  // The check classifies on a grid of about this spacing (never finer than
-  // the image's own): distances beyond the band are counted in whole voxels,
+  // The check classifies on the working grid of this spacing (image/
+  // resample.h: never finer than the image's own, the labels taken by
+  // cover): distances beyond the band are counted in whole voxels,
   // and at 2 mm the first depth counted beyond band_mm (4 mm) is the same
   // as at 1 mm, while the classification costs a quarter to an eighth
   // (docs/DESIGN.md "The labels-vs-image check's grid"). 0: the image's grid.
