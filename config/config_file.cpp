@@ -167,6 +167,7 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   s.read("prior_inward_width_affine_mm", p.prior_inward_width_affine_mm, Interval::above(0));
   s.read("ventricle_shift_affine_mm", p.ventricle_shift_affine_mm, Interval::closed(0, 30));
   s.read("ventricle_prior_width_mm", p.ventricle_prior_width_mm, Interval::above(0));
+  s.read("bright_fluid_bias_degree_affine", p.bright_fluid_bias_degree_affine, 0, 4);
   s.read("working_spacing_mm", p.working_spacing_mm, Interval::closed(0, 3));
   s.read("rematch_rounds", p.rematch_rounds, 0, 5);
   s.read("rematch_reuses_fit", p.rematch_reuses_fit);

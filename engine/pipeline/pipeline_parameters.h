@@ -67,14 +67,15 @@ struct PassShortcuts {
   // it is worked on a grid coarsened to it (as pipeline/working_grid.h
   // coarsens), the re-match and the answer on the scan's working grid; a
   // first round refused there is decided again on the scan's own grid
-  // (docs/DESIGN.md "Automatic intraop segmentation", item 9). Off by
-  // default: at 2 mm (the mesh's surface facet) a 0.94 mm scan's image-only
-  // time fell 5.31 -> 4.48 s, but on the hospital suite and two held-out
-  // families the mean TRE rose by 0.003-0.008 mm and the pooled p95 by
-  // 0.02-0.06 mm, and the coarser first round found less of a 22 mm
-  // sinking's gap, which narrowed the re-match's volume-gate margin by
-  // up to 1.3 points (docs/PERFORMANCE.md 12.26).
-  double prior_spacing_mm = 0.0;
+  // (docs/DESIGN.md "Automatic intraop segmentation", item 9). 2 mm (the
+  // mesh's surface facet): with the answer's stages on the stage grid a
+  // 0.94 mm scan's image-only time falls by 0.75 s (3.8 -> 3.0 s), and over
+  // the robustness suite, the hospital suite and two held-out families
+  // (51 cases) the mean TRE moved by -0.007..+0.006 mm per suite
+  // (docs/PERFORMANCE.md 12.30). Alone (12.26) it had cost 0.003-0.008 mm.
+  // The coarser first round finds less of a 22 mm sinking's gap: the
+  // re-match's volume-gate margin there is 1.5-2 points either way. 0: off.
+  double prior_spacing_mm = 2.0;
   // A full pass (the answer's) works its stages (affine, surfaces, solve,
   // field, refinement, gates) on a grid coarsened to this spacing (as
   // pipeline/working_grid.h coarsens), the segmentation staying on the
@@ -119,6 +120,21 @@ struct AutoSegmentationParameters {
   // the width its error at the ventricles (about a voxel).
   double ventricle_shift_affine_mm = 6.0;
   double ventricle_prior_width_mm = 1.5;
+  // A bright-fluid (T2-like) image's first round (after the head's
+  // alignment alone) is fitted again with the bias at this degree when it is
+  // below the classifier's (bias_degree, 2); the re-match rounds keep the
+  // classifier's. The wide prior leaves more of the brain's core uncertain
+  // (a resection's margin, oedema, the rim inside the prior), and a
+  // quadratic fitted on it can bend to that anatomy: on held-out family 6's
+  // T2-like resection it spanned 0.41-1.23 across the brain (the scanner's
+  // 0.8-1.2), raised grey matter past half fluid and the rim peel took 87 ml
+  // of cortex. At 1 the 14 T2-like scans of seven families registered
+  // better (mean TRE 0.483 -> 0.467 mm, lowest brain Dice 0.960 -> 0.968),
+  // but every first round then kept ~8 % more brain (the rim a linear field
+  // leaves unpeeled), 1.2-2.6 points from the volume gate's +10 %: an
+  // atrophied brain's wider rim would be refused. Off (2) by default
+  // (docs/DESIGN.md "Automatic intraop segmentation", item 12).
+  int bright_fluid_bias_degree_affine = 2;
   // The grid a scan is worked on (pipeline/working_grid.h): an axis of the
   // image or given labels finer than this by more than a quarter is
   // coarsened to it for the segmentation and the stages, and the answer is

@@ -158,23 +158,46 @@ struct ScanOnGrid {
                        " ml brain (placed by the head); it misses most of the brain");
   }
 
-  segmentation::IntraopSegmentation segment(const LabelImage& prior_labels, double width_mm, double ventricle_shift_mm,
-                                            bool open_fluid_rule = true,
+  // The prior a round is classified with: the preop placed by the head
+  // (the first round's, wide) or carried by a non-rigid estimate (the
+  // re-match's, narrow).
+  enum class Prior { placed, carried };
+  segmentation::IntraopSegmentation segment(const LabelImage& prior_labels, Prior prior, bool open_fluid_rule = true,
                                             const segmentation::IntraopSegmentation* fitted = nullptr,
                                             const Mask* gap_found_before = nullptr) const {
     const AutoSegmentationParameters& ap = params.auto_segmentation;
     segmentation::SegmentationParameters sp = ap.classifier;
     if (!open_fluid_rule) sp.max_sulcus_half_width_mm = 0;
+    const bool placed = prior == Prior::placed;
+    const double width_mm = placed ? ap.prior_width_affine_mm : ap.prior_width_nonrigid_mm;
     // The classified box ends where the prior meets its floor (docs/DESIGN.md
     // "Automatic intraop segmentation", item 7).
     sp.margin_mm = segmentation::prior_reach_mm(width_mm, sp.prior_floor);
     sp.prior_width_mm = width_mm;
     sp.ventricle_prior_width_mm = ap.ventricle_prior_width_mm;
-    sp.ventricle_shift_mm = ventricle_shift_mm;
-    if (ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
+    sp.ventricle_shift_mm = placed ? ap.ventricle_shift_affine_mm : 0.0;
+    if (placed && sp.ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    return segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
-                                         ventricle_labels(params.label_table), sp, fitted, gap_found_before, &seen);
+    auto seg = segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
+                                             ventricle_labels(params.label_table), sp, fitted, gap_found_before, &seen);
+    // A bright-fluid image under the wide prior: the bias is fitted again,
+    // linear. The tissue that prior leaves uncertain (the fluid rim, oedema,
+    // a resection's margin) is bright like the fluid there, and a quadratic
+    // bent to it moved grey matter past half fluid (docs/DESIGN.md
+    // "Automatic intraop segmentation", item 12). A refit the classifier
+    // refuses leaves the first.
+    const int degree = ap.bright_fluid_bias_degree_affine;
+    if (placed && degree < sp.em.bias_degree && seg.refusal.empty() && segmentation::fluid_is_bright(seg.classes)) {
+      sp.em.bias_degree = degree;
+      auto linear = segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
+                                                  ventricle_labels(params.label_table), sp, fitted, gap_found_before,
+                                                  &seen);
+      if (linear.refusal.empty()) {
+        seg = std::move(linear);
+        seg.report["bias_refitted"] = "bright fluid under the placed prior";
+      }
+    }
+    return seg;
   }
 
   SegmentationGates gates(const segmentation::IntraopSegmentation& s, double open_fluid_ml) const {
@@ -236,6 +259,14 @@ struct ScanOnGrid {
   }
 };
 
+// A round's report: its prior's width and the bias fitted (and whether the
+// first fit was replaced, ScanOnGrid::segment).
+nlohmann::json round_report(const segmentation::IntraopSegmentation& s) {
+  nlohmann::json r = {{"prior_width_mm", s.report["prior_width_mm"]}, {"bias_degree", s.report["bias_degree"]}};
+  if (s.report.contains("bias_refitted")) r["bias_refitted"] = s.report["bias_refitted"];
+  return r;
+}
+
 // The rounds of one scan so far: the segmentation that stands, its gates,
 // the pass on it, and each round's report.
 struct Rounds {
@@ -253,16 +284,17 @@ struct Rounds {
 // with its refusal (the caller decides). seconds_before: the scan's
 // segmentation time so far (the head's placement).
 Rounds first_segmentation(const ScanOnGrid& s, double seconds_before) {
-  const AutoSegmentationParameters& ap = s.params.auto_segmentation;
   Rounds r;
   Stopwatch watch;
-  r.seg = s.segment(s.carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm);
+  r.seg = s.segment(s.carried, ScanOnGrid::Prior::placed);
   if (r.seg.refusal.empty()) r.gates = s.gates(r.seg, r.seg.open_fluid_ml);
   const double round_seconds = watch.lap();
   r.segment_seconds = seconds_before + round_seconds;
   if (s.progress) s.progress(std::string(stages::kSegment), 1.0, r.segment_seconds);
-  r.report.push_back(
-      {{"prior_width_mm", r.seg.report["prior_width_mm"]}, {"gates", r.gates.metrics}, {"seconds", round_seconds}});
+  nlohmann::json report = round_report(r.seg);
+  report["gates"] = r.gates.metrics;
+  report["seconds"] = round_seconds;
+  r.report.push_back(std::move(report));
   return r;
 }
 
@@ -270,7 +302,6 @@ Rounds first_segmentation(const ScanOnGrid& s, double seconds_before) {
 // segmentation without the open-fluid rule where the stages refuse it.
 // rematch_follows: the pass is light (ScanOnGrid::run_pass).
 void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
-  const AutoSegmentationParameters& ap = s.params.auto_segmentation;
   Stopwatch watch;
   // The gates are checked before the stages, not beside them: every stage
   // already splits its work over both cores (the affine in every iteration),
@@ -284,12 +315,14 @@ void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
   // image alone is tried once, and kept only if the stages accept it.
   if (r.result.kind == ResultKind::nonrigid || !r.gates.failure.empty() || r.seg.open_fluid_ml <= 0) return;
   watch.lap();
-  auto plain = s.segment(s.carried, ap.prior_width_affine_mm, ap.ventricle_shift_affine_mm, false);
+  auto plain = s.segment(s.carried, ScanOnGrid::Prior::placed, false);
   SegmentationGates plain_gates = s.gates(plain, 0.0);
   const double plain_seconds = watch.lap();
   r.segment_seconds += plain_seconds;
-  r.report.push_back({{"prior_width_mm", plain.report["prior_width_mm"]}, {"gates", plain_gates.metrics},
-                      {"open_fluid_rule", false}, {"refusal", plain.refusal}, {"seconds", plain_seconds}});
+  nlohmann::json report = round_report(plain);
+  report.update({{"gates", plain_gates.metrics}, {"open_fluid_rule", false}, {"refusal", plain.refusal},
+                 {"seconds", plain_seconds}});
+  r.report.push_back(std::move(report));
   if (plain.refusal.empty() && plain_gates.failure.empty()) {
     bool pass_prior_only = false;
     ScanResult pass = s.run_pass(plain, rematch_follows, pass_prior_only);
@@ -319,15 +352,15 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
   Stopwatch watch;
   for (int round = 1; round <= ap.rematch_rounds && r.result.kind == ResultKind::nonrigid; ++round) {
     watch.lap();
-    auto next = s.segment(r.result.warped_labels, ap.prior_width_nonrigid_mm, 0.0, r.open_fluid_rule,
+    auto next = s.segment(r.result.warped_labels, ScanOnGrid::Prior::carried, r.open_fluid_rule,
                           ap.rematch_reuses_fit ? &r.seg : nullptr,
                           ap.rematch_gaps_found_before ? &r.seg.open_fluid : nullptr);
     next.open_fluid_ml = std::max(r.seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates = s.gates(next, next.open_fluid_ml);
     const double round_seconds = watch.lap();
     r.segment_seconds += round_seconds;
-    nlohmann::json report = {{"prior_width_mm", next.report["prior_width_mm"]}, {"gates", next_gates.metrics},
-                             {"seconds", round_seconds}};
+    nlohmann::json report = round_report(next);
+    report.update({{"gates", next_gates.metrics}, {"seconds", round_seconds}});
     ScanResult pass;
     bool pass_prior_only = false;
     bool refused = !next.refusal.empty() || !next_gates.failure.empty();

@@ -28,10 +28,7 @@ Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, co
   Mask rim(g, 0);
   const GaussianClass* fluid = heaviest_class(classes, Tissue::ventricle);
   const GaussianClass* bulk = heaviest_class(classes, Tissue::parenchyma);
-  // Bright fluid: brighter than the bulk of the brain's tissue. Not "than
-  // every parenchyma class": the class spanning the bright tissue of the
-  // brain (the reason for the peel) may reach past the fluid's mean.
-  if (max_depth_mm <= 0 || !fluid || !bulk || fluid->mean <= bulk->mean) return rim;
+  if (max_depth_mm <= 0 || !fluid_is_bright(classes)) return rim;
   // The tissue the rim borders is the cortex: of the major parenchyma
   // classes (kMajorClassWeight), the one nearest the fluid. Against white
   // matter's mean the midpoint fell inside the grey matter of a 1 mm T2

@@ -518,6 +518,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   const double wall_contrast = ventricle_wall_contrast_sd(image_box, em.bias, ventricle, brain);
   result.report["ventricle_wall_contrast_sd"] = std::isfinite(wall_contrast) ? wall_contrast : -1.0;
   result.report["prior_width_mm"] = params.prior_width_mm;
+  result.report["bias_degree"] = params.em.bias_degree;
   result.report["ventricle_prior_width_mm"] = params.ventricle_prior_width_mm;
   result.report["ventricle_shift_mm"] = params.ventricle_shift_mm;
   result.report["prior_inward_width_mm"] = widths.inward_mm;

@@ -413,6 +413,12 @@ void classify_voxels(const ImageF& image, const TissuePrior& prior, double scale
 
 }  // namespace
 
+bool fluid_is_bright(const std::vector<GaussianClass>& classes) {
+  const GaussianClass* fluid = heaviest_class(classes, Tissue::ventricle);
+  const GaussianClass* bulk = heaviest_class(classes, Tissue::parenchyma);
+  return fluid && bulk && fluid->mean > bulk->mean;
+}
+
 EmResult classify_with_classes(const ImageF& image, const TissuePrior& prior, const std::vector<GaussianClass>& classes,
                                const std::vector<float>& log_bias, const EmParameters& params) {
   if (!image.grid.same_geometry(prior.grid)) throw InputError("segmentation: image and prior on different grids");

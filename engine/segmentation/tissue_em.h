@@ -74,6 +74,12 @@ const GaussianClass* heaviest_class(const std::vector<GaussianClass>& classes, T
 // (fluid_rim.h) are measured against the major classes only.
 inline constexpr double kMajorClassWeight = 1.0 / 6;
 
+// A bright-fluid (T2-like) contrast: the fluid's heaviest class brighter
+// than the parenchyma's heaviest (the bulk of the brain's tissue). Not
+// "than every parenchyma class": a class spanning the brain's own bright
+// tissue (sulcal fluid, oedema) may reach past the fluid's mean.
+bool fluid_is_bright(const std::vector<GaussianClass>& classes);
+
 struct EmResult {
   std::vector<GaussianClass> classes;
   std::array<std::vector<float>, kTissues> posterior;  // per voxel, after the smoothing; sum to 1

@@ -122,6 +122,13 @@ TEST_F(ImageOnlyPasses, TheAnswerOfAnImageOnlyScanIsAFullPassWarmStartedFromTheL
   const auto& rounds = r.metrics["segmentation"]["rounds"];
   ASSERT_EQ(rounds.size(), 2u) << rounds.dump();
   for (const auto& round : rounds) EXPECT_FALSE(round.contains("kept")) << round.dump();
+  // A T1-like image: every round fits the classifier's bias degree (and
+  // would with bright_fluid_bias_degree_affine set).
+  const int degree = test::coarse_parameters().auto_segmentation.classifier.em.bias_degree;
+  for (const auto& round : rounds) {
+    EXPECT_EQ(round["bias_degree"], degree) << rounds.dump();
+    EXPECT_FALSE(round.contains("bias_refitted")) << rounds.dump();
+  }
   EXPECT_FALSE(r.metrics.contains("pass")) << "the answer is not a prior-only pass";
   EXPECT_FALSE(r.warped_t1.voxels.empty());
   EXPECT_FALSE(r.models.empty());
@@ -142,6 +149,39 @@ TEST_F(ImageOnlyPasses, TheAnswerOfAnImageOnlyScanIsAFullPassWarmStartedFromTheL
   EXPECT_FALSE(s.metrics.contains("pass"));
   EXPECT_EQ(s.metrics["affine"]["warm_start"], false);
   EXPECT_FALSE(s.warped_t1.voxels.empty());
+}
+
+// A bright-fluid (T2-like) image with bright_fluid_bias_degree_affine set
+// to 1 (off by default): the first round, under the head placement's wide
+// prior, fits its bias again, linear; the re-match at the classifier's
+// degree; the translation is recovered as from a T1.
+TEST_F(ImageOnlyPasses, ABrightFluidImagesFirstRoundFitsALinearBiasWhenAsked) {
+  PipelineParameters p = test::coarse_parameters();
+  p.auto_segmentation.bright_fluid_bias_degree_affine = 1;
+  ASSERT_LT(p.auto_segmentation.bright_fluid_bias_degree_affine, p.auto_segmentation.classifier.em.bias_degree);
+  EngineSession session(MPI_COMM_WORLD, p);
+  session.load_preop(*preop_, nullptr);
+  const Eigen::Vector3d shift(3.0, -2.0, 2.0);
+  const IntraopInput moved = moved_scan(*preop_, shift, 0.0);
+  ImageF t2 = *moved.t1;  // outside 10, ventricles 30, brain 100 (synthetic_head.h)
+  for (std::size_t v = 0; v < t2.voxels.size(); ++v) {
+    const std::uint16_t l = moved.labels.voxels[v];
+    if (l == 2) t2.voxels[v] = 110.f;
+    else if (l != 0) t2.voxels[v] = 50.f;
+  }
+  ScanInput scan;
+  scan.image = test::scanner_image(t2);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
+  const auto& rounds = r.metrics["segmentation"]["rounds"];
+  ASSERT_EQ(rounds.size(), 2u) << rounds.dump();
+  EXPECT_EQ(rounds[0]["bias_degree"], p.auto_segmentation.bright_fluid_bias_degree_affine) << rounds.dump();
+  EXPECT_TRUE(rounds[0].contains("bias_refitted")) << rounds.dump();
+  EXPECT_EQ(rounds[1]["bias_degree"], p.auto_segmentation.classifier.em.bias_degree) << rounds.dump();
+  EXPECT_FALSE(rounds[1].contains("bias_refitted")) << rounds.dump();
+  EXPECT_LT(mean_translation_error(r, moved.labels, shift), 0.5);
+  ASSERT_TRUE(r.intraop_labels);
+  EXPECT_GT(test::outline_dice(*r.intraop_labels, moved.labels), 0.95);
 }
 
 // The first round, which only makes the re-match's prior, is worked on the
