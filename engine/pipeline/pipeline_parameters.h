@@ -69,12 +69,12 @@ struct PassShortcuts {
   // first round refused there is decided again on the scan's own grid
   // (docs/DESIGN.md "Automatic intraop segmentation", item 9). 2 mm (the
   // mesh's surface facet): with the answer's stages on the stage grid a
-  // 0.94 mm scan's image-only time falls by 0.75 s (3.8 -> 3.0 s), and over
-  // the robustness suite, the hospital suite and two held-out families
-  // (51 cases) the mean TRE moved by -0.007..+0.006 mm per suite
-  // (docs/PERFORMANCE.md 12.30). Alone (12.26) it had cost 0.003-0.008 mm.
-  // The coarser first round finds less of a 22 mm sinking's gap: the
-  // re-match's volume-gate margin there is 1.5-2 points either way. 0: off.
+  // 0.94 mm scan's image-only time falls by about 0.75 s (4.07 -> 3.30 s
+  // in-process, paired), and over the robustness suite, the hospital suite
+  // and two held-out families (51 cases) the mean TRE moved by
+  // -0.007..+0.006 mm per suite (docs/PERFORMANCE.md 12.30). Alone (12.26)
+  // it had cost 0.003-0.008 mm. The re-match's volume-gate margin on the
+  // 20-22 mm sinkings is 1.5-2.6 points either way. 0: off.
   double prior_spacing_mm = 2.0;
   // A full pass (the answer's) works its stages (affine, surfaces, solve,
   // field, refinement, gates) on a grid coarsened to this spacing (as
@@ -129,7 +129,7 @@ struct AutoSegmentationParameters {
   // T2-like resection it spanned 0.41-1.23 across the brain (the scanner's
   // 0.8-1.2), raised grey matter past half fluid and the rim peel took 87 ml
   // of cortex. At 1 the 14 T2-like scans of seven families registered
-  // better (mean TRE 0.483 -> 0.467 mm, lowest brain Dice 0.960 -> 0.968),
+  // better (mean TRE 0.488 -> 0.467 mm, lowest brain Dice 0.964 -> 0.968),
   // but every first round then kept ~8 % more brain (the rim a linear field
   // leaves unpeeled), 1.2-2.6 points from the volume gate's +10 %: an
   // atrophied brain's wider rim would be refused. Off (2) by default
