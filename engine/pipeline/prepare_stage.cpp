@@ -178,8 +178,11 @@ struct ScanOnGrid {
     sp.ventricle_shift_mm = placed ? ap.ventricle_shift_affine_mm : 0.0;
     if (placed && sp.ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
-    auto seg = segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
-                                             ventricle_labels(params.label_table), sp, fitted, gap_found_before, &seen);
+    const auto classify = [&](const segmentation::SegmentationParameters& with) {
+      return segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
+                                           ventricle_labels(params.label_table), with, fitted, gap_found_before, &seen);
+    };
+    auto seg = classify(sp);
     // A bright-fluid image under the wide prior: the bias is fitted again,
     // linear. The tissue that prior leaves uncertain (the fluid rim, oedema,
     // a resection's margin) is bright like the fluid there, and a quadratic
@@ -189,9 +192,7 @@ struct ScanOnGrid {
     const int degree = ap.bright_fluid_bias_degree_affine;
     if (placed && degree < sp.em.bias_degree && seg.refusal.empty() && segmentation::fluid_is_bright(seg.classes)) {
       sp.em.bias_degree = degree;
-      auto linear = segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
-                                                  ventricle_labels(params.label_table), sp, fitted, gap_found_before,
-                                                  &seen);
+      auto linear = classify(sp);
       if (linear.refusal.empty()) {
         seg = std::move(linear);
         seg.report["bias_refitted"] = "bright fluid under the placed prior";

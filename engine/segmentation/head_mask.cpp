@@ -38,6 +38,13 @@ float otsu_threshold(const std::vector<float>& values) {
   return static_cast<float>(lo + (best_bin + 1.0) / kBins * (hi - lo));
 }
 
+namespace {
+
+// The head mask's own grid of about spacing_mm: the same orientation, voxel
+// 0 centred on the fine voxels it covers, reaching up to a coarse voxel
+// past the image. Only the mask's threshold and closing see it; a grid
+// that must span the image's extent exactly (labels coarsened by cover,
+// fields carried back) is image/resample.h's working_grid.
 Grid3 coarse_grid(const Grid3& grid, double spacing_mm) {
   const Eigen::Vector3d s = grid.spacing_mm();
   Grid3 out;
@@ -51,6 +58,8 @@ Grid3 coarse_grid(const Grid3& grid, double spacing_mm) {
   out.world_from_voxel = grid.world_from_voxel * fine_from_coarse;
   return out;
 }
+
+}  // namespace
 
 Mask head_mask(const ImageF& image, double coarse_mm, double closing_mm) {
   const Grid3 g = coarse_grid(image.grid, coarse_mm);

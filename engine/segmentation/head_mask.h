@@ -21,7 +21,4 @@ Mask head_mask(const ImageF& image, double coarse_mm = 3.0, double closing_mm = 
 // histogram (256 bins over [min, max]).
 float otsu_threshold(const std::vector<float>& values);
 
-// A grid of about spacing_mm covering the same extent and orientation.
-Grid3 coarse_grid(const Grid3& grid, double spacing_mm);
-
 }  // namespace brainshift::segmentation
