@@ -225,6 +225,7 @@ int cmd_load_preop(const NetworkOptions& o, const LoadPreopArgs& a) {
 struct PushArgs {
   std::string labels, image, id;
   std::string dicom, series;  // the image as a DICOM series, converted here
+  std::string labels_use;     // empty: the daemon's configuration
   bool wait = false;
   double wait_s = 600;
 };
@@ -329,6 +330,10 @@ int cmd_push(const NetworkOptions& o, const PushArgs& a) {
     throw CommandError(kExitUsage, "--series needs --dicom");
   }
   if (!a.id.empty()) r.client_scan_id = a.id;
+  if (!a.labels_use.empty()) {
+    if (!r.labels || !r.image) throw CommandError(kExitUsage, "--labels-use needs both --labels and --image");
+    r.labels_use = a.labels_use;
+  }
   // Subscribed before the push so that no event of this scan is missed.
   std::optional<EventStream> events;
   if (a.wait) events.emplace(o.events, "event.", curve_keys(o));
@@ -577,6 +582,10 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   push->add_option("--image", pa->image, "intraop T1 (on the labels' grid when both are given), NIfTI or NRRD");
   push->add_option("--dicom", pa->dicom, "intraop T1 as a DICOM series folder (sent as NIfTI), instead of --image");
   push->add_option("--series", pa->series, "SeriesInstanceUID in --dicom when the folder holds several");
+  push->add_option("--labels-use", pa->labels_use,
+                   "labels with an image: refine (the daemon classifies the image under them; an algorithm's "
+                   "labels) or exact (used as given; corrected by hand); default: the daemon's given_labels")
+      ->check(CLI::IsMember({"refine", "exact"}));
   push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");
   push->add_flag("--wait", pa->wait, "return once the result is ready (exit 4: affine-only fallback, 5: the scan failed)");
   push->add_option("--wait-timeout", pa->wait_s, "seconds to wait with --wait");

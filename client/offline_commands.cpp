@@ -86,6 +86,7 @@ struct RegisterOptions {
   PreopPaths preop;
   std::string intraop_labels, intraop_image, out, config;
   std::string intraop_dicom, intraop_series;
+  std::string labels_use;  // empty: the configuration's given_labels
 };
 
 int run_register_rank0(const RegisterOptions& o) {
@@ -105,6 +106,7 @@ int run_register_rank0(const RegisterOptions& o) {
     throw InputError((o.intraop_image.empty() ? o.intraop_dicom : o.intraop_image) +
                      ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
   scan.read_seconds = read_clock.seconds();
+  if (!o.labels_use.empty()) scan.labels_use = given_labels_use_from_string(o.labels_use);
 
   EngineSession session(MPI_COMM_WORLD, params);
   Stopwatch atlas_clock;
@@ -116,8 +118,9 @@ int run_register_rank0(const RegisterOptions& o) {
 
   ScanResult result = session.register_scan(scan, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   // After the answer, as the daemon does: not part of "total".
-  // The prepared input: the labels given, or those the engine derived.
-  const IntraopInput prepared{scan.labels ? *scan.labels : *result.intraop_labels, scan.image};
+  // The prepared input: the segmentation the engine made (of an image alone,
+  // or given labels refined by their image), or the labels as given.
+  const IntraopInput prepared{result.intraop_labels ? *result.intraop_labels : *scan.labels, scan.image};
   session.add_uncertainty(prepared, result, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   DeferredOutputOptions outputs;
   outputs.label_table = &session.parameters().label_table;
@@ -233,6 +236,10 @@ void add_offline_commands(CLI::App& app, int* exit_code) {
   r->add_option("--intraop-image", reg->intraop_image, "intraop MR image (on the labels' grid when both are given)");
   r->add_option("--intraop-dicom", reg->intraop_dicom, "intraop image as a DICOM series folder, instead of --intraop-image");
   r->add_option("--intraop-series", reg->intraop_series, "SeriesInstanceUID in --intraop-dicom when it holds several");
+  r->add_option("--labels-use", reg->labels_use,
+                "labels with an image: refine (the image is classified under them; an algorithm's labels) or exact "
+                "(as given; corrected by hand); default: the configuration's given_labels")
+      ->check(CLI::IsMember({"refine", "exact"}));
   r->add_option("--out", reg->out, "output folder (written atomically)")->required();
   r->add_option("--config", reg->config, "configuration TOML (default: the built-in config/brainshiftd.toml)");
   r->callback([reg, exit_code] { *exit_code = run_register(*reg); });

@@ -177,6 +177,9 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   s.read("min_surface_confidence", p.min_surface_confidence, Interval::closed(0, 1));
   s.read("max_uncertain_surface_fraction", p.max_uncertain_surface_fraction, Interval::closed(0, 1));
   s.read("check_given_labels", p.check_given_labels);
+  const std::string use = s.string("given_labels", std::string(to_string(p.given_labels)));
+  if (auto u = given_labels_use_from_string(use)) p.given_labels = *u;
+  else s.fail("given_labels", "\"" + use + "\" is not refine or exact");
   TomlSection classifier = s.table("classifier");
   read_classifier(classifier, p.classifier);
   TomlSection check = s.table("label_check");

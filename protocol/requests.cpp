@@ -266,6 +266,7 @@ PreopLoadReply parse_preop_load_reply(const Message& m) {
 Message make_scan_push_request(const std::string& request_id, const ScanPushRequest& r) {
   Message m = make_message(MessageType::kScanPush, request_id);
   if (r.client_scan_id) m.header["client_scan_id"] = *r.client_scan_id;
+  if (r.labels_use) m.header["labels_use"] = *r.labels_use;
   if (r.labels) m.frames.push_back(*r.labels);
   if (r.image) m.frames.push_back(*r.image);
   return m;
@@ -277,10 +278,14 @@ ScanPushRequest parse_scan_push_request(const Message& m) {
     const FieldReader f(m.header, "scan.push");
     expect_frames(m, {"labels", "image"});
     ScanPushRequest r{get_frame(m, "labels", nifti_media), get_frame(m, "image", nifti_media),
-                      f.opt_string("client_scan_id")};
+                      f.opt_string("client_scan_id"), f.opt_string("labels_use")};
     if (!r.labels && !r.image)
       throw ProtocolError(ErrorCode::kInvalidRequest,
                           "scan.push: needs a frame \"labels\", \"image\" or both (an image alone is segmented)");
+    if (r.labels_use && *r.labels_use != "refine" && *r.labels_use != "exact")
+      f.fail("labels_use", "must be \"refine\" or \"exact\"");
+    if (r.labels_use && !(r.labels && r.image))
+      f.fail("labels_use", "says how labels are used with their image: it needs both frames");
     if (r.client_scan_id && !detail::is_valid_id(*r.client_scan_id))
       f.fail("client_scan_id", "must be 1..128 printable ASCII characters without spaces");
     return r;

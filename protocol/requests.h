@@ -118,6 +118,9 @@ struct ScanPushRequest {
   std::optional<Frame> labels{};                // "labels", NIfTI, intraop segmentation
   std::optional<Frame> image{};                 // "image", NIfTI, intraop image
   std::optional<std::string> client_scan_id{};  // idempotence key, see PROTOCOL.md
+  // With both frames: "refine" (the image is classified under the labels)
+  // or "exact" (the labels as given); absent: the server's configuration.
+  std::optional<std::string> labels_use{};
 };
 Message make_scan_push_request(const std::string& request_id, const ScanPushRequest& r);
 ScanPushRequest parse_scan_push_request(const Message& m);

@@ -44,8 +44,12 @@ std::string_view why_not_expected(ResultPart part, const ScanFacts& scan) {
   switch (result_output(part).presence) {
     case PartPresence::kEveryScan: return "";
     case PartPresence::kWithIntraopImage: return scan.has_image ? "" : "no intraop image was pushed";
-    case PartPresence::kWithoutIntraopLabels:
-      return scan.has_labels ? "intraop labels were pushed (only a segmentation the engine made is a result part)" : "";
+    case PartPresence::kEngineSegmentation:
+      if (!scan.has_image) return "no intraop image was pushed (only a segmentation the engine made is a result part)";
+      return scan.has_labels && scan.labels_exact
+                 ? "intraop labels were pushed with labels_use \"exact\" (only a segmentation the engine made is a "
+                   "result part)"
+                 : "";
   }
   return "";
 }

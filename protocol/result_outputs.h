@@ -44,13 +44,18 @@ enum class MediaKind { kNifti, kItkH5, kVtp, kJson, kPng };
 enum class PartPresence {
   kEveryScan,
   kWithIntraopImage,  // only when scan.push carried an "image"
-  kWithoutIntraopLabels,  // only when the scan came without "labels" (the engine segmented the image)
+  // The engine's segmentation of the image: a scan with an "image" and
+  // without "labels", or with labels the push did not ask to use exactly
+  // (labels_use, PROTOCOL.md 5.3). Labels whose refinement by the image was
+  // refused (or a server configured exact) leave the part out of the result.
+  kEngineSegmentation,
 };
 
 // What the daemon knows of a scan that decides which parts it has.
 struct ScanFacts {
   bool has_image = false;  // scan.push carried an intraop image
   bool has_labels = true;  // scan.push carried intraop labels
+  bool labels_exact = false;  // scan.push said labels_use "exact"
 };
 
 struct ResultOutput {
@@ -95,10 +100,10 @@ inline constexpr ResultOutput kResultOutputs[] = {
     {ResultPart::kUncertainty, "uncertainty", "uncertainty", "uncertainty.nii.gz", "uncertainty.nii",
      MediaKind::kNifti, true, stages::kUncertainty, PartPresence::kEveryScan, std::nullopt},
     {ResultPart::kIntraopLabels, "intraop_labels", "intraop_labels", "intraop_labels.nii.gz", "intraop_labels.nii",
-     MediaKind::kNifti, false, "", PartPresence::kWithoutIntraopLabels, std::nullopt},
+     MediaKind::kNifti, false, "", PartPresence::kEngineSegmentation, std::nullopt},
     {ResultPart::kSegmentationConfidence, "segmentation_confidence", "segmentation_confidence",
      "segmentation_confidence.nii.gz", "segmentation_confidence.nii", MediaKind::kNifti, false, "",
-     PartPresence::kWithoutIntraopLabels, std::nullopt},
+     PartPresence::kEngineSegmentation, std::nullopt},
 };
 
 const ResultOutput& result_output(ResultPart part);

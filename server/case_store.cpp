@@ -125,6 +125,7 @@ json record_to_json(const ScanRecord& r) {
          {"received_at", r.received_at}, {"digest", r.digest}, {"preop_id", r.preop_id},
          {"has_image", r.has_image}, {"has_labels", r.has_labels}};
   if (r.client_scan_id) j["client_scan_id"] = *r.client_scan_id;
+  if (r.labels_use) j["labels_use"] = *r.labels_use;
   return j;
 }
 
@@ -165,6 +166,8 @@ std::string content_digest(const PushedScan& input) {
   // Separates "no image" from "empty image" and the labels/image boundary.
   mix(input.image_bytes ? std::string_view("\x01image") : std::string_view("\x00none", 5));
   if (input.image_bytes) mix(*input.image_bytes);
+  // Only when the push said: scans without it digest as before it existed.
+  if (input.labels_use) mix("\x03labels_use:" + *input.labels_use);
   return hex64(h) + "-" + std::to_string(input.labels_bytes ? input.labels_bytes->size() : 0) + "-" +
          std::to_string(input.image_bytes ? input.image_bytes->size() : 0);
 }
@@ -217,6 +220,7 @@ std::optional<CaseStore::Entry> CaseStore::read_scan_dir(const fs::path& sdir) c
     r.has_image = meta.at("has_image").get<bool>();
     r.has_labels = meta.value("has_labels", true);  // stores written before image-only scans
     if (meta.contains("client_scan_id")) r.client_scan_id = meta["client_scan_id"].get<std::string>();
+    if (meta.contains("labels_use")) r.labels_use = meta["labels_use"].get<std::string>();
   } catch (const std::exception& e) {
     spdlog::error("store: ignoring {}: {}", sdir.string(), e.what());
     return std::nullopt;
@@ -374,6 +378,7 @@ ScanRecord CaseStore::add_scan(const PushedScan& input, const std::optional<std:
   if (!input.labels_bytes && !input.image_bytes) throw std::invalid_argument("store: a scan needs labels or an image");
   r.has_image = input.image_bytes.has_value();
   r.has_labels = input.labels_bytes.has_value();
+  r.labels_use = input.labels_use;
 
   const std::string image = hdf5_image(
       [&](hid_t f) {
@@ -434,6 +439,8 @@ PushedScan CaseStore::load_scan_input(const std::string& scan_id) const {
   h5::Handle f = h5::open_file_read(scan_dir(scan_id) / "scan.h5");
   if (h5::exists(f.get(), "labels")) in.labels_bytes = h5::read_bytes(f.get(), "labels");
   if (h5::exists(f.get(), "image")) in.image_bytes = h5::read_bytes(f.get(), "image");
+  const json meta = json::parse(h5::read_string_attribute(f.get(), kMetaAttr));
+  if (meta.contains("labels_use")) in.labels_use = meta["labels_use"].get<std::string>();
   return in;
 }
 

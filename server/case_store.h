@@ -61,6 +61,7 @@ struct ScanRecord {
   std::string preop_id;     // the preop the scan was pushed against
   bool has_image = false;
   bool has_labels = true;  // false: an image alone, segmented by the engine
+  std::optional<std::string> labels_use;  // scan.push's labels_use, when it said
   StoredScanState state = StoredScanState::queued;
   std::optional<std::string> finished_at;
   // Set when failed: protocol error code name, message and failing stage.
@@ -74,6 +75,7 @@ struct ScanRecord {
 struct PushedScan {
   std::optional<std::string> labels_bytes;  // NIfTI bytes exactly as received
   std::optional<std::string> image_bytes;   // idem
+  std::optional<std::string> labels_use;    // "refine" or "exact" when the push said (PROTOCOL.md 5.3)
 };
 
 class CaseStore {

@@ -122,7 +122,7 @@ void ServerCore::repair_scan(const std::string& scan_id) {
     const auto names = store_.result_file_names(scan_id);
     DecodedScan d = decode_scan(store_.load_scan_input(scan_id));
     if (label_map && d.labels) map_label_values(*d.labels, label_map.get(), engine_.label_table());
-    engine_.register_scan(d.labels, d.image, d.read_seconds, [](const std::string&, double, double) {});
+    engine_.register_scan(d.labels, d.image, d.labels_use, d.read_seconds, [](const std::string&, double, double) {});
     engine_.render_deferred(scan_id, [&](const std::string& name, const std::string& bytes) {
       if (std::find(names.begin(), names.end(), name) != names.end()) return;
       store_.add_result_file(scan_id, name, bytes);

@@ -35,11 +35,13 @@ void EngineAdapter::load_preop(const PreopImages& preop, std::optional<TetMesh> 
 // judge the result rather than make it (the quality gates ran before);
 // field.h5 repeats field.nii and cost ~0.35 s of encoding and fsync.
 EngineScanOutput EngineAdapter::register_scan(const std::optional<LabelImage>& labels,
-                                              const std::optional<ImageF>& image, double read_seconds,
+                                              const std::optional<ImageF>& image,
+                                              std::optional<GivenLabelsUse> labels_use, double read_seconds,
                                               const StageProgressFn& progress) {
   deferred_.reset();
   ScanResult result =
-      session_.register_scan(brainshift::ScanInput{labels, image, read_seconds}, progress, /*defer_quality_metrics=*/true);
+      session_.register_scan(brainshift::ScanInput{labels, image, read_seconds, labels_use}, progress,
+                             /*defer_quality_metrics=*/true);
   const auto t_outputs = std::chrono::steady_clock::now();
   const std::string outputs_stage(protocol::stages::kOutputs);
   progress(outputs_stage, 0.0, 0.0);
@@ -48,9 +50,10 @@ EngineScanOutput EngineAdapter::register_scan(const std::optional<LabelImage>& l
   progress(outputs_stage, 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
   output.result = {result.kind, result.fallback_reason};
   output.intraop_seconds = result.timings["intraop"].value(std::string(protocol::stages::kTotal), 0.0);
-  // The deferred parts judge the labels the stages used: those pushed, or
-  // the engine's segmentation of the image.
-  const LabelImage& used = labels ? *labels : result.intraop_labels.value();
+  // The deferred parts judge the labels the stages used: the engine's
+  // segmentation of the image when it made one (an image alone, or labels
+  // refined by their image), else those pushed.
+  const LabelImage& used = result.intraop_labels ? *result.intraop_labels : labels.value();
   deferred_ = std::make_unique<Deferred>(Deferred{IntraopInput{used, image}, std::move(result)});
   return output;
 }

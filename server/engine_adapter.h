@@ -22,6 +22,7 @@ class EngineAdapter final : public EnginePort {
   const TetMesh& mesh() const override { return session_.mesh(); }
   nlohmann::json preop_timings() const override { return session_.preop_timings(); }
   EngineScanOutput register_scan(const std::optional<LabelImage>& labels, const std::optional<ImageF>& image,
+                                 std::optional<GivenLabelsUse> labels_use,
                                  double read_seconds, const StageProgressFn& progress) override;
   int ranks() const override { return session_.ranks(); }
   std::size_t max_image_bytes() const override { return session_.parameters().max_image_bytes; }

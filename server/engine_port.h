@@ -18,6 +18,7 @@
 #include "core/image.h"
 #include "core/label_table.h"
 #include "core/tet_mesh.h"
+#include "pipeline/given_labels_use.h"
 #include "protocol/common.h"
 
 namespace brainshift::server {
@@ -63,9 +64,12 @@ class EnginePort {
   // daemon's decoding of the pushed bytes) is added to the "read" timing, as
   // `brainshift register` adds its file reading. At least one of labels and
   // image: without labels the engine segments the image, and the outputs
-  // then hold intraop_labels.nii and segmentation_confidence.nii.
+  // then hold intraop_labels.nii and segmentation_confidence.nii, as they do
+  // when labels with their image are refined by it (labels_use, unset: the
+  // configuration's given_labels) and the refinement stands.
   virtual EngineScanOutput register_scan(const std::optional<LabelImage>& labels, const std::optional<ImageF>& image,
-                                         double read_seconds, const StageProgressFn& progress) = 0;
+                                         std::optional<GivenLabelsUse> labels_use, double read_seconds,
+                                         const StageProgressFn& progress) = 0;
   // The outputs of the scan register_scan last returned that are produced off
   // the latency path, after the result is stored and announced, in this
   // order: metrics.json (the label overlap figures judge the result; the

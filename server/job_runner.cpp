@@ -249,7 +249,7 @@ void ServerCore::run_scan(const std::string& scan_id) {
     if (label_map && decoded->labels) map_label_values(*decoded->labels, label_map.get(), engine_.label_table());
     // "decode" (the pushed bytes to images) is the daemon's; the engine logs its own "read".
     progress(std::string(stages::kDecode), 1.0, decoded->read_seconds);
-    EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->read_seconds, progress);
+    EngineScanOutput out = engine_.register_scan(decoded->labels, decoded->image, decoded->labels_use, decoded->read_seconds, progress);
     {
       // Marked before the result becomes visible: a pull in between must see
       // the deferred parts as pending, not as missing for good (the soak

@@ -66,12 +66,17 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const s
     }
     // Why a part is missing, from its row (result_outputs.h).
     const ResultOutput& row = result_output(part);
-    const std::string_view not_expected = why_not_expected(part, ScanFacts{record.has_image, record.has_labels});
+    const ScanFacts facts{record.has_image, record.has_labels, record.labels_use == std::optional<std::string>("exact")};
+    const std::string_view not_expected = why_not_expected(part, facts);
     const bool pending = not_expected.empty() && row.deferred && deferred_pending;
-    const std::string why = !not_expected.empty() ? std::string(not_expected)
-                            : pending             ? "made just after the answer; ask again shortly"
-                            : row.deferred ? std::string(row.stored) + " was not made (see the server log)"
-                                           : "not in this result";
+    const std::string why =
+        !not_expected.empty() ? std::string(not_expected)
+        : pending             ? "made just after the answer; ask again shortly"
+        : row.deferred        ? std::string(row.stored) + " was not made (see the server log)"
+        : row.presence == PartPresence::kEngineSegmentation
+            ? "the pushed labels were used as given: their refinement by the image was refused or is off "
+              "(metrics.given_labels says which)"
+            : "not in this result";
     if (!add(frame_name(part), stored_file_names(part), why.c_str()) && pending) reply.unavailable.back().pending = true;
   }
   return reply;
@@ -176,7 +181,7 @@ Message ServerCore::on_scan_push(const Message& m) {
     return make_error_reply(rid, ErrorCode::kNotReady, "no preop is loaded: send preop.load first");
 
   PushedScan input{req.labels ? std::optional<std::string>(req.labels->bytes) : std::nullopt,
-                   req.image ? std::optional<std::string>(req.image->bytes) : std::nullopt};
+                   req.image ? std::optional<std::string>(req.image->bytes) : std::nullopt, req.labels_use};
   const std::string digest = content_digest(input);
   if (req.client_scan_id) {
     if (auto seen = store_.find_by_client_id(*req.client_scan_id)) {

@@ -95,6 +95,7 @@ ServerCore::DecodedScan ServerCore::decode_scan(const PushedScan& input) const {
     if (d.labels && !d.image->grid.same_geometry(d.labels->grid))
       throw InputError("image: grid differs from the labels' grid (dims or world_from_voxel)");
   }
+  if (input.labels_use) d.labels_use = given_labels_use_from_string(*input.labels_use);
   d.read_seconds = seconds_since(t0);
   return d;
 }

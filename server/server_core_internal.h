@@ -33,6 +33,7 @@ struct ServerCore::DecodedScan {
   std::optional<LabelImage> labels;  // absent: the engine segments the image
   std::optional<ImageF> image;
   double read_seconds = 0.0;
+  std::optional<GivenLabelsUse> labels_use;  // the push's; unset: the configuration's
 };
 
 // A result between publish_result and write_result: the record as it will

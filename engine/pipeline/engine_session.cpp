@@ -95,8 +95,9 @@ ScanResult EngineSession::register_scan(const ScanInput& scan, const ProgressFn&
     return register_given_labels(*warm_, IntraopInput{*scan.labels, scan.image, scan.read_seconds}, params_, progress,
                                  !defer_quality_metrics);
   ScanResult result =
-      scan.labels ? register_labels_with_image(*warm_, IntraopInput{*scan.labels, scan.image, scan.read_seconds}, params_, progress,
-                                               !defer_quality_metrics)
+      scan.labels ? register_labels_with_image(*warm_, IntraopInput{*scan.labels, scan.image, scan.read_seconds}, params_,
+                                               scan.labels_use.value_or(params_.auto_segmentation.given_labels),
+                                               progress, !defer_quality_metrics)
                   : register_image_only(*warm_, *scan.image, scan.read_seconds, params_, progress, !defer_quality_metrics);
   result.timings["preop"] = preop_timings();
   return result;

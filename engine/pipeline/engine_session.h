@@ -54,6 +54,9 @@ struct ScanInput {
   std::optional<LabelImage> labels;
   std::optional<ImageF> image;  // same grid as labels when both are given
   double read_seconds = 0.0;    // as IntraopInput::read_seconds
+  // Labels with an image: how they are used; unset = the configured
+  // AutoSegmentationParameters::given_labels.
+  std::optional<GivenLabelsUse> labels_use;
 };
 
 // nonrigid, or affine_only_fallback when a non-rigid stage failed a quality

@@ -504,6 +504,36 @@ ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_se
   return answer(s, std::move(r), std::move(seg_metrics), scan_watch, with_quality_metrics);
 }
 
+// Labels given with their image, refined (GivenLabelsUse::refine) on the
+// grid they were worked on: the labels' pass (first) carried the preop onto
+// the image; the image is classified under that carried preop as a
+// re-match round is (rematch: its narrow prior, its gates, one pass of the
+// stages warm-started from the labels' affine) and that segmentation is
+// registered. The gates' reference is the given labels, not the preop: they
+// already show what the sinking and a resection took, and a refinement
+// changes their volume by a little (docs/DESIGN.md "Labels with their
+// image"). nullopt, with the reason in `report`, when the classifier, a gate
+// or the stages refuse it; `first` is then left as it was.
+std::optional<ScanResult> refine_on_grid(WarmState& warm, const ImageF& image, const LabelImage& given,
+                                         ScanResult& first, double read_seconds, const PipelineParameters& params,
+                                         const ProgressFn& progress, const Stopwatch& scan_watch,
+                                         nlohmann::json& report) {
+  if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
+  ScanOnGrid s(warm, image, read_seconds, params, progress, first.intraop_from_preop);
+  s.carried_volumes = carried_preop_volumes(given, params.label_table, 1.0);
+  Rounds r;
+  r.result = std::move(first);
+  rematch(s, r);
+  if (r.report.empty() || !r.report.back().value("kept", true)) {
+    first = std::move(r.result);
+    report["refused"] = r.report.empty() ? nlohmann::json("no re-match round (rematch_rounds = 0)") : r.report.back();
+    return std::nullopt;
+  }
+  nlohmann::json seg_metrics;
+  seg_metrics["prior"] = "the preop carried by the given labels' pass";
+  return answer(s, std::move(r), std::move(seg_metrics), scan_watch, false);
+}
+
 }  // namespace
 
 ScanResult register_image_only(WarmState& warm, const ImageF& image, double read_seconds, const PipelineParameters& params,
@@ -527,8 +557,50 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
   return result;
 }
 
+namespace {
+
+// The labels' pass refined by the image (refine_on_grid), on the working
+// grid when the labels' grid is finer (as an image-only scan is worked);
+// the refined answer carried back to the labels' grid. `first` is replaced
+// when the refinement stands and left as it was otherwise.
+void refine_given_labels(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                         const ProgressFn& progress, const Stopwatch& scan_watch, ScanResult& first) {
+  nlohmann::json report = {{"use", "refine"}};
+  const double first_pass_seconds = first.timings["intraop"].value("total", 0.0);
+  Stopwatch watch;
+  const Grid3 work = working_grid(input.labels.grid, params.auto_segmentation.working_spacing_mm);
+  std::optional<ScanResult> refined;
+  if (work.dims == input.labels.grid.dims) {
+    refined = refine_on_grid(warm, *input.t1, input.labels, first, input.read_seconds, params, progress, scan_watch,
+                             report);
+  } else {
+    const ImageF image = downsample_linear(*input.t1, work);
+    const LabelImage given = downsample_labels(input.labels, work);
+    LabelImage warped_on_grid = std::move(first.warped_labels);
+    first.warped_labels =
+        warp_labels_nearest(warm.preop.labels, resample_vector_linear(first.pullback_field_mm, work));
+    const double own_seconds = watch.lap();
+    refined = refine_on_grid(warm, image, given, first, input.read_seconds, params, progress, scan_watch, report);
+    if (refined) {
+      watch.lap();
+      carry_to_grid(warm, *refined, input.labels.grid);
+      report_working_grid(*refined, work, input.labels.grid, own_seconds + watch.lap());
+    } else {
+      first.warped_labels = std::move(warped_on_grid);
+    }
+  }
+  report["refined"] = refined.has_value();
+  if (refined) {
+    refined->timings["intraop"]["given_labels_pass"] = first_pass_seconds;
+    first = std::move(*refined);
+  }
+  first.metrics["given_labels"] = std::move(report);
+}
+
+}  // namespace
+
 ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                                      const ProgressFn& progress, bool with_quality_metrics) {
+                                      GivenLabelsUse use, const ProgressFn& progress, bool with_quality_metrics) {
   const LabelTable& table = params.label_table;
   validate_intraop_input(input, table);
   Stopwatch watch;
@@ -550,12 +622,23 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     result = run_intraop_on_working_grid(warm, input, params, progress,
                                          "the intraop labels disagree with the intraop image: " + c.failure);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
+  } else if (use == GivenLabelsUse::refine && result.kind == ResultKind::nonrigid) {
+    // Labels that disagree grossly with their image are not refined: the
+    // answer says so (above). Labels whose own pass the gates refused are
+    // not either: that refusal is the answer's, with its reason.
+    refine_given_labels(warm, input, params, progress, watch, result);
+  } else {
+    result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
   }
   // The answer waits for the check: the wait is part of what the surgeon waits for.
   result.timings["intraop"][std::string(stages::kTotal)] = watch.seconds() + input.read_seconds;
   c.metrics["seconds"] = check_seconds;
   result.metrics["label_image_check"] = c.metrics;
-  if (with_quality_metrics) add_quality_metrics(warm, input, params, result, progress);
+  // The figures judge the labels the stages used: the refined segmentation
+  // when it stands.
+  if (with_quality_metrics)
+    add_quality_metrics(warm, IntraopInput{result.intraop_labels ? *result.intraop_labels : input.labels, input.t1},
+                        params, result, progress);
   return result;
 }
 

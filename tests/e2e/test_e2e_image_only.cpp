@@ -148,16 +148,29 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   EXPECT_NE(r.err.find("ventricular fluid"), std::string::npos) << r.err;
 
   // A site corrects the segmentation by hand: the labels pushed with the same
-  // image are used as given, and no derived segmentation is served for them.
+  // image and --labels-use exact are used as given, and no derived
+  // segmentation is served for them.
   r = cli(daemon, {"push", "--labels", path("scan_labels.nii.gz"), "--image", path("scan_t1.nii.gz"), "--id",
-                   "or1-img-1-corrected", "--wait"});
+                   "or1-img-1-corrected", "--labels-use", "exact", "--wait"});
   ASSERT_EQ(r.code, 0) << r.err << daemon.log();
   const std::string corrected_id = r.out.substr(0, r.out.find('\n'));
   r = cli(daemon, {"pull", "--scan", corrected_id, "--out", path("corrected"), "--parts", "intraop_labels,field"});
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(fs::exists(dir / "corrected" / "field.nii.gz"));
   EXPECT_FALSE(fs::exists(dir / "corrected" / "intraop_labels.nii.gz"));
-  EXPECT_NE(r.err.find("intraop labels were pushed"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("labels_use \"exact\""), std::string::npos) << r.err;
+  // The same labels without it (an algorithm's, say) are refined by their
+  // image: the segmentation used is served, and metrics.json says so.
+  r = cli(daemon, {"push", "--labels", path("scan_labels.nii.gz"), "--image", path("scan_t1.nii.gz"), "--id",
+                   "or1-img-1-algorithm", "--wait"});
+  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
+  const std::string refined_id = r.out.substr(0, r.out.find('\n'));
+  r = cli(daemon, {"pull", "--scan", refined_id, "--out", path("refined"), "--parts", "intraop_labels,metrics"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto refined_metrics = nlohmann::json::parse(read_file(dir / "refined" / "metrics.json"));
+  EXPECT_EQ(refined_metrics["given_labels"].value("use", ""), "refine") << refined_metrics["given_labels"].dump();
+  EXPECT_TRUE(refined_metrics["given_labels"].value("refined", false)) << refined_metrics["given_labels"].dump();
+  EXPECT_TRUE(fs::exists(dir / "refined" / "intraop_labels.nii.gz"));
 
   // The image-only scan's parts are served from the store by a restarted daemon.
   EXPECT_EQ(cli(daemon, {"shutdown", "--reason", "test"}).code, 0);

@@ -68,7 +68,10 @@ namespace {
 // How near the brain-volume gate's bounds each round ran (change, bounds,
 // kept), and the head placement's volume scale the gates take out.
 nlohmann::json volume_gate_rounds(const nlohmann::json& segmentation_metrics) {
-  nlohmann::json out = {{"placement_volume_scale", segmentation_metrics["head_placement"].value("volume_scale", 0.0)},
+  const double scale = segmentation_metrics.contains("head_placement")
+                           ? segmentation_metrics["head_placement"].value("volume_scale", 0.0)
+                           : 0.0;  // refined given labels: no head placement
+  nlohmann::json out = {{"placement_volume_scale", scale},
                         {"rounds", nlohmann::json::array()}};
   for (const auto& round : segmentation_metrics.value("rounds", nlohmann::json::array())) {
     const auto& v = round["gates"]["brain_volume"];

@@ -542,7 +542,15 @@ TEST_F(PipelineTest, LabelsThatLeakBeyondTheirImageAreReportedAndNotACleanResult
   const ScanResult ok = session_->register_scan(good, nullptr);
   EXPECT_EQ(ok.kind, ResultKind::nonrigid) << ok.metrics["label_image_check"].dump();
   EXPECT_EQ(ok.metrics["label_image_check"].value("passed", false), true) << ok.metrics["label_image_check"].dump();
-  EXPECT_FALSE(ok.intraop_labels) << "given labels are not a derived part";
+  // Refined by their image (the default): the segmentation used is a part.
+  EXPECT_TRUE(ok.metrics["given_labels"].value("refined", false)) << ok.metrics["given_labels"].dump();
+  EXPECT_TRUE(ok.intraop_labels.has_value());
+  ScanInput exact = good;
+  exact.labels_use = GivenLabelsUse::exact;
+  const ScanResult as_given = session_->register_scan(exact, nullptr);
+  EXPECT_EQ(as_given.kind, ResultKind::nonrigid);
+  EXPECT_FALSE(as_given.intraop_labels) << "labels used as given are not a derived part";
+  EXPECT_FALSE(as_given.metrics["given_labels"].value("refined", true));
 
   // The brain grown by 6 mm, as a leaking threshold segmenter does.
   ScanInput leak = good;

@@ -57,11 +57,16 @@ TEST_P(OutputRow, DeferredPresenceAndRepairColumnsAgree) {
       EXPECT_FALSE(bp::part_expected(row.part, labels_only));
       EXPECT_EQ(bp::why_not_expected(row.part, labels_only), "no intraop image was pushed");
       break;
-    case bp::PartPresence::kWithoutIntraopLabels:
-      EXPECT_FALSE(bp::part_expected(row.part, with_image));
+    case bp::PartPresence::kEngineSegmentation: {
+      // Labels with their image are refined unless the push said exact.
+      const bp::ScanFacts exact{true, true, true};
+      EXPECT_TRUE(bp::part_expected(row.part, with_image));
+      EXPECT_FALSE(bp::part_expected(row.part, exact));
       EXPECT_FALSE(bp::part_expected(row.part, labels_only));
-      EXPECT_FALSE(bp::why_not_expected(row.part, with_image).empty());
+      EXPECT_NE(bp::why_not_expected(row.part, exact).find("exact"), std::string::npos);
+      EXPECT_NE(bp::why_not_expected(row.part, labels_only).find("no intraop image"), std::string::npos);
       break;
+    }
   }
 }
 

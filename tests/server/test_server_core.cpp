@@ -61,11 +61,13 @@ struct Harness {
     EXPECT_TRUE(core->step(10ms));
     return parse_preop_load_reply(reply).preop_id;
   }
-  Message push(const LabelImage& labels, std::optional<std::string> client_id = std::nullopt, bool image = false) {
+  Message push(const LabelImage& labels, std::optional<std::string> client_id = std::nullopt, bool image = false,
+               std::optional<std::string> labels_use = std::nullopt) {
     ScanPushRequest r;
     r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, true));
     if (image) r.image = media::nifti_frame("image", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
     r.client_scan_id = client_id;
+    r.labels_use = std::move(labels_use);
     return call(make_scan_push_request("push", r));
   }
   // An image alone on this grid (the engine segments it).
@@ -91,12 +93,17 @@ LabelImage intraop_labels(int n = 12) {
 }
 
 // Each kind of scan scan.push takes: labels, labels and image, image alone.
-constexpr ScanFacts kScanKinds[] = {{false, true}, {true, true}, {true, false}};
+constexpr ScanFacts kScanKinds[] = {{false, true}, {true, true}, {true, true, true}, {true, false}};
 std::string describe(const ScanFacts& kind) {
-  return !kind.has_labels ? "image alone" : kind.has_image ? "labels and image" : "labels only";
+  return !kind.has_labels    ? "image alone"
+         : !kind.has_image   ? "labels only"
+         : kind.labels_exact ? "labels and image, used exactly"
+                             : "labels and image, refined";
 }
 Message push_kind(Harness& h, const ScanFacts& kind) {
-  return kind.has_labels ? h.push(intraop_labels(), std::nullopt, kind.has_image) : h.push_image(intraop_labels().grid);
+  if (!kind.has_labels) return h.push_image(intraop_labels().grid);
+  return h.push(intraop_labels(), std::nullopt, kind.has_image,
+                kind.labels_exact ? std::optional<std::string>("exact") : std::nullopt);
 }
 
 }  // namespace

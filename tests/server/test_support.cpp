@@ -99,9 +99,11 @@ LabelImage FakeEngine::fake_segmentation(const ImageF& image) const {
 }
 
 server::EngineScanOutput FakeEngine::register_scan(const std::optional<LabelImage>& given,
-                                                   const std::optional<ImageF>& image, double,
+                                                   const std::optional<ImageF>& image,
+                                                   std::optional<GivenLabelsUse> labels_use, double,
                                                    const server::StageProgressFn& progress) {
   ++scans_run;
+  last_labels_use = labels_use;
   progress("affine", 0.0, 0.0);
   progress("affine", 1.0, 0.002);
   if (fail_next_scan) {
@@ -110,9 +112,12 @@ server::EngineScanOutput FakeEngine::register_scan(const std::optional<LabelImag
   }
   progress("solve", 1.0, 0.003);
   server::EngineScanOutput out;
+  // As the engine: an image alone is segmented, and labels with their image
+  // are refined by it unless the push said exact (the double always refines).
+  const bool segmented = image && (!given || labels_use != GivenLabelsUse::exact);
   const LabelImage labels = given ? *given : fake_segmentation(image.value());
   out.files = files_for(labels);
-  if (!given) {
+  if (segmented) {
     out.files["intraop_labels.nii"] = label_image_to_bytes(labels, false);
     const ImageF confidence(labels.grid, 0.9f);
     out.files["segmentation_confidence.nii"] = scalar_image_to_bytes(confidence, VoxelType::float32, false);

@@ -44,7 +44,8 @@ class FakeEngine : public server::EnginePort {
   // Without labels the double "segments" the image (fake_segmentation) and
   // adds intraop_labels.nii and segmentation_confidence.nii, as the engine does.
   server::EngineScanOutput register_scan(const std::optional<LabelImage>& labels, const std::optional<ImageF>& image,
-                                         double read_seconds, const server::StageProgressFn& progress) override;
+                                         std::optional<GivenLabelsUse> labels_use, double read_seconds,
+                                         const server::StageProgressFn& progress) override;
   int ranks() const override { return 1; }
   std::size_t max_image_bytes() const override { return std::size_t{64} << 20; }
   void stop_workers() override { stopped = true; }
@@ -76,6 +77,7 @@ class FakeEngine : public server::EnginePort {
   // its metrics.json).
   bool fallback_next_scan = false;
   bool fail_preop = false;       // InputError from load_preop
+  std::optional<GivenLabelsUse> last_labels_use;  // what the last scan's push said
   std::optional<TetMesh> last_stored_mesh;
   server::PreopImages last_preop;
   std::optional<ImageF> last_scan_image;  // the intraop image of the last register_scan
