@@ -244,6 +244,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.min_surface_confidence, code.min_surface_confidence);
   EXPECT_DOUBLE_EQ(file.max_uncertain_surface_fraction, code.max_uncertain_surface_fraction);
   EXPECT_EQ(file.check_given_labels, code.check_given_labels);
+  EXPECT_EQ(file.given_labels, code.given_labels);
   for (const auto* c : {&file.classifier, &file.label_image_check.classifier}) {
     EXPECT_DOUBLE_EQ(c->prior_floor, code.classifier.prior_floor);
     EXPECT_DOUBLE_EQ(c->margin_mm, code.classifier.margin_mm);
@@ -268,12 +269,13 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
                    code.label_image_check.max_disagreement_fraction);
 
   const auto p = config::pipeline_parameters_from_text(
-      "[auto_segmentation]\nrematch_rounds = 0\ncheck_given_labels = false\n"
+      "[auto_segmentation]\nrematch_rounds = 0\ncheck_given_labels = false\ngiven_labels = \"exact\"\n"
       "[auto_segmentation.classifier]\nmrf_beta = 0.0\nbias_degree = 1\n"
       "[auto_segmentation.label_check]\nband_mm = 2.0\n",
       "t").auto_segmentation;
   EXPECT_EQ(p.rematch_rounds, 0);
   EXPECT_FALSE(p.check_given_labels);
+  EXPECT_EQ(p.given_labels, GivenLabelsUse::exact);
   EXPECT_DOUBLE_EQ(p.classifier.em.mrf_beta, 0.0);
   EXPECT_EQ(p.classifier.em.bias_degree, 1);
   EXPECT_EQ(p.label_image_check.classifier.em.bias_degree, 1);  // one classifier for both paths
@@ -292,6 +294,7 @@ TEST(Config, BadAutoSegmentationValuesAreErrorsNamingSectionAndKey) {
             std::string::npos);
   EXPECT_NE(message_of("[auto_segmentation]\ncheck_given_labels = 1\n").find("check_given_labels"),
             std::string::npos);
+  EXPECT_NE(message_of("[auto_segmentation]\ngiven_labels = \"mostly\"\n").find("given_labels"), std::string::npos);
   const std::string floor = message_of("[auto_segmentation.classifier]\nprior_floor = 0.7\n");
   EXPECT_NE(floor.find("auto_segmentation.classifier"), std::string::npos) << floor;
   EXPECT_NE(floor.find("prior_floor"), std::string::npos) << floor;

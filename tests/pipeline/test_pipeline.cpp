@@ -517,6 +517,62 @@ TEST_F(PipelineTest, AScanGivenAsAnImageAloneIsSegmentedAndRegistered) {
   EXPECT_TRUE(r.metrics.contains("labels")) << "quality metrics against the derived labels";
 }
 
+// Labels an algorithm made drop a piece of cortex the image shows (a
+// hypointense patch left out of a threshold mask): used as given, the outer
+// surface is matched into the dent and the field there is millimetres off;
+// refined by their image (the default), the image puts the cortex back.
+TEST_F(PipelineTest, LabelsWithADentTheImageDoesNotShowAreRefinedByIt) {
+  const Eigen::Vector3d shift(2.0, -1.0, 1.0);
+  const IntraopInput truth = translated_scan(*preop_, shift);
+  // The dent: brain within 12 mm of the outline's most lateral voxel removed.
+  const Grid3& g = truth.labels.grid;
+  Eigen::Vector3d lateral(-1e9, 0, 0);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        if (truth.labels.at(i, j, k) != 0 && g.world_mm(i, j, k).x() > lateral.x()) lateral = g.world_mm(i, j, k);
+  ScanInput dented;
+  dented.labels = truth.labels;
+  dented.image = test::scanner_image(*truth.t1);
+  std::vector<std::size_t> near_dent;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const double d = (g.world_mm(i, j, k) - lateral).norm();
+        const std::size_t v = g.index(i, j, k);
+        if (d < 12.0) dented.labels->voxels[v] = 0;
+        if (d < 18.0 && truth.labels.voxels[v] != 0) near_dent.push_back(v);
+      }
+  ASSERT_GT(near_dent.size(), 100u);
+  auto error_near_dent = [&](const ScanResult& r) {
+    double mean = 0;
+    for (std::size_t v : near_dent)
+      mean += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm() / static_cast<double>(near_dent.size());
+    return mean;
+  };
+  ScanInput exact = dented;
+  exact.labels_use = GivenLabelsUse::exact;
+  const ScanResult as_given = session_->register_scan(exact, nullptr);
+  const ScanResult refined = session_->register_scan(dented, nullptr);
+  ASSERT_EQ(as_given.kind, ResultKind::nonrigid) << as_given.fallback_reason;
+  ASSERT_EQ(refined.kind, ResultKind::nonrigid) << refined.fallback_reason;
+  ASSERT_TRUE(refined.metrics["given_labels"].value("refined", false)) << refined.metrics["given_labels"].dump();
+  ASSERT_TRUE(refined.intraop_labels.has_value());
+  // Near the dent the segmentation used holds the brain the labels dropped.
+  auto brain_kept_near_dent = [&](const LabelImage& l) {
+    std::size_t kept = 0;
+    for (std::size_t v : near_dent) kept += l.voxels[v] != 0;
+    return static_cast<double>(kept) / static_cast<double>(near_dent.size());
+  };
+  EXPECT_GT(brain_kept_near_dent(*refined.intraop_labels), brain_kept_near_dent(*dented.labels) + 0.1);
+  const double e_exact = error_near_dent(as_given), e_refined = error_near_dent(refined);
+  std::printf("dent: brain kept %.3f as given, %.3f refined; field error %.3f mm as given, %.3f mm refined\n",
+              brain_kept_near_dent(*dented.labels), brain_kept_near_dent(*refined.intraop_labels), e_exact, e_refined);
+  EXPECT_LT(e_refined, 0.6 * e_exact) << "mean field error near the dent: as given " << e_exact << " mm, refined "
+                                      << e_refined << " mm";
+  EXPECT_LT(e_refined, 0.8);
+}
+
 TEST_F(PipelineTest, AnImageWithoutFluidContrastIsRefusedWithTheReason) {
   const IntraopInput truth = translated_scan(*preop_, {1, 0, 0});
   ScanInput scan;

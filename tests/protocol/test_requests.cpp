@@ -195,6 +195,28 @@ TEST(ScanPush, ImageAloneIsEnough) {
   EXPECT_EQ(back.image->bytes, r.image->bytes);
 }
 
+// Revision 5: labels with their image may say how they are used.
+TEST(ScanPush, LabelsUseTravelsWithBothFramesAndIsCheckedOtherwise) {
+  bp::ScanPushRequest r{labels_frame(), bp::media::nifti_frame("image", bp::testing::fake_gzip(2048))};
+  r.labels_use = "exact";
+  EXPECT_EQ(bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", r))).labels_use,
+            std::optional<std::string>("exact"));
+  EXPECT_FALSE(bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", {labels_frame()})))
+                   .labels_use.has_value());
+  r.labels_use = "mostly";
+  EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", r))); }),
+            ErrorCode::kInvalidRequest);
+  bp::ScanPushRequest alone{labels_frame()};
+  alone.labels_use = "refine";  // nothing to refine them by
+  try {
+    bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", alone)));
+    FAIL();
+  } catch (const bp::ProtocolError& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kInvalidRequest);
+    EXPECT_NE(std::string(e.what()).find("labels_use"), std::string::npos) << e.what();
+  }
+}
+
 TEST(ScanPush, RefusesNoFramesExtraFramesAndBadIds) {
   try {
     bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", {})));

@@ -179,6 +179,25 @@ TEST(CaseStore, HalfWrittenFilesAreIgnoredAndRemovedOnOpen) {
   EXPECT_EQ(store.queued_oldest_first().size(), 1u);
 }
 
+TEST(CaseStore, ThePushsLabelsUseIsStoredDigestedAndReadBack) {
+  TempDir dir;
+  PushedScan exact = sample_input('a', true);
+  exact.labels_use = "exact";
+  // A push that did not say digests as before the field existed.
+  EXPECT_NE(content_digest(exact), content_digest(sample_input('a', true)));
+  std::string id;
+  {
+    CaseStore store(dir.path());
+    id = store.add_scan(exact, std::nullopt, content_digest(exact), "preop-a").scan_id;
+  }
+  CaseStore store(dir.path());  // a restart processes the scan as it was pushed
+  EXPECT_EQ(store.find(id)->labels_use, std::optional<std::string>("exact"));
+  EXPECT_EQ(store.load_scan_input(id).labels_use, std::optional<std::string>("exact"));
+  const PushedScan plain = sample_input('b', true);
+  const std::string plain_id = store.add_scan(plain, std::nullopt, content_digest(plain), "preop-a").scan_id;
+  EXPECT_FALSE(store.load_scan_input(plain_id).labels_use.has_value());
+}
+
 TEST(CaseStore, DigestSeparatesContent) {
   EXPECT_EQ(content_digest(sample_input('a', true)), content_digest(sample_input('a', true)));
   EXPECT_NE(content_digest(sample_input('a', true)), content_digest(sample_input('a', false)));
