@@ -509,19 +509,31 @@ ScanResult register_on_grid(WarmState& warm, const ImageF& image, double read_se
 // the image; the image is classified under that carried preop as a
 // re-match round is (rematch: its narrow prior, its gates, one pass of the
 // stages warm-started from the labels' affine) and that segmentation is
-// registered. The gates' reference is the given labels, not the preop: they
-// already show what the sinking and a resection took, and a refinement
-// changes their volume by a little (docs/DESIGN.md "Labels with their
-// image"). nullopt, with the reason in `report`, when the classifier, a gate
-// or the stages refuse it; `first` is then left as it was.
+// registered. Two things differ from an image-only re-match (docs/DESIGN.md
+// "Labels with their image"): no round of our own found the sinking's gap
+// before, so the open-fluid rule acts as in a first round; and the volume
+// gate's reference spans the preop's brain and the given labels' (a sinking
+// shows in the labels, a segmenter's erosion at low field makes them
+// smaller than the brain): the refined brain must lie within
+// max_brain_volume_change of that span. nullopt, with the reason in
+// `report`, when the classifier, a gate or the stages refuse it; `first` is
+// then left as it was.
 std::optional<ScanResult> refine_on_grid(WarmState& warm, const ImageF& image, const LabelImage& given,
                                          ScanResult& first, double read_seconds, const PipelineParameters& params,
                                          const ProgressFn& progress, const Stopwatch& scan_watch,
                                          nlohmann::json& report) {
   if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
-  ScanOnGrid s(warm, image, read_seconds, params, progress, first.intraop_from_preop);
-  s.carried_volumes = carried_preop_volumes(given, params.label_table, 1.0);
+  PipelineParameters p = params;
+  p.auto_segmentation.rematch_gaps_found_before = false;
+  ScanOnGrid s(warm, image, read_seconds, p, progress, first.intraop_from_preop);
+  const double given_ml = carried_preop_volumes(given, params.label_table, 1.0).brain_ml;
+  const double preop_ml = s.carried_volumes.brain_ml;
   Rounds r;
+  // The gate's reference is the span's top; its lower bound's allowance (the
+  // gap's, otherwise) reaches the span's bottom.
+  s.carried_volumes.brain_ml = std::max(preop_ml, given_ml);
+  r.seg.open_fluid_ml = std::abs(preop_ml - given_ml);
+  report["brain_ml"] = {{"preop", preop_ml}, {"given", given_ml}};
   r.result = std::move(first);
   rematch(s, r);
   if (r.report.empty() || !r.report.back().value("kept", true)) {
