@@ -5,6 +5,7 @@
 #include "core/errors.h"
 #include "core/fault_injection.h"
 #include "pipeline/mpi_commands.h"
+#include "pipeline/labels_with_image.h"
 #include "pipeline/prepare_stage.h"
 #include "pipeline/uncertainty_stage.h"
 #include "pipeline/warm_state.h"

@@ -30,14 +30,4 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
 ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                                  const ProgressFn& progress, bool with_quality_metrics);
 
-// A scan given with both labels and an image: the stages run while the labels
-// are checked against the image on the other core; a gross disagreement
-// (metrics "label_image_check": where and how much) turns the result into
-// the marked affine-only one. With GivenLabelsUse::refine the image is then
-// classified under the preop the labels' pass carried, and that segmentation
-// is registered (result.intraop_labels; metrics "given_labels" says whether,
-// or why not).
-ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                                      GivenLabelsUse use, const ProgressFn& progress, bool with_quality_metrics);
-
 }  // namespace brainshift

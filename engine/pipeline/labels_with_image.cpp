@@ -1,0 +1,147 @@
+#include "pipeline/labels_with_image.h"
+
+#include <algorithm>
+#include <cmath>
+#include <future>
+#include <optional>
+
+#include "core/parallel.h"
+#include "core/timer.h"
+#include "field/vector_sampling.h"
+#include "field/warp.h"
+#include "image/resample.h"
+#include "pipeline/segmentation_rounds.h"
+#include "pipeline/working_grid.h"
+#include "protocol/stage_names.h"
+#include "segmentation/label_image_check.h"
+
+namespace brainshift {
+namespace stages = protocol::stages;
+namespace {
+
+// Labels given with their image, refined (GivenLabelsUse::refine) on the
+// grid they were worked on: the labels' pass (first) carried the preop onto
+// the image; the image is classified under that carried preop as a
+// re-match round is (rematch: its narrow prior, its gates, one pass of the
+// stages warm-started from the labels' affine) and that segmentation is
+// registered. Two things differ from an image-only re-match (docs/DESIGN.md
+// "Labels with their image"): no round of our own found the sinking's gap
+// before, so the open-fluid rule acts as in a first round; and the volume
+// gate's reference spans the preop's brain and the given labels' (a sinking
+// shows in the labels, a segmenter's erosion at low field makes them
+// smaller than the brain): the refined brain must lie within
+// max_brain_volume_change of that span. nullopt, with the reason in
+// `report`, when the classifier, a gate or the stages refuse it; `first` is
+// then left as it was.
+std::optional<ScanResult> refine_on_grid(WarmState& warm, const ImageF& image, const LabelImage& given,
+                                         ScanResult& first, double read_seconds, const PipelineParameters& params,
+                                         const ProgressFn& progress, const Stopwatch& scan_watch,
+                                         nlohmann::json& report) {
+  if (progress) progress(std::string(stages::kSegment), 0.0, 0.0);
+  PipelineParameters p = params;
+  p.auto_segmentation.rematch_gaps_found_before = false;
+  ScanOnGrid s(warm, image, read_seconds, p, progress, first.intraop_from_preop);
+  const double given_ml = carried_preop_volumes(given, params.label_table, 1.0).brain_ml;
+  const double preop_ml = s.carried_volumes.brain_ml;
+  Rounds r;
+  // The gate's reference is the span's top; its lower bound's allowance (the
+  // gap's, otherwise) reaches the span's bottom.
+  s.carried_volumes.brain_ml = std::max(preop_ml, given_ml);
+  r.seg.open_fluid_ml = std::abs(preop_ml - given_ml);
+  report["brain_ml"] = {{"preop", preop_ml}, {"given", given_ml}};
+  r.result = std::move(first);
+  rematch(s, r);
+  if (r.report.empty() || !r.report.back().value("kept", true)) {
+    first = std::move(r.result);
+    report["refused"] = r.report.empty() ? nlohmann::json("no re-match round (rematch_rounds = 0)") : r.report.back();
+    return std::nullopt;
+  }
+  nlohmann::json seg_metrics;
+  seg_metrics["prior"] = "the preop carried by the given labels' pass";
+  return answer(s, std::move(r), std::move(seg_metrics), scan_watch, false);
+}
+
+// The labels' pass refined by the image (refine_on_grid), on the working
+// grid when the labels' grid is finer (as an image-only scan is worked);
+// the refined answer carried back to the labels' grid. `first` is replaced
+// when the refinement stands and left as it was otherwise.
+void refine_given_labels(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                         const ProgressFn& progress, const Stopwatch& scan_watch, ScanResult& first) {
+  nlohmann::json report = {{"use", "refine"}};
+  const double first_pass_seconds = first.timings["intraop"].value("total", 0.0);
+  Stopwatch watch;
+  const Grid3 work = working_grid(input.labels.grid, params.auto_segmentation.working_spacing_mm);
+  std::optional<ScanResult> refined;
+  if (work.dims == input.labels.grid.dims) {
+    refined = refine_on_grid(warm, *input.t1, input.labels, first, input.read_seconds, params, progress, scan_watch,
+                             report);
+  } else {
+    const ImageF image = downsample_linear(*input.t1, work);
+    const LabelImage given = downsample_labels(input.labels, work);
+    LabelImage warped_on_grid = std::move(first.warped_labels);
+    first.warped_labels =
+        warp_labels_nearest(warm.preop.labels, resample_vector_linear(first.pullback_field_mm, work));
+    const double own_seconds = watch.lap();
+    refined = refine_on_grid(warm, image, given, first, input.read_seconds, params, progress, scan_watch, report);
+    if (refined) {
+      watch.lap();
+      carry_to_grid(warm, *refined, input.labels.grid);
+      report_working_grid(*refined, work, input.labels.grid, own_seconds + watch.lap());
+    } else {
+      first.warped_labels = std::move(warped_on_grid);
+    }
+  }
+  report["refined"] = refined.has_value();
+  if (refined) {
+    refined->timings["intraop"]["given_labels_pass"] = first_pass_seconds;
+    first = std::move(*refined);
+  }
+  first.metrics["given_labels"] = std::move(report);
+}
+
+}  // namespace
+
+ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                      GivenLabelsUse use, const ProgressFn& progress, bool with_quality_metrics) {
+  const LabelTable& table = params.label_table;
+  validate_intraop_input(input, table);
+  Stopwatch watch;
+  double check_seconds = 0;
+  auto check = std::async(std::launch::async, [&] {
+    SerialOnThisThread beside_the_stages;
+    Stopwatch w;
+    segmentation::LabelImageCheckParameters p = params.auto_segmentation.label_image_check;
+    p.classifier.max_filled_hole_ml = params.min_resection_cavity_ml;
+    auto c = segmentation::check_labels_against_image(*input.t1, input.labels, table.brain_label(),
+                                                      ventricle_labels(table), p);
+    check_seconds = w.seconds();
+    return c;
+  });
+  ScanResult result = run_intraop_on_working_grid(warm, input, params, progress);
+  segmentation::LabelImageCheck c = check.get();
+  if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
+    const nlohmann::json first_timings = result.timings["intraop"];
+    result = run_intraop_on_working_grid(warm, input, params, progress,
+                                         "the intraop labels disagree with the intraop image: " + c.failure);
+    result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
+  } else if (use == GivenLabelsUse::refine && result.kind == ResultKind::nonrigid) {
+    // Labels that disagree grossly with their image are not refined: the
+    // answer says so (above). Labels whose own pass the gates refused are
+    // not either: that refusal is the answer's, with its reason.
+    refine_given_labels(warm, input, params, progress, watch, result);
+  } else {
+    result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
+  }
+  // The answer waits for the check: the wait is part of what the surgeon waits for.
+  result.timings["intraop"][std::string(stages::kTotal)] = watch.seconds() + input.read_seconds;
+  c.metrics["seconds"] = check_seconds;
+  result.metrics["label_image_check"] = c.metrics;
+  // The figures judge the labels the stages used: the refined segmentation
+  // when it stands.
+  if (with_quality_metrics)
+    add_quality_metrics(warm, IntraopInput{result.intraop_labels ? *result.intraop_labels : input.labels, input.t1},
+                        params, result, progress);
+  return result;
+}
+
+}  // namespace brainshift

@@ -1,0 +1,257 @@
+#include "pipeline/segmentation_rounds.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "core/errors.h"
+#include "image/image_stats.h"
+#include "protocol/stage_names.h"
+#include "segmentation/head_mask.h"
+
+namespace brainshift {
+namespace stages = protocol::stages;
+namespace {
+
+// The preop head as far as the intraop image can see it through a placement
+// (intraop_from_preop): the part of the preop head mapped inside the intraop
+// grid, and its outline points there. An intraop field of view cuts the head
+// (the neck, the vertex); matched against the whole preop head, the moments
+// and the outline would pull the placement toward shrinking it.
+// Without a placement (nullptr) all of it.
+PreopBoundarySamples visible_head(const Mask& head, const Grid3& intraop, const Eigen::Matrix4d* intraop_from_preop) {
+  const Eigen::Matrix4d voxel_from_preop =
+      intraop.voxel_from_world() * (intraop_from_preop ? *intraop_from_preop : Eigen::Matrix4d::Identity());
+  auto visible = [&](const Eigen::Vector3d& p) {
+    if (!intraop_from_preop) return true;
+    const Eigen::Vector3d v = (voxel_from_preop * p.homogeneous()).head<3>();
+    for (int a = 0; a < 3; ++a)
+      if (v[a] < -0.5 || v[a] > intraop.dims[a] - 0.5) return false;
+    return true;
+  };
+  Mask seen(head.grid, 0);
+  for (int k = 0; k < head.grid.dims[2]; ++k)
+    for (int j = 0; j < head.grid.dims[1]; ++j)
+      for (int i = 0; i < head.grid.dims[0]; ++i)
+        seen.at(i, j, k) = head.at(i, j, k) && visible(head.grid.world_mm(i, j, k));
+  PreopBoundarySamples samples;
+  samples.outer_moments = mask_moments(seen);
+  for (const auto& p : mask_boundary_points_mm(head))
+    if (visible(p)) samples.outer_mm.push_back(p);
+  return samples;
+}
+
+}  // namespace
+
+// Head outlines as label maps (1 = head) for the label affine; no ventricle
+// term (value 2 is absent).
+LabelImage as_labels(const Mask& m) {
+  LabelImage out(m.grid, 0);
+  for (std::size_t v = 0; v < m.voxels.size(); ++v) out.voxels[v] = m.voxels[v] ? 1 : 0;
+  return out;
+}
+
+// Two passes: the preop head seen through the identity (scanners place a
+// patient's head within centimetres of the same RAS position) or, when that
+// sees too little of it, the whole head; then seen through the first result.
+Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const AffineRegistrationParameters& affine,
+                                    nlohmann::json& metrics) {
+  if (!warm.preop_head) {
+    warm.preop_head = segmentation::head_mask(warm.preop.t1);
+    if (count_nonzero(*warm.preop_head) == 0) throw ComputeError("the preop image shows no head (flat image)");
+  }
+  const Mask head = segmentation::head_mask(image);
+  if (count_nonzero(head) == 0) throw InputError("intraop image: no head found (the image is flat)");
+  const IntraopDistanceMaps maps = prepare_intraop_maps(as_labels(head), 1, 2);
+  AffineRegistrationParameters p = affine;
+  p.ventricle_weight = 0;
+  Eigen::Matrix4d placement = Eigen::Matrix4d::Identity();
+  AffineRegistrationResult r;
+  for (int pass = 0; pass < 2; ++pass) {
+    PreopBoundarySamples samples = visible_head(*warm.preop_head, image.grid, &placement);
+    if (pass == 0 && samples.outer_moments.volume_ml < 0.5 * volume_ml(head))
+      samples = visible_head(*warm.preop_head, image.grid, nullptr);
+    if (samples.outer_mm.size() < 100) break;
+    r = register_affine(samples, maps, p);
+    placement = r.intraop_from_preop;
+  }
+  // Its volume scale is not the brain's: the gates take it out
+  // (carried_preop_volumes).
+  metrics = {{"converged", r.converged}, {"rms_surface_distance_mm", r.rms_surface_distance_mm},
+             {"inlier_fraction", r.inlier_fraction}, {"message", r.message},
+             {"volume_scale", placement.topLeftCorner<3, 3>().determinant()}};
+  return placement;
+}
+
+std::vector<std::uint16_t> ventricle_labels(const LabelTable& table) { return table.cavity_labels(); }
+
+// The preop where the head's placement puts it (segmentation::PreopSeen):
+// its T1 and its own fluid and tissue intensities. Without ventricles in the
+// preop labels there is no fluid to compare with: the medians are equal and
+// the test is off.
+segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, const LabelImage& carried,
+                                      const Eigen::Matrix4d& intraop_from_preop) {
+  if (!warm.preop_fluid_tissue_medians) {
+    const auto vent = ventricle_labels(table);
+    std::vector<float> fluid, tissue;
+    const auto& labels = warm.preop.labels.voxels;
+    for (std::size_t v = 0; v < labels.size(); ++v) {
+      if (std::find(vent.begin(), vent.end(), labels[v]) != vent.end()) fluid.push_back(warm.preop.t1.voxels[v]);
+      else if (labels[v] == table.brain_label()) tissue.push_back(warm.preop.t1.voxels[v]);
+    }
+    const double f = median_in_place(fluid), t = median_in_place(tissue);
+    warm.preop_fluid_tissue_medians = fluid.empty() || tissue.empty() ? std::array<double, 2>{0, 0} : std::array<double, 2>{f, t};
+  }
+  segmentation::PreopSeen seen;
+  seen.image = &warm.preop.t1;
+  seen.preop_from_intraop = intraop_from_preop.inverse();
+  seen.fluid_median = (*warm.preop_fluid_tissue_medians)[0];
+  seen.tissue_median = (*warm.preop_fluid_tissue_medians)[1];
+  const auto resectable = table.resectable_labels();
+  if (!resectable.empty()) seen.resectable = mask_of_labels(carried, resectable);
+  return seen;
+}
+
+// A round's report: its prior's width and the bias fitted (and whether the
+// first fit was replaced, ScanOnGrid::segment).
+nlohmann::json round_report(const segmentation::IntraopSegmentation& s) {
+  nlohmann::json r = {{"prior_width_mm", s.report["prior_width_mm"]}, {"bias_degree", s.report["bias_degree"]}};
+  if (s.report.contains("bias_refitted")) r["bias_refitted"] = s.report["bias_refitted"];
+  return r;
+}
+
+// The first round's segmentation and gates: the preop carried by the head's
+// placement as the prior. A segmentation the classifier refuses is returned
+// with its refusal (the caller decides). seconds_before: the scan's
+// segmentation time so far (the head's placement).
+Rounds first_segmentation(const ScanOnGrid& s, double seconds_before) {
+  Rounds r;
+  Stopwatch watch;
+  r.seg = s.segment(s.carried, ScanOnGrid::Prior::placed);
+  if (r.seg.refusal.empty()) r.gates = s.gates(r.seg, r.seg.open_fluid_ml);
+  const double round_seconds = watch.lap();
+  r.segment_seconds = seconds_before + round_seconds;
+  if (s.progress) s.progress(std::string(stages::kSegment), 1.0, r.segment_seconds);
+  nlohmann::json report = round_report(r.seg);
+  report["gates"] = r.gates.metrics;
+  report["seconds"] = round_seconds;
+  r.report.push_back(std::move(report));
+  return r;
+}
+
+// The first round's pass on a segmentation the classifier accepted, and the
+// segmentation without the open-fluid rule where the stages refuse it.
+// rematch_follows: the pass is light (ScanOnGrid::run_pass).
+void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
+  Stopwatch watch;
+  // The gates are checked before the stages, not beside them: every stage
+  // already splits its work over both cores (the affine in every iteration),
+  // and a third thread slowed them by more than the check costs.
+  r.result = r.gates.failure.empty() ? s.run_pass(r.seg, rematch_follows, r.result_prior_only)
+                                     : s.refused(r.seg, r.gates.failure);
+  // The open-fluid rule reshapes the outline by shape, not by intensity
+  // (docs/DESIGN.md "Automatic intraop segmentation", item 7); where the
+  // stages refuse the field its outline gives (a fold: the cortex over a
+  // resection cavity taken for the cap of a gap), the segmentation by the
+  // image alone is tried once, and kept only if the stages accept it.
+  if (r.result.kind == ResultKind::nonrigid || !r.gates.failure.empty() || r.seg.open_fluid_ml <= 0) return;
+  watch.lap();
+  auto plain = s.segment(s.carried, ScanOnGrid::Prior::placed, false);
+  SegmentationGates plain_gates = s.gates(plain, 0.0);
+  const double plain_seconds = watch.lap();
+  r.segment_seconds += plain_seconds;
+  nlohmann::json report = round_report(plain);
+  report.update({{"gates", plain_gates.metrics}, {"open_fluid_rule", false}, {"refusal", plain.refusal},
+                 {"seconds", plain_seconds}});
+  r.report.push_back(std::move(report));
+  if (plain.refusal.empty() && plain_gates.failure.empty()) {
+    bool pass_prior_only = false;
+    ScanResult pass = s.run_pass(plain, rematch_follows, pass_prior_only);
+    if (pass.kind == ResultKind::nonrigid) {
+      r.report.front()["kept"] = false;
+      r.report.front()["fallback_reason"] = r.result.fallback_reason;
+      r.open_fluid_rule = false;
+      r.seg = std::move(plain);
+      r.gates = std::move(plain_gates);
+      r.result = std::move(pass);
+      r.result_prior_only = pass_prior_only;
+      return;
+    }
+  }
+  r.report.back()["kept"] = false;
+}
+
+// The re-match rounds: the preop carried by the non-rigid estimate (the
+// pass's own warped labels), a narrower prior, a smaller box. The gap a
+// sinking left was found against the head's placement, as the gates
+// measure: the first round's finding stands for the next.
+// rematch_reuses_fit: the classes and bias fitted before are reused (off by
+// default). A round the classifier, the gates or the stages refuse leaves
+// the pass before it standing.
+void rematch(const ScanOnGrid& s, Rounds& r) {
+  const AutoSegmentationParameters& ap = s.params.auto_segmentation;
+  Stopwatch watch;
+  for (int round = 1; round <= ap.rematch_rounds && r.result.kind == ResultKind::nonrigid; ++round) {
+    watch.lap();
+    auto next = s.segment(r.result.warped_labels, ScanOnGrid::Prior::carried, r.open_fluid_rule,
+                          ap.rematch_reuses_fit ? &r.seg : nullptr,
+                          ap.rematch_gaps_found_before ? &r.seg.open_fluid : nullptr);
+    next.open_fluid_ml = std::max(r.seg.open_fluid_ml, next.open_fluid_ml);
+    SegmentationGates next_gates = s.gates(next, next.open_fluid_ml);
+    const double round_seconds = watch.lap();
+    r.segment_seconds += round_seconds;
+    nlohmann::json report = round_report(next);
+    report.update({{"gates", next_gates.metrics}, {"seconds", round_seconds}});
+    ScanResult pass;
+    bool pass_prior_only = false;
+    bool refused = !next.refusal.empty() || !next_gates.failure.empty();
+    if (refused) {
+      report["refusal"] = next.refusal;
+    } else {
+      pass = s.run_pass(next, round < ap.rematch_rounds, pass_prior_only, &r.result.intraop_from_preop);
+      refused = pass.kind != ResultKind::nonrigid;  // a fold
+      if (refused) report["fallback_reason"] = pass.fallback_reason;
+    }
+    if (refused) {
+      report["kept"] = false;
+      r.report.push_back(report);
+      break;
+    }
+    r.seg = std::move(next);
+    r.gates = std::move(next_gates);
+    r.result = std::move(pass);
+    r.result_prior_only = pass_prior_only;
+    r.report.push_back(report);
+  }
+}
+
+// The answer from the rounds: the outputs a light pass skipped, the
+// segmentation's report and time.
+ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, const Stopwatch& scan_watch,
+                  bool with_quality_metrics) {
+  if (r.result_prior_only && s.light_field_is_full()) {
+    complete_prior_pass(s.warm, r.result, s.progress);
+  } else if (r.result_prior_only) {  // the full pass on the segmentation that stands
+    const Eigen::Matrix4d same_labels_affine = r.result.intraop_from_preop;
+    bool unused = false;
+    r.result = s.run_pass(r.seg, false, unused, &same_labels_affine);
+  }
+  ScanResult result = std::move(r.result);
+  seg_metrics["classifier"] = r.seg.report;
+  seg_metrics["gates"] = r.gates.metrics;
+  seg_metrics["rounds"] = r.report;
+  result.metrics["segmentation"] = seg_metrics;
+  auto& t = result.timings["intraop"];
+  t[std::string(stages::kSegment)] = r.segment_seconds;
+  // Everything but the segmentation and the answer's own pass (whose total
+  // includes the read) was an earlier pass.
+  const double scan_seconds = scan_watch.seconds(), answer_pass_seconds = t.value("total", 0.0) - s.read_seconds;
+  t["earlier_passes"] = std::max(0.0, scan_seconds - r.segment_seconds - answer_pass_seconds);
+  t["total"] = scan_seconds + s.read_seconds;
+  result.intraop_labels = std::move(r.seg.labels);
+  result.segmentation_confidence = std::move(r.seg.confidence);
+  if (with_quality_metrics)
+    add_quality_metrics(s.warm, IntraopInput{*result.intraop_labels, s.image}, s.params, result, s.progress);
+  return result;
+}
+
+}  // namespace brainshift
