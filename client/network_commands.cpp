@@ -355,7 +355,8 @@ struct PullArgs {
 };
 
 // What scene.mrml shows that the daemon sends (the preop and intraop images
-// are the user's own files; intraop_labels only for an image pushed alone).
+// are the user's own files; intraop_labels when the engine segmented the
+// image: pushed alone, or labels refined by it).
 constexpr ResultPart kScenePartsFromTheDaemon[] = {ResultPart::kDisplacementItk, ResultPart::kWarpedImage,
                                                    ResultPart::kWarpedLabels, ResultPart::kModels,
                                                    ResultPart::kUncertainty, ResultPart::kIntraopLabels};

@@ -165,7 +165,8 @@ void write_slicer_scene(const fs::path& dir, const SceneContents& c) {
   scene.volume(warped_image, "warped preop T1", false, "", grey);
   const std::string labels = scene.colour_table(kSceneColourTable);
   scene.volume(warped_labels, "warped preop labels", true, "", labels);
-  // Present when the engine segmented the image itself (a scan without labels).
+  // Present when the engine segmented the image itself (an image alone, or
+  // labels refined by their image).
   const std::string intraop_labels(protocol::result_output(ResultPart::kIntraopLabels).file);
   const std::string confidence(protocol::result_output(ResultPart::kSegmentationConfidence).file);
   if (fs::is_regular_file(dir / intraop_labels))

@@ -176,7 +176,8 @@ igtl::PackedMessage IgtlCatalog::image_meta(const std::string& device) {
 igtl::PackedMessage IgtlCatalog::label_meta(const std::string& device) {
   // One element per structure of each label map (LBMETA's label value and
   // colour are a structure's), all naming the map's device.
-  // The engine's segmentation of an image pushed alone is a label map too.
+  // The engine's segmentation (of an image pushed alone, or of labels refined
+  // by their image) is a label map too.
   std::vector<igtl::LabelMetaEntry> entries;
   for (const auto& scan : listed_scans()) {
     const ScanMeta& m = meta_of(scan);

@@ -56,7 +56,7 @@ class IgtlCatalog {
     igtl::TimeStamp time;
     std::array<int, 3> dims{};  // field, image and labels share the intraop grid
     bool field = false, image = false, labels = false;
-    bool intraop_labels = false;  // the engine's segmentation (an image pushed alone)
+    bool intraop_labels = false;  // the engine's segmentation (an image alone, or labels refined by it)
   };
   std::vector<std::string> listed_scans() const;  // done, newest first
   const ScanMeta& meta_of(const std::string& scan_id);

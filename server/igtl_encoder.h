@@ -31,8 +31,8 @@ inline constexpr std::size_t kMaxDeviceName = 19;
 inline constexpr const char* kFieldDevice = "bs.field";
 inline constexpr const char* kWarpedImageDevice = "bs.warped_image";
 inline constexpr const char* kWarpedLabelsDevice = "bs.warped_labels";
-// The segmentation the engine made of an image pushed alone (the
-// intraop_labels part): a label map on the intraop grid, as the warped labels.
+// The segmentation the engine made (of an image pushed alone, or of labels
+// refined by their image; the intraop_labels part): a label map on the intraop grid, as the warped labels.
 inline constexpr const char* kIntraopLabelsDevice = "bs.intraop_labels";
 // The uncertainty map (float32 mm, 95 % band radius): made after the answer,
 // so it follows the result's STATUS as a message of its own.
@@ -124,8 +124,8 @@ std::string status_text(const ResultContent& r);
 // The STATUS that closes a result (also GET_STATUS's reply).
 PackedMessage pack_result_status(const std::string& device, const ResultContent& r);
 
-// Field, warped image, warped labels, the engine's segmentation (an image
-// pushed alone), the models (in structure order), then
+// Field, warped image, warped labels, the engine's segmentation (when it
+// made one), the models (in structure order), then
 // the STATUS, which closes the result: a receiver has the whole set when it
 // sees it. A part that cannot be packed is left out and named in the STATUS.
 std::vector<PackedMessage> encode_result(const ResultContent& r);
