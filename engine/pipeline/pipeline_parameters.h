@@ -183,11 +183,13 @@ struct AutoSegmentationParameters {
   // protocol labels_use). refine: the labels' pass carries the preop onto the
   // image, the image is classified under it as a re-match is, and that
   // segmentation is registered; labels an algorithm made (a threshold, a
-  // network) err by millimetres where the image does not, and on held-out
-  // families the refined answer was 0.54 -> 0.41 mm mean TRE, worst 10.5 ->
-  // 3.9 mm (docs/DESIGN.md "Labels with their image"). exact: the labels as
-  // given (a segmentation corrected by hand). A refinement the classifier,
-  // its gates or the stages refuse leaves the labels' pass standing.
+  // network) err by millimetres where the image does not: on the hospital
+  // suite and three held-out families mean TRE 0.53-0.56 -> 0.38-0.39 mm,
+  // worst landmark 10-11 -> 5-6 mm, for about 1.5 s more (docs/DESIGN.md
+  // "Labels with their image", docs/PERFORMANCE.md 12.31). exact: the labels
+  // as given (a segmentation corrected by hand; the one-pass path). A
+  // refinement the classifier, its gates or the stages refuse leaves the
+  // labels' pass standing.
   GivenLabelsUse given_labels = GivenLabelsUse::refine;
   segmentation::LabelImageCheckParameters label_image_check;
 };
