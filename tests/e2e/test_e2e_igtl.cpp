@@ -110,7 +110,7 @@ TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient
   // Against the files the daemon serves for the same scan.
   const auto files = pull_complete(c, scan1,
                                    {ResultPart::kDisplacement, ResultPart::kWarpedImage, ResultPart::kWarpedLabels,
-                                    ResultPart::kModels, ResultPart::kUncertainty});
+                                    ResultPart::kModels, ResultPart::kUncertainty, ResultPart::kIntraopLabels});
   const VectorImage3 field = vector_image_from_bytes(files.at("displacement"), "displacement", std::size_t{1} << 31);
   // The intraop grid is the oblique LAS one: i points to the patient's left.
   EXPECT_LT(field.grid.world_from_voxel(0, 0), 0.0);
@@ -148,7 +148,15 @@ TEST(E2eIgtl, SlicerStandInGetsEveryResultOnTheObliqueGridAndSurvivesARudeClient
     EXPECT_LT(worst, 1e-4) << device << ": POLYDATA points are the .vtp's RAS points";
   }
   EXPECT_GE(models, 2u);  // brain and ventricles at least
-  EXPECT_EQ(result.size(), 3 + models + 1);
+  // Labels pushed with their image are refined by it (the default): the
+  // engine's segmentation is a label image of its own, as the daemon serves it.
+  const bool refined = files.count("intraop_labels") > 0;
+  if (refined) {
+    const LabelImage seg = label_image_from_bytes(files.at("intraop_labels"), "intraop_labels", std::size_t{1} << 31);
+    expect_same_image(*by_device(result, "bs.intraop_labels").image(), seg.grid, seg.voxels.data(),
+                      seg.voxels.size() * 2, igtl::ImageMessage::TYPE_UINT16, 1, "intraop_labels");
+  }
+  EXPECT_EQ(result.size(), 3 + models + (refined ? 1 : 0) + 1);
 
   // A receiver that leaves in the middle of a message (the latest result is
   // queued for it on connect).

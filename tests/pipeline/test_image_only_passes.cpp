@@ -322,8 +322,11 @@ TEST_F(ImageOnlyPasses, AFineScanIsWorkedOnTheWorkingGridAndAnsweredOnItsOwn) {
     // The overlap figures judge the labels used, on the scan's grid.
     EXPECT_GT(r.metrics["labels"]["brain"]["dice"].get<double>(), 0.95) << r.metrics["labels"].dump();
     EXPECT_EQ(r.metrics.contains("label_image_check"), pushed == Pushed::both);
-    ASSERT_EQ(r.intraop_labels.has_value(), pushed == Pushed::image) << "the engine's segmentation, when it made one";
-    if (pushed != Pushed::image) continue;
+    // The engine's segmentation, when it made one: of the image alone, or of
+    // the labels refined by their image (the default), on the working grid too.
+    ASSERT_EQ(r.intraop_labels.has_value(), pushed != Pushed::labels) << r.metrics["given_labels"].dump();
+    if (pushed == Pushed::both) EXPECT_TRUE(r.metrics["given_labels"].value("refined", false));
+    if (pushed == Pushed::labels) continue;
     ASSERT_TRUE(r.segmentation_confidence);
     EXPECT_TRUE(r.intraop_labels->grid.same_geometry(fine));
     EXPECT_TRUE(r.segmentation_confidence->grid.same_geometry(fine));
