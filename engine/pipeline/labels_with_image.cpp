@@ -124,6 +124,9 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     result = run_intraop_on_working_grid(warm, input, params, progress,
                                          "the intraop labels disagree with the intraop image: " + c.failure);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
+    result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
+                                      {"refined", false},
+                                      {"why", "the labels disagree grossly with their image (label_image_check)"}};
   } else if (use == GivenLabelsUse::refine && result.kind == ResultKind::nonrigid) {
     // Labels that disagree grossly with their image are not refined: the
     // answer says so (above). Labels whose own pass the gates refused are

@@ -620,4 +620,7 @@ TEST_F(PipelineTest, LabelsThatLeakBeyondTheirImageAreReportedAndNotACleanResult
   EXPECT_GT(check["labels_not_image"]["volume_ml"].get<double>(), 20.0) << check.dump();
   EXPECT_GT(check["labels_not_image"]["max_depth_mm"].get<double>(), 4.0) << check.dump();
   EXPECT_NE(bad.fallback_reason.find("disagree"), std::string::npos) << bad.fallback_reason;
+  // Not refined: that would hide from the surgeon that the labels were wrong.
+  EXPECT_FALSE(bad.metrics["given_labels"].value("refined", true)) << bad.metrics["given_labels"].dump();
+  EXPECT_FALSE(bad.intraop_labels.has_value());
 }
