@@ -87,7 +87,8 @@ struct PassShortcuts {
   // mesh's surface facet ([mesh] facet_size_mm): what the stages make is the
   // mesh's nodal displacement, linear within each tetrahedron (cells
   // 3.4 mm), which a grid at the facet size samples at its own scale. The
-  // light pass stays on the scan's grid (prepare_stage.cpp says why).
+  // light pass stays on the scan's grid (ScanOnGrid::stages,
+  // segmentation_rounds.h, says why).
   // Measured (docs/PERFORMANCE.md 12.29): 0.17-0.4 s less a scan, mean TRE
   // lower on the robustness suite and three hospital families, the
   // segmentation unchanged. 0: off.
