@@ -44,10 +44,11 @@ std::optional<ScanResult> refine_on_grid(WarmState& warm, const ImageF& image, c
   const double given_ml = carried_preop_volumes(given, params.label_table, 1.0).brain_ml;
   const double preop_ml = s.carried_volumes.brain_ml;
   Rounds r;
-  // The gate's reference is the span's top; its lower bound's allowance (the
-  // gap's, otherwise) reaches the span's bottom.
+  // The gate's reference is the span's top; its lower bound's allowance
+  // reaches the span's bottom. Not as open fluid: that is what the stages'
+  // own volume gate adds to the brain (fluid where the brain was).
   s.carried_volumes.brain_ml = std::max(preop_ml, given_ml);
-  r.seg.open_fluid_ml = std::abs(preop_ml - given_ml);
+  s.carried_volumes.lower_allowance_ml = std::abs(preop_ml - given_ml);
   report["brain_ml"] = {{"preop", preop_ml}, {"given", given_ml}};
   r.result = std::move(first);
   rematch(s, r);

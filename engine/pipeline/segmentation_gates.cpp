@@ -41,10 +41,12 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
   // Smaller by what may be resected, and by the fluid found in the gap a
   // sinking left (fluid by its intensity: a lost lobe is tissue).
   const double lowest =
-      -params.max_brain_volume_change - (preop_ml > 0 ? (resectable_ml + open_fluid_ml) / preop_ml : 0);
+      -params.max_brain_volume_change -
+      (preop_ml > 0 ? (resectable_ml + open_fluid_ml + preop.lower_allowance_ml) / preop_ml : 0);
   g.metrics["brain_volume"] = {{"segmented_ml", seg_ml}, {"preop_ml", preop_ml}, {"change", change},
                                {"open_fluid_ml", open_fluid_ml},
                                {"allowed", {lowest, params.max_brain_volume_change}}};
+  if (preop.lower_allowance_ml > 0) g.metrics["brain_volume"]["lower_allowance_ml"] = preop.lower_allowance_ml;
   if (change < lowest || change > params.max_brain_volume_change)
     g.failure = "automatic segmentation: the brain's volume differs from the preop's by " +
                 std::to_string(100 * change) + " % (allowed " + std::to_string(100 * lowest) + " to +" +

@@ -33,6 +33,10 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
 // the scalp's edge (docs/DESIGN.md "Automatic intraop segmentation", gates).
 struct CarriedPreopVolumes {
   double brain_ml = 0, resectable_ml = 0, ventricles_ml = 0;
+  // Below brain_ml, allowed beyond max_brain_volume_change (as the resectable
+  // and the open fluid are): for given labels refined by their image, down to
+  // the labels' own brain (labels_with_image.cpp). Only the gate reads it.
+  double lower_allowance_ml = 0;
 };
 CarriedPreopVolumes carried_preop_volumes(const LabelImage& carried_preop, const LabelTable& table,
                                           double placement_volume_scale = 1.0);
