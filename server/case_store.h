@@ -31,6 +31,7 @@
 #include "core/image.h"
 #include "core/tet_mesh.h"
 #include "protocol/common.h"
+#include "protocol/result_outputs.h"
 
 namespace brainshift::server {
 
@@ -69,6 +70,11 @@ struct ScanRecord {
   // Set when done: nonrigid, or the affine-only fallback and why.
   protocol::ResultKindInfo result;
 };
+
+// What decides which result parts a stored scan has (result_outputs.h).
+inline protocol::ScanFacts scan_facts(const ScanRecord& r) {
+  return {r.has_image, r.has_labels, r.labels_use == std::optional<std::string>("exact")};
+}
 
 // A scan's bytes exactly as scan.push received them (at least one of the
 // two; the engine's decoded form is brainshift::ScanInput).

@@ -78,7 +78,7 @@ void ServerCore::find_incomplete_results() {
     const auto names = store_.result_file_names(r.scan_id);
     bool register_again = false;
     for (const auto& row : kResultOutputs) {
-      if (!row.deferred || !part_expected(row.part, ScanFacts{r.has_image, r.has_labels}) || stored_name(row.part, names)) continue;
+      if (!row.deferred || !part_expected(row.part, scan_facts(r)) || stored_name(row.part, names)) continue;
       if (!row.remade_from) {
         register_again = true;
       } else if (const auto source = stored_name(*row.remade_from, names)) {

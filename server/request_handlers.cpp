@@ -66,8 +66,7 @@ ScanResultReply collect_result_frames(const ResultFileReader& read_file, const s
     }
     // Why a part is missing, from its row (result_outputs.h).
     const ResultOutput& row = result_output(part);
-    const ScanFacts facts{record.has_image, record.has_labels, record.labels_use == std::optional<std::string>("exact")};
-    const std::string_view not_expected = why_not_expected(part, facts);
+    const std::string_view not_expected = why_not_expected(part, scan_facts(record));
     const bool pending = not_expected.empty() && row.deferred && deferred_pending;
     const std::string why =
         !not_expected.empty() ? std::string(not_expected)

@@ -7,8 +7,6 @@
 
 #include "core/parallel.h"
 #include "core/timer.h"
-#include "field/vector_sampling.h"
-#include "field/warp.h"
 #include "image/resample.h"
 #include "pipeline/segmentation_rounds.h"
 #include "pipeline/working_grid.h"
@@ -80,8 +78,7 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
     const ImageF image = downsample_linear(*input.t1, work);
     const LabelImage given = downsample_labels(input.labels, work);
     LabelImage warped_on_grid = std::move(first.warped_labels);
-    first.warped_labels =
-        warp_labels_nearest(warm.preop.labels, resample_vector_linear(first.pullback_field_mm, work));
+    first.warped_labels = preop_labels_on_grid(warm, first.pullback_field_mm, work);
     const double own_seconds = watch.lap();
     refined = refine_on_grid(warm, image, given, first, input.read_seconds, params, progress, scan_watch, report);
     if (refined) {

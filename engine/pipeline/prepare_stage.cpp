@@ -5,19 +5,14 @@
 
 #include <algorithm>
 #include <cmath>
-#include <future>
 #include <optional>
 
 #include "core/errors.h"
-#include "core/parallel.h"
 #include "core/timer.h"
-#include "field/vector_sampling.h"
-#include "field/warp.h"
 #include "image/image_stats.h"
 #include "image/resample.h"
 #include "registration/affine_registration.h"
 #include "segmentation/head_mask.h"
-#include "segmentation/label_image_check.h"
 #include "segmentation/tissue_prior.h"
 
 namespace brainshift {
@@ -65,8 +60,7 @@ std::optional<ScanResult> register_with_coarse_prior(WarmState& warm, const Imag
   if (prior_report.contains("refused")) return std::nullopt;
   watch.lap();
   const ScanOnGrid s(warm, image, read_seconds, params, progress, placement);
-  r.result.warped_labels =
-      warp_labels_nearest(warm.preop.labels, resample_vector_linear(r.result.pullback_field_mm, image.grid));
+  r.result.warped_labels = preop_labels_on_grid(warm, r.result.pullback_field_mm, image.grid);
   if (r.seg.open_fluid.grid.voxel_count() > 0) r.seg.open_fluid = resample_mask(r.seg.open_fluid, image.grid);
   prior_report["carry_seconds"] = watch.lap();
   rematch(s, r);

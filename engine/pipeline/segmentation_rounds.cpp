@@ -4,6 +4,8 @@
 #include <cmath>
 
 #include "core/errors.h"
+#include "field/vector_sampling.h"
+#include "field/warp.h"
 #include "image/image_stats.h"
 #include "protocol/stage_names.h"
 #include "segmentation/head_mask.h"
@@ -109,6 +111,10 @@ segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, 
   const auto resectable = table.resectable_labels();
   if (!resectable.empty()) seen.resectable = mask_of_labels(carried, resectable);
   return seen;
+}
+
+LabelImage preop_labels_on_grid(const WarmState& warm, const VectorImage3& pullback_field_mm, const Grid3& grid) {
+  return warp_labels_nearest(warm.preop.labels, resample_vector_linear(pullback_field_mm, grid));
 }
 
 // A round's report: its prior's width and the bias fitted (and whether the

@@ -183,6 +183,11 @@ struct ScanOnGrid {
   }
 };
 
+// The preop labels carried by a pass's field sampled trilinearly on another
+// grid of the same extent (a coarser round's, or the labels' own): a
+// re-match's prior there.
+LabelImage preop_labels_on_grid(const WarmState& warm, const VectorImage3& pullback_field_mm, const Grid3& grid);
+
 // A round's report: its prior's width and the bias fitted (and whether the
 // first fit was replaced, ScanOnGrid::segment).
 nlohmann::json round_report(const segmentation::IntraopSegmentation& s);
