@@ -11,6 +11,7 @@
 #include "core/smoothstep.h"
 #include "core/timer.h"
 #include "field/field_fill.h"
+#include "field/tissue_guard.h"
 #include "image/distance_map.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
@@ -190,8 +191,13 @@ struct AffinePullback {
 // Extends the non-rigid remainder beyond the covered voxels and composes the
 // final field there (covered voxels keep their exact rasterised values), on a
 // grid that holds every voxel the continuation reaches (continue_outside).
+// With a guard (outline: its intraop outline on this box), the remainder is
+// filled on every uncovered voxel outside the region, and the fade's weights
+// are raised where it would pull preop tissue out of the brain
+// (field/tissue_guard.h).
 void continue_in_box(const MeshDeformation& deformation, const FieldParameters& params,
-                     const Mask& covered, VectorImage3& field, FieldStats& stats, Mask* mesh_region) {
+                     const Mask& covered, VectorImage3& field, FieldStats& stats, Mask* mesh_region,
+                     const TissueGuard* guard, const Mask* outline) {
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   std::vector<Eigen::Vector3f> rest(grid.voxel_count(), Eigen::Vector3f::Zero());
@@ -212,13 +218,21 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
     if (covered.voxels[v]) continue;
     if (region.voxels[v]) ++stats.cavity_voxels;
     else if (weight[v] > 0.f) ++stats.blended_voxels;
-    if (weight[v] > 0.f) free_voxels.push_back(static_cast<std::uint32_t>(v));
+    if (weight[v] > 0.f || (guard && !region.voxels[v])) free_voxels.push_back(static_cast<std::uint32_t>(v));
     if (region.voxels[v] || distance.voxels[v] <= params.relax_band_mm) {
       relax_voxels.push_back(static_cast<std::uint32_t>(v));
     }
   }
   fill_push_pull(grid, covered.voxels, free_voxels, rest);
   relax_laplace(grid, relax_voxels, params.smoothing_sweeps, rest);
+  if (guard) {
+    const TissueGuardStats g = guard_tissue(grid, covered.voxels, region.voxels, outline->voxels, rest,
+                                            deformation.intraop_from_preop, *guard->preop_labels,
+                                            params.blend_distance_mm, weight);
+    stats.guard_landing_voxels += g.landing_voxels;
+    stats.guard_raised_voxels += g.raised_voxels;
+    stats.guard_unresolved_voxels += g.unresolved_voxels;
+  }
   for_each_voxel_on_both_cores(grid.dims, [&](std::size_t v, int i, int j, int k) {
     if (!covered.voxels[v]) field.vectors[v] = (affine(i, j, k) + weight[v] * rest[v].cast<double>()).cast<float>();
   });
@@ -235,7 +249,8 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
 // The box's corner keeps the parity of i + j + k, so the Laplace sweeps'
 // red-black colours are the grid's.
 void continue_outside(const MeshDeformation& deformation, const FieldParameters& params,
-                      const Mask& covered, VectorImage3& field, FieldStats& stats, Mask* mesh_region) {
+                      const Mask& covered, VectorImage3& field, FieldStats& stats, Mask* mesh_region,
+                      const TissueGuard* guard) {
   const Grid3& grid = field.grid;
   const AffinePullback affine(deformation.intraop_from_preop, grid);
   VoxelBox box = bounding_box_voxels(covered);
@@ -243,6 +258,14 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
     for_each_voxel_on_both_cores(grid.dims, [&](std::size_t v, int i, int j, int k) { field.vectors[v] = affine(i, j, k).cast<float>(); });
     if (mesh_region) *mesh_region = Mask(grid, 0);
     return;
+  }
+  // A guarded continuation also holds every voxel where a pull-back can land
+  // in preop tissue: the gap a sinking left lies beyond the sunken mesh.
+  if (guard) {
+    const VoxelBox tissue = preop_tissue_box(guard->preop_tissue_voxels, guard->preop_labels->grid,
+                                             deformation.intraop_from_preop, grid);
+    if (!tissue.empty)
+      for (int a = 0; a < 3; ++a) box.lo[a] = std::min(box.lo[a], tissue.lo[a]), box.hi[a] = std::max(box.hi[a], tissue.hi[a]);
   }
   const double reach_mm = std::max(params.blend_distance_mm, params.relax_band_mm);
   box = grow_box(box, grid, reach_mm + grid.spacing_mm().maxCoeff());
@@ -256,16 +279,17 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
   sub.world_from_voxel = grid.world_from_voxel;
   sub.world_from_voxel.block<3, 1>(0, 3) = grid.world_mm(box.lo[0], box.lo[1], box.lo[2]);
   VectorImage3 part(sub);
-  Mask part_covered(sub, 0);
+  Mask part_covered(sub, 0), part_outline(sub, 0);
   const auto full_index = [&](int j, int k) { return grid.index(box.lo[0], j + box.lo[1], k + box.lo[2]); };
   for (int k = 0; k < sub.dims[2]; ++k)
     for (int j = 0; j < sub.dims[1]; ++j) {
       const std::size_t from = full_index(j, k), to = sub.index(0, j, k);
       std::copy_n(&field.vectors[from], sub.dims[0], &part.vectors[to]);
       std::copy_n(&covered.voxels[from], sub.dims[0], &part_covered.voxels[to]);
+      if (guard) std::copy_n(&guard->intraop_outline->voxels[from], sub.dims[0], &part_outline.voxels[to]);
     }
   Mask part_region;
-  continue_in_box(deformation, params, part_covered, part, stats, &part_region);
+  continue_in_box(deformation, params, part_covered, part, stats, &part_region, guard, &part_outline);
   for_each_voxel_on_both_cores(grid.dims, [&](std::size_t v, int i, int j, int k) {
     const bool inside = i >= box.lo[0] && i <= box.hi[0] && j >= box.lo[1] && j <= box.hi[1] && k >= box.lo[2] &&
                         k <= box.hi[2];
@@ -285,8 +309,10 @@ void continue_outside(const MeshDeformation& deformation, const FieldParameters&
 
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
                             const Grid3& intraop_grid, const FieldParameters& params,
-                            FieldStats* stats_out, Mask* mesh_region) {
+                            FieldStats* stats_out, Mask* mesh_region, const TissueGuard* guard) {
   validate(preop_mesh, deformation, intraop_grid, params);
+  if (guard && (!guard->preop_labels || !guard->intraop_outline || !guard->intraop_outline->grid.same_geometry(intraop_grid)))
+    throw InputError("pullback_field: the tissue guard needs the preop labels and an outline on the field's grid");
   Stopwatch total;
   FieldStats stats;
   VectorImage3 field(intraop_grid);
@@ -299,7 +325,7 @@ VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& de
   }
   stats.rasterise_seconds = total.seconds();
   Stopwatch fill_timer;
-  continue_outside(deformation, params, covered, field, stats, mesh_region);
+  continue_outside(deformation, params, covered, field, stats, mesh_region, guard);
   stats.fill_seconds = fill_timer.seconds();
   stats.total_seconds = total.seconds();
   if (stats_out) *stats_out = stats;
@@ -310,6 +336,8 @@ void to_json(nlohmann::json& j, const FieldStats& s) {
   j = {{"covered_voxels", s.covered_voxels},   {"cavity_voxels", s.cavity_voxels},
        {"blended_voxels", s.blended_voxels},   {"skipped_tets", s.skipped_tets},
        {"inverted_tets", s.inverted_tets},     {"rasterise_seconds", s.rasterise_seconds},
+       {"guard_landing_voxels", s.guard_landing_voxels}, {"guard_raised_voxels", s.guard_raised_voxels},
+       {"guard_unresolved_voxels", s.guard_unresolved_voxels},
        {"fill_seconds", s.fill_seconds},       {"total_seconds", s.total_seconds}};
 }
 

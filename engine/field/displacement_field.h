@@ -36,6 +36,7 @@
 #include "core/deformation.h"
 #include "core/image.h"
 #include "core/tet_mesh.h"
+#include "field/tissue_guard.h"
 #include "image/morphology.h"
 
 namespace brainshift {
@@ -58,6 +59,12 @@ struct FieldStats {
   std::size_t blended_voxels = 0;   // outside, 0 < weight < 1
   std::size_t skipped_tets = 0;     // degenerate after deformation (zero volume)
   std::size_t inverted_tets = 0;    // negative volume after deformation (folding)
+  // The tissue guard (field/tissue_guard.h): voxels that pulled back into
+  // preop tissue under the fade, voxels whose weight it raised, and voxels
+  // that land in tissue even with the whole remainder.
+  std::size_t guard_landing_voxels = 0;
+  std::size_t guard_raised_voxels = 0;
+  std::size_t guard_unresolved_voxels = 0;
   double rasterise_seconds = 0.0;
   double fill_seconds = 0.0;
   double total_seconds = 0.0;
@@ -66,11 +73,14 @@ struct FieldStats {
 // mesh_region, when given, receives the voxels the deformed mesh covers plus
 // the enclosed cavities: where the field is the elastic solution's own map of
 // the preop brain, not its extension (what the fold gate judges).
+// guard, when given, keeps the extension from pulling preop tissue out of the
+// brain (field/tissue_guard.h): the field a scan delivers.
 // Throws InputError when deformation.nonrigid_mm does not have one vector per
 // mesh node, a tet references a missing node, the grid is empty, or A is singular.
 VectorImage3 pullback_field(const TetMesh& preop_mesh, const MeshDeformation& deformation,
                             const Grid3& intraop_grid, const FieldParameters& params,
-                            FieldStats* stats = nullptr, Mask* mesh_region = nullptr);
+                            FieldStats* stats = nullptr, Mask* mesh_region = nullptr,
+                            const TissueGuard* guard = nullptr);
 
 // nlohmann ADL hook (json j = stats;), for run reports.
 void to_json(nlohmann::json& j, const FieldStats& s);

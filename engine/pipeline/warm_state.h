@@ -11,6 +11,7 @@
 
 #include "core/surface_contact.h"
 #include "core/tet_mesh.h"
+#include "image/image_stats.h"
 #include "models/carry.h"
 #include "pipeline/engine_session.h"
 #include "pipeline/fem_cluster.h"
@@ -66,6 +67,9 @@ struct WarmState {
   // The preop head (coarse grid), for placing the preop on a scan given
   // without labels (prepare_stage.h); made on the first such scan.
   std::optional<Mask> preop_head;
+  // The preop labels' tissue box (field/tissue_guard.h), worked out by the
+  // first scan's field.
+  std::optional<VoxelBox> preop_tissue_voxels;
   // The preop T1's median in its ventricles and in its parenchyma (fluid,
   // tissue), for telling fluid the preop already held from a gap
   // (segmentation::PreopSeen); made on the first scan given without labels.
