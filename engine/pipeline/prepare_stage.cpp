@@ -5,7 +5,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
 #include <optional>
 
 #include "core/errors.h"
@@ -64,7 +63,6 @@ std::optional<ScanResult> register_with_coarse_prior(WarmState& warm, const Imag
   r.result.warped_labels = preop_labels_on_grid(warm, r.result.pullback_field_mm, image.grid);
   if (r.seg.open_fluid.grid.voxel_count() > 0) r.seg.open_fluid = resample_mask(r.seg.open_fluid, image.grid);
   prior_report["carry_seconds"] = watch.lap();
-  fprintf(stderr, "DBG carry %.3f\n", prior_report["carry_seconds"].get<double>());
   rematch(s, r);
   seg_metrics["prior_grid"] = prior_report;
   if (r.seg.labels.grid.same_geometry(image.grid))

@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
 
 #include "core/errors.h"
 #include "field/vector_sampling.h"
@@ -155,7 +154,6 @@ void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
   // and a third thread slowed them by more than the check costs.
   r.result = r.gates.failure.empty() ? s.run_pass(r.seg, rematch_follows, r.result_prior_only)
                                      : s.refused(r.seg, r.gates.failure);
-  fprintf(stderr, "DBG light pass %.3f s: %s\n", watch.seconds(), r.result.timings["intraop"].dump().c_str());
   // The open-fluid rule reshapes the outline by shape, not by intensity
   // (docs/DESIGN.md "Automatic intraop segmentation", item 7); where the
   // stages refuse the field its outline gives (a fold: the cortex over a
