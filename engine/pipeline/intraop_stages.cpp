@@ -220,8 +220,9 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   if (!warm.preop_tissue_voxels) warm.preop_tissue_voxels = tissue_voxel_box(warm.preop.labels);
   const TissueGuard guard{&warm.preop.labels, *warm.preop_tissue_voxels, &brain_region};
   result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field,
-                                            &field_stats, &mesh_region, &guard);
-  metrics["field_beyond_brain"] = {{"tissue_landing_voxels", field_stats.guard_landing_voxels},
+                                            &field_stats, &mesh_region, pass.guard_tissue ? &guard : nullptr);
+  metrics["field_beyond_brain"] = {{"guarded", pass.guard_tissue},
+                                   {"tissue_landing_voxels", field_stats.guard_landing_voxels},
                                    {"raised_voxels", field_stats.guard_raised_voxels},
                                    {"unresolved_voxels", field_stats.guard_unresolved_voxels}};
   // The fold gate judges the elastic solution's map of the brain: the intraop

@@ -115,7 +115,12 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     check_seconds = w.seconds();
     return c;
   });
-  ScanResult result = run_intraop_on_working_grid(warm, input, params, progress);
+  // Labels their image will refine make the refinement's prior: their pass
+  // is not guarded (PassOptions::guard_tissue); it is run again guarded when
+  // it ends up the answer.
+  PassOptions labels_pass;
+  labels_pass.guard_tissue = use != GivenLabelsUse::refine;
+  ScanResult result = run_intraop_on_working_grid(warm, input, params, progress, "", labels_pass);
   segmentation::LabelImageCheck c = check.get();
   if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
     const nlohmann::json first_timings = result.timings["intraop"];
@@ -130,6 +135,13 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     // answer says so (above). Labels whose own pass the gates refused are
     // not either: that refusal is the answer's, with its reason.
     refine_given_labels(warm, input, params, progress, watch, result);
+    if (!result.metrics["given_labels"].value("refined", false)) {
+      nlohmann::json given_labels = result.metrics["given_labels"];
+      const double before = watch.seconds();
+      result = run_intraop_on_working_grid(warm, input, params, progress);
+      result.timings["intraop"]["earlier_passes"] = before;
+      result.metrics["given_labels"] = std::move(given_labels);
+    }
   } else {
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
   }

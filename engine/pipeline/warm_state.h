@@ -94,6 +94,12 @@ struct PassOptions {
   // The affine's warm start (register_affine): a previous pass's, on a
   // nearly identical segmentation; nullptr: the full search.
   const Eigen::Matrix4d* affine_start = nullptr;
+  // The field keeps preop tissue out of the gap a sinking left
+  // (field/tissue_guard.h), judged against the pass's own outline. Off for
+  // the pass on given labels that their image refines: that pass makes the
+  // refinement's prior, which must carry the preop where a segmenter missed
+  // brain (its outline is what the refinement corrects).
+  bool guard_tissue = true;
 };
 
 // The intraop stages on rank 0. Without quality metrics, result.metrics holds

@@ -37,16 +37,17 @@ void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& ima
 }
 
 ScanResult run_intraop_on_working_grid(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                                       const ProgressFn& progress, const std::string& forced_fallback) {
+                                       const ProgressFn& progress, const std::string& forced_fallback,
+                                       const PassOptions& pass) {
   const Grid3& grid = input.labels.grid;
   const Grid3 work = working_grid(grid, params.auto_segmentation.working_spacing_mm);
-  if (work.dims == grid.dims) return run_intraop(warm, input, params, progress, false, forced_fallback);
+  if (work.dims == grid.dims) return run_intraop(warm, input, params, progress, false, forced_fallback, pass);
   validate_intraop_input(input, params.label_table);  // said of the labels as given
   Stopwatch watch;
   IntraopInput coarser{downsample_labels(input.labels, work), std::nullopt, input.read_seconds, input.open_fluid_ml};
   if (input.t1) coarser.t1 = downsample_linear(*input.t1, work);
   double own_seconds = watch.lap();
-  ScanResult result = run_intraop(warm, coarser, params, progress, false, forced_fallback);
+  ScanResult result = run_intraop(warm, coarser, params, progress, false, forced_fallback, pass);
   watch.lap();
   carry_to_grid(warm, result, grid);
   own_seconds += watch.lap();

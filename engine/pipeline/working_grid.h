@@ -40,6 +40,7 @@ void report_working_grid(ScanResult& result, const Grid3& work, const Grid3& ima
 // to the labels' grid; run_intraop as it is otherwise. Without quality metrics: the caller adds them against the
 // labels as given.
 ScanResult run_intraop_on_working_grid(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
-                                       const ProgressFn& progress, const std::string& forced_fallback = "");
+                                       const ProgressFn& progress, const std::string& forced_fallback = "",
+                                       const PassOptions& pass = {});
 
 }  // namespace brainshift
