@@ -6,6 +6,7 @@
 #include "atlas/default_atlas.h"
 #include "core/errors.h"
 #include "field/metrics.h"
+#include "image/distance_map.h"
 
 namespace brainshift::evaluation {
 
@@ -63,6 +64,25 @@ nlohmann::json segmentation_agreement(const LabelImage& segmented, const LabelIm
            {{"segmented", voxel_ml * static_cast<double>(a)}, {"truth", voxel_ml * static_cast<double>(b)}}}};
 }
 
+nlohmann::json warped_beyond_truth(const LabelImage& warped, const LabelImage& truth) {
+  Mask brain(truth.grid, 0);
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v) brain.voxels[v] = truth.voxels[v] != 0;
+  const ImageF distance = distance_to_mask_mm(brain, 60.0);
+  const double voxel_ml = truth.grid.spacing_mm().prod() / 1000.0;
+  std::size_t beyond3 = 0, beyond6 = 0;
+  double farthest = 0;
+  for (std::size_t v = 0; v < warped.voxels.size() && v < truth.voxels.size(); ++v) {
+    if (warped.voxels[v] == 0 || brain.voxels[v]) continue;
+    const double d = distance.voxels[v];
+    beyond3 += d > 3.0;
+    beyond6 += d > 6.0;
+    farthest = std::max(farthest, d);
+  }
+  return {{"beyond_3mm_ml", voxel_ml * static_cast<double>(beyond3)},
+          {"beyond_6mm_ml", voxel_ml * static_cast<double>(beyond6)},
+          {"farthest_mm", farthest}};
+}
+
 namespace {
 
 // How near the brain-volume gate's bounds each round ran (change, bounds,
@@ -101,6 +121,8 @@ ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) 
       for (const auto& d : g.value("directions", nlohmann::json::array()))
         run.affine_stretch["brain_extent_in_view_mm"].push_back(d["brain_extent_in_view_mm"]);
     }
+    if (result.warped_labels.grid.same_geometry(c.true_labels.grid))
+      run.warped_beyond_truth = warped_beyond_truth(result.warped_labels, c.true_labels);
     // The uncertainty map, after the answer as the daemon makes it.
     const IntraopInput prepared{input.labels ? *input.labels : *result.intraop_labels, input.image};
     session.add_uncertainty(prepared, result, nullptr);
@@ -133,7 +155,8 @@ nlohmann::json mode_json(const ModeRun& r) {
           {"errors_mm", c.nonrigid_errors_mm},
           {"uncertainty_band_mm", c.predicted_band_mm},
           {"segmentation", r.segmentation},
-          {"affine_stretch", r.affine_stretch}};
+          {"affine_stretch", r.affine_stretch},
+          {"warped_beyond_truth", r.warped_beyond_truth}};
 }
 
 nlohmann::json brief(const nlohmann::json& d) {
@@ -165,6 +188,7 @@ nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, con
   struct Pool {
     int registrations = 0, nonrigid = 0, skipped = 0;
     double mean_sum = 0, worst = 0;
+    double beyond_3mm_ml = 0, beyond_6mm_ml = 0, farthest_mm = 0;  // warped_beyond_truth, summed / largest
     int measured = 0;
     std::vector<double> errors, calibrated_errors, bands;  // bands: where the map was made
   };
@@ -200,6 +224,12 @@ nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, con
       p.nonrigid += m["kind"] == "nonrigid";
       p.mean_sum += m["tre_mm"]["mean"].get<double>();
       p.worst = std::max(p.worst, m["tre_mm"]["max"].get<double>());
+      if (m.contains("warped_beyond_truth") && m["warped_beyond_truth"].is_object()) {
+        const auto& w = m["warped_beyond_truth"];
+        p.beyond_3mm_ml += w.value("beyond_3mm_ml", 0.0);
+        p.beyond_6mm_ml += w.value("beyond_6mm_ml", 0.0);
+        p.farthest_mm = std::max(p.farthest_mm, w.value("farthest_mm", 0.0));
+      }
       ++p.measured;
       for (const auto& e : m["errors_mm"]) p.errors.push_back(e.get<double>());
       if (m.contains("uncertainty_band_mm") && m["uncertainty_band_mm"].size() == m["errors_mm"].size()) {
@@ -222,6 +252,9 @@ nlohmann::json summarise_records(const std::vector<nlohmann::json>& records, con
                      {"tre_pooled_p95_mm", p.errors.empty() ? 0.0 : percentile(p.errors, 95.0)},
                      {"tre_worst_landmark_mm", p.worst},
                      {"cases_measured", p.measured},
+                     {"warped_beyond_truth", {{"beyond_3mm_ml_summed", p.beyond_3mm_ml},
+                                              {"beyond_6mm_ml_summed", p.beyond_6mm_ml},
+                                              {"farthest_mm", p.farthest_mm}}},
                      {"uncertainty_calibration", to_json(calibrate(p.bands, p.calibrated_errors))}};
   return {{"summary", summary}, {"preops", preops}, {"cases", cases}};
 }

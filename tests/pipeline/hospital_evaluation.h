@@ -35,7 +35,14 @@ struct ModeRun {
   CaseResult result;  // when ran
   nlohmann::json segmentation;  // image only: Dice of the automatic segmentation vs the true labels
   nlohmann::json affine_stretch;  // the plausibility gate's value, limit and brain extents in view
+  nlohmann::json warped_beyond_truth;  // preop tissue the warped labels draw outside the true brain
 };
+
+// The preop tissue the warped labels draw outside the true intraop brain:
+// ml more than 3 and 6 mm outside it, and the farthest (mm). A second image
+// of the preop brain in the gap a sinking left shows here
+// (field/tissue_guard.h); the outline's own partial volume stays within 3 mm.
+nlohmann::json warped_beyond_truth(const LabelImage& warped, const LabelImage& truth);
 
 // Brain (outline) and ventricle Dice of a segmentation against the truth.
 nlohmann::json segmentation_agreement(const LabelImage& segmented, const LabelImage& truth,
