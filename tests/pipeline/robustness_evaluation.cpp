@@ -48,7 +48,7 @@ RobustnessRun run_robustness_case(EngineSession& session, const CaseAnatomy& ana
   const auto registered = [&](const IntraopInput& input) {
     // As the daemon registers a scan: given labels with an image are checked
     // against it (the labels-vs-image check), and the total includes that.
-    ScanResult r = session.register_scan(ScanInput{input.labels, input.t1, input.read_seconds}, nullptr);
+    ScanResult r = session.register_scan(ScanInput{input.labels, input.t1, input.read_seconds, std::nullopt}, nullptr);
     if (with_uncertainty) session.add_uncertainty(input, r, nullptr);
     return evaluate_result(spec.phantom.name, c, r);
   };

@@ -316,8 +316,9 @@ TEST_F(ImageOnlyPasses, AFineScanIsWorkedOnTheWorkingGridAndAnsweredOnItsOwn) {
     EXPECT_EQ(worked["image_dims"], nlohmann::json::array({200, 220, 88}));
     EXPECT_GT(r.timings["intraop"].value("working_grid", 0.0), 0.0);
     for (const Grid3* g : {&r.pullback_field_mm.grid, &r.warped_labels.grid, &r.warped_t1.grid,
-                           &r.warped_t1_affine_only.grid})
+                           &r.warped_t1_affine_only.grid}) {
       EXPECT_TRUE(g->same_geometry(fine));
+    }
     EXPECT_LT(mean_translation_error(r, truth.labels, shift), 0.5);
     // The overlap figures judge the labels used, on the scan's grid.
     EXPECT_GT(r.metrics["labels"]["brain"]["dice"].get<double>(), 0.95) << r.metrics["labels"].dump();
@@ -325,7 +326,9 @@ TEST_F(ImageOnlyPasses, AFineScanIsWorkedOnTheWorkingGridAndAnsweredOnItsOwn) {
     // The engine's segmentation, when it made one: of the image alone, or of
     // the labels refined by their image (the default), on the working grid too.
     ASSERT_EQ(r.intraop_labels.has_value(), pushed != Pushed::labels) << r.metrics["given_labels"].dump();
-    if (pushed == Pushed::both) EXPECT_TRUE(r.metrics["given_labels"].value("refined", false));
+    if (pushed == Pushed::both) {
+      EXPECT_TRUE(r.metrics["given_labels"].value("refined", false));
+    }
     if (pushed == Pushed::labels) continue;
     ASSERT_TRUE(r.segmentation_confidence);
     EXPECT_TRUE(r.intraop_labels->grid.same_geometry(fine));
