@@ -228,7 +228,7 @@ void continue_in_box(const MeshDeformation& deformation, const FieldParameters& 
   if (guard) {
     const TissueGuardStats g = guard_tissue(grid, covered.voxels, region.voxels, outline->voxels, rest,
                                             deformation.intraop_from_preop, *guard->preop_labels,
-                                            params.blend_distance_mm, weight);
+                                            guard->outline_tolerance_mm, params.blend_distance_mm, weight);
     stats.guard_landing_voxels += g.landing_voxels;
     stats.guard_raised_voxels += g.raised_voxels;
     stats.guard_unresolved_voxels += g.unresolved_voxels;

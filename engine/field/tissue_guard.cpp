@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "core/parallel.h"
+#include "image/distance_map.h"
 
 namespace brainshift {
 namespace {
@@ -72,7 +73,8 @@ void spread_weights(const Grid3& g, const VoxelBox& box, double length_mm, std::
 TissueGuardStats guard_tissue(const Grid3& g, const std::vector<std::uint8_t>& covered,
                               const std::vector<std::uint8_t>& region, const std::vector<std::uint8_t>& outline,
                               const std::vector<Eigen::Vector3f>& rest, const Eigen::Matrix4d& intraop_from_preop,
-                              const LabelImage& preop_labels, double blend_distance_mm, std::vector<float>& weight) {
+                              const LabelImage& preop_labels, double outline_tolerance_mm, double blend_distance_mm,
+                              std::vector<float>& weight) {
   // A voxel's pull-back in preop voxel coordinates: affine landing + w L r.
   const Eigen::Matrix4d preop_voxel_from_world = preop_labels.grid.voxel_from_world();
   const Eigen::Matrix4d landing = preop_voxel_from_world * intraop_from_preop.inverse() * g.world_from_voxel;
@@ -81,8 +83,11 @@ TissueGuardStats guard_tissue(const Grid3& g, const std::vector<std::uint8_t>& c
   // The weight each landing voxel needs (0 elsewhere), found side by side.
   std::vector<float> need(n, 0.f);
   std::vector<std::uint8_t> unresolved(n, 0);
+  Mask brain(g, 0);
+  for (std::size_t v = 0; v < n; ++v) brain.voxels[v] = region[v] || outline[v];
+  const ImageF near = distance_to_mask_mm(brain, outline_tolerance_mm);
   for_each_voxel_on_both_cores(g.dims, [&](std::size_t v, int i, int j, int k) {
-    if (covered[v] || region[v] || outline[v]) return;
+    if (brain.voxels[v] || near.voxels[v] <= outline_tolerance_mm) return;
     const Eigen::Vector3d base = (landing * Eigen::Vector4d(i, j, k, 1)).head<3>();
     const Eigen::Vector3d r = L * rest[v].cast<double>();
     if (!tissue_at(preop_labels, base + weight[v] * r)) return;

@@ -37,6 +37,12 @@ struct TissueGuard {
   const LabelImage* preop_labels = nullptr;
   VoxelBox preop_tissue_voxels;
   const Mask* intraop_outline = nullptr;
+  // How far beyond the outline (and the mesh's image) a voxel's own landing
+  // is not judged: the outline's own uncertainty, within which a voxel may
+  // be brain the segmentation missed (a segmenter's partial-volume erosion)
+  // and rightly pull back into preop tissue. Such voxels still take the
+  // spread of a landing beyond it.
+  double outline_tolerance_mm = 0.0;
 };
 
 struct TissueGuardStats {
@@ -48,14 +54,16 @@ struct TissueGuardStats {
 // On one box of the field's grid: `covered`, `region` (covered + enclosed
 // cavities) and `outline` are masks of the box; `rest` the non-rigid
 // remainder (world mm) filled on every uncovered voxel outside the region;
-// `weight` the fade's weights, raised in place. The pull-back of a voxel x is
+// `weight` the fade's weights, raised in place. A voxel within
+// outline_tolerance_mm of the outline or the region is not judged itself. The pull-back of a voxel x is
 // A^-1 x + w r(x). Bounded work: one landing test per voxel, a bisection of
 // 12 steps per landing voxel, two chamfer passes over the landing voxels' box
 // grown by the blend distance.
 TissueGuardStats guard_tissue(const Grid3& box_grid, const std::vector<std::uint8_t>& covered,
                               const std::vector<std::uint8_t>& region, const std::vector<std::uint8_t>& outline,
                               const std::vector<Eigen::Vector3f>& rest, const Eigen::Matrix4d& intraop_from_preop,
-                              const LabelImage& preop_labels, double blend_distance_mm, std::vector<float>& weight);
+                              const LabelImage& preop_labels, double outline_tolerance_mm, double blend_distance_mm,
+                              std::vector<float>& weight);
 
 // The voxels of the labels' tissue (any non-zero label); empty when none.
 VoxelBox tissue_voxel_box(const LabelImage& labels);

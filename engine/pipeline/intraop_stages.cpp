@@ -218,7 +218,11 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   // The delivered field must not pull the preop brain into the gap a sinking
   // left (field/tissue_guard.h).
   if (!warm.preop_tissue_voxels) warm.preop_tissue_voxels = tissue_voxel_box(warm.preop.labels);
-  const TissueGuard guard{&warm.preop.labels, *warm.preop_tissue_voxels, &brain_region};
+  // The outline's own uncertainty: a voxel of partial volume along the
+  // grid's coarsest axis and the segmenter's millimetre (the re-match prior's
+  // width, prior_width_nonrigid_mm, counts the same two).
+  const double outline_tolerance_mm = input.labels.grid.spacing_mm().maxCoeff() + 1.0;
+  const TissueGuard guard{&warm.preop.labels, *warm.preop_tissue_voxels, &brain_region, outline_tolerance_mm};
   result.pullback_field_mm = pullback_field(warm.fem.mesh(), deformation, input.labels.grid, params.field,
                                             &field_stats, &mesh_region, pass.guard_tissue ? &guard : nullptr);
   metrics["field_beyond_brain"] = {{"guarded", pass.guard_tissue},

@@ -140,6 +140,38 @@ TEST(TissueGuard, AFieldThatPullsNothingIntoTissueIsLeftAsItWas) {
   EXPECT_LT(change, 1e-4);
 }
 
+// A segmentation's outline is uncertain by a voxel or so: the preop tissue
+// here reaches 2 mm beyond the mesh (a rim the mesh and the outline leave
+// out), and the brain moved 3 mm sideways. The rim beyond the moved mesh
+// rightly pulls back into that tissue; within the outline's tolerance it is
+// not judged, beyond it every landing is (the tissue's 2 mm plus its
+// voxel's rounding: a few corner voxels just beyond 3 mm).
+TEST(TissueGuard, AVoxelWithinTheOutlinesToleranceIsNotJudged) {
+  SunkBox s;
+  s.lo -= Eigen::Vector3d::Constant(2.0), s.hi += Eigen::Vector3d::Constant(2.0);
+  SunkBox grown;  // preop tissue of the larger box, outline of the mesh moved 3 mm along x
+  for (int k = 0; k < 60; ++k)
+    for (int j = 0; j < 60; ++j)
+      for (int i = 0; i < 60; ++i)
+        grown.preop_labels.at(i, j, k) = s.inside_preop(grown.preop_labels.grid.world_mm(i, j, k), 0.0) ? 1 : 0;
+  const Eigen::Vector3d shift(3.0, 0, 0);
+  grown.deformation.nonrigid_mm.assign(grown.mesh.node_count(), shift);
+  for (int k = 0; k < grown.grid.dims[2]; ++k)
+    for (int j = 0; j < grown.grid.dims[1]; ++j)
+      for (int i = 0; i < grown.grid.dims[0]; ++i)
+        grown.outline.at(i, j, k) = grown.inside_preop(grown.grid.world_mm(i, j, k) - shift, 0.0);
+  FieldStats strict, tolerant;
+  const TissueGuard judged{&grown.preop_labels, tissue_voxel_box(grown.preop_labels), &grown.outline, 0.0};
+  const TissueGuard within{&grown.preop_labels, tissue_voxel_box(grown.preop_labels), &grown.outline, 3.0};
+  pullback_field(grown.mesh, grown.deformation, grown.grid, FieldParameters{}, &strict, nullptr, &judged);
+  pullback_field(grown.mesh, grown.deformation, grown.grid, FieldParameters{}, &tolerant, nullptr, &within);
+  std::printf("rim voxels landing in tissue: judged %zu (unresolved %zu), within a 3 mm tolerance %zu\n",
+              strict.guard_landing_voxels, strict.guard_unresolved_voxels, tolerant.guard_landing_voxels);
+  EXPECT_GT(strict.guard_unresolved_voxels, 1000u);
+  // Left: the box's corners just beyond the tolerance (the 2.4 mm slices).
+  EXPECT_LT(tolerant.guard_landing_voxels * 20, strict.guard_landing_voxels);
+}
+
 TEST(TissueGuard, AGuardWithoutItsOutlineIsRefused) {
   SunkBox s;
   const TissueGuard no_outline{&s.preop_labels, tissue_voxel_box(s.preop_labels), nullptr};
