@@ -167,7 +167,8 @@ struct ScanOnGrid {
   // mesh is steep there), enough to cost the re-match (docs/PERFORMANCE.md
   // 12.29).
   ScanResult stages(const segmentation::IntraopSegmentation& s, const std::string& forced,
-                    const PassOptions& pass) const {
+                    PassOptions pass) const {
+    pass.segmented_by_engine = true;
     if (!stage_image || pass.prior_only)
       return run_intraop(warm, IntraopInput{s.labels, image, read_seconds, s.open_fluid_ml}, params, progress, false,
                          forced, pass);

@@ -100,6 +100,11 @@ struct PassOptions {
   // refinement's prior, which must carry the preop where a segmenter missed
   // brain (its outline is what the refinement corrects).
   bool guard_tissue = true;
+  // The pass's labels are the engine's own segmentation (made under the
+  // preop prior): the guard judges every voxel beyond their outline. Given
+  // labels keep a tolerance of their outline's uncertainty (TissueGuard::
+  // outline_tolerance_mm), within which a segmenter may have eroded brain.
+  bool segmented_by_engine = false;
 };
 
 // The intraop stages on rank 0. Without quality metrics, result.metrics holds
