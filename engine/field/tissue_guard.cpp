@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 
 #include "core/parallel.h"
 #include "image/distance_map.h"
@@ -85,9 +86,10 @@ TissueGuardStats guard_tissue(const Grid3& g, const std::vector<std::uint8_t>& c
   std::vector<std::uint8_t> unresolved(n, 0);
   Mask brain(g, 0);
   for (std::size_t v = 0; v < n; ++v) brain.voxels[v] = region[v] || outline[v];
-  const ImageF near = distance_to_mask_mm(brain, outline_tolerance_mm);
+  const std::optional<ImageF> near =
+      outline_tolerance_mm > 0 ? std::optional<ImageF>(distance_to_mask_mm(brain, outline_tolerance_mm)) : std::nullopt;
   for_each_voxel_on_both_cores(g.dims, [&](std::size_t v, int i, int j, int k) {
-    if (brain.voxels[v] || near.voxels[v] <= outline_tolerance_mm) return;
+    if (brain.voxels[v] || (near && near->voxels[v] <= outline_tolerance_mm)) return;
     const Eigen::Vector3d base = (landing * Eigen::Vector4d(i, j, k, 1)).head<3>();
     const Eigen::Vector3d r = L * rest[v].cast<double>();
     if (!tissue_at(preop_labels, base + weight[v] * r)) return;
