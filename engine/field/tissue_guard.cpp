@@ -137,11 +137,7 @@ TissueGuardStats guard_tissue(const Grid3& g, const std::vector<std::uint8_t>& c
   return stats;
 }
 
-VoxelBox tissue_voxel_box(const LabelImage& labels) {
-  Mask tissue(labels.grid, 0);
-  for (std::size_t v = 0; v < tissue.voxels.size(); ++v) tissue.voxels[v] = labels.voxels[v] != 0;
-  return bounding_box_voxels(tissue);
-}
+VoxelBox tissue_voxel_box(const LabelImage& labels) { return bounding_box_voxels(nonzero_mask(labels)); }
 
 VoxelBox preop_tissue_box(const VoxelBox& tissue, const Grid3& preop_grid, const Eigen::Matrix4d& intraop_from_preop,
                           const Grid3& grid) {

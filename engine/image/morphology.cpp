@@ -154,6 +154,12 @@ double radius_squared(double radius_mm) {
 
 }  // namespace
 
+Mask nonzero_mask(const LabelImage& labels) {
+  Mask mask(labels.grid, 0);
+  for (std::size_t v = 0; v < labels.voxels.size(); ++v) mask.voxels[v] = labels.voxels[v] != 0;
+  return mask;
+}
+
 Mask mask_of_labels(const LabelImage& labels, const std::vector<std::uint16_t>& values) {
   std::vector<std::uint8_t> wanted(65536, 0);
   for (std::uint16_t v : values) wanted[v] = 1;

@@ -16,6 +16,8 @@ using Mask = Image3<std::uint8_t>;
 
 Mask mask_of_labels(const LabelImage& labels, std::initializer_list<std::uint16_t> values);
 Mask mask_of_labels(const LabelImage& labels, const std::vector<std::uint16_t>& values);
+// 1 wherever the label is not 0 (every labelled tissue).
+Mask nonzero_mask(const LabelImage& labels);
 // 1 where lower <= value <= upper.
 Mask threshold(const ImageF& image, float lower, float upper);
 

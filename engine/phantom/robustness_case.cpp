@@ -30,12 +30,6 @@ void check(const RobustnessSpec& s) {
                      "': image artefacts need contrast in (0,1], bias in [0,1), positive SNR, slice FWHM >= 0");
 }
 
-Mask nonzero(const LabelImage& labels) {
-  Mask m(labels.grid, 0);
-  for (std::size_t v = 0; v < m.voxels.size(); ++v) m.voxels[v] = labels.voxels[v] != 0;
-  return m;
-}
-
 // Thresholds a structure's signed distance plus smooth noise: a boundary moved
 // by the noise, as a segmenter's would be.
 Mask noisy(const Mask& clean, const std::vector<float>& noise_mm) {
@@ -82,13 +76,13 @@ LabelImage degrade_segmentation(const LabelImage& clean, const SegmentationArtef
   const Eigen::Vector3d sp = g.spacing_mm();
   const double voxel_mm = std::min({sp[0], sp[1], sp[2]});
   const double rms_mm = a.boundary_noise_voxels * voxel_mm;
-  const Mask brain = noisy(nonzero(clean), smooth_noise(g, a.correlation_mm, rms_mm, rng));
+  const Mask brain = noisy(nonzero_mask(clean), smooth_noise(g, a.correlation_mm, rms_mm, rng));
   const Mask vent = noisy(mask_of_labels(clean, {2}), smooth_noise(g, a.correlation_mm, rms_mm, rng));
   LabelImage out(g, 0);
   for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] = brain.voxels[v] ? (vent.voxels[v] ? 2 : 1) : 0;
 
   // Distances of the clean structures pick where islands and holes go.
-  const ImageF sd_brain = signed_distance_mm(nonzero(clean));
+  const ImageF sd_brain = signed_distance_mm(nonzero_mask(clean));
   const ImageF sd_vent = signed_distance_mm(mask_of_labels(clean, {2}));
   std::uniform_real_distribution<double> radius(0.6 * a.blob_radius_mm, 1.4 * a.blob_radius_mm);
   const int half_islands = a.islands / 2, half_holes = a.holes / 2;

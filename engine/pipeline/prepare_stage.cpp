@@ -21,10 +21,7 @@ namespace {
 
 // A mask on a grid of the same extent (same_extent_grid), nearest voxel.
 Mask resample_mask(const Mask& m, const Grid3& target) {
-  const LabelImage moved = resample_nearest(as_labels(m), target);
-  Mask out(target, 0);
-  for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] = moved.voxels[v] != 0;
-  return out;
+  return nonzero_mask(resample_nearest(as_labels(m), target));
 }
 
 // The image-only scan with its first round on the coarser prior grid

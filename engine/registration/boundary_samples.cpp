@@ -29,12 +29,6 @@ void require_label(const LabelImage& labels, std::uint16_t value, const char* wh
   }
 }
 
-Mask nonzero_mask(const LabelImage& labels) {
-  Mask mask(labels.grid, 0);
-  for (std::size_t v = 0; v < labels.voxels.size(); ++v) mask.voxels[v] = labels.voxels[v] != 0;
-  return mask;
-}
-
 // Fisher-Yates with our own index draw: std::shuffle's use of the engine is
 // implementation-defined, and results must not depend on the standard library.
 template <class T>

@@ -65,8 +65,7 @@ nlohmann::json segmentation_agreement(const LabelImage& segmented, const LabelIm
 }
 
 nlohmann::json warped_beyond_truth(const LabelImage& warped, const LabelImage& truth) {
-  Mask brain(truth.grid, 0);
-  for (std::size_t v = 0; v < brain.voxels.size(); ++v) brain.voxels[v] = truth.voxels[v] != 0;
+  const Mask brain = nonzero_mask(truth);
   const ImageF distance = distance_to_mask_mm(brain, 60.0);
   const double voxel_ml = truth.grid.spacing_mm().prod() / 1000.0;
   std::size_t beyond3 = 0, beyond6 = 0;
