@@ -11,7 +11,10 @@
 #include "pipeline/segmentation_rounds.h"
 #include "pipeline/working_grid.h"
 #include "protocol/stage_names.h"
+#include "registration/affine_registration.h"
+#include "registration/boundary_samples.h"
 #include "segmentation/label_image_check.h"
+#include "segmentation/preop_fluid_spaces.h"
 
 namespace brainshift {
 namespace stages = protocol::stages;
@@ -97,6 +100,36 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
   first.metrics["given_labels"] = std::move(report);
 }
 
+// Labels an image will refine give back the fluid spaces the preop counts as
+// brain and they leave out (segmentation/preop_fluid_spaces.h), placed by
+// their own affine: their pass then carries the preop without pulling its
+// surface into those pits, and the refinement's prior is the preop's brain.
+// Labels used exactly are the site's own word and are left as they are.
+IntraopInput with_preop_fluid_spaces(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
+                                     nlohmann::json& report) {
+  const LabelTable& table = params.label_table;
+  const auto cavities = table.cavity_labels();
+  const std::uint16_t ventricle = cavities.empty() ? 0 : cavities.front();
+  const auto& medians = preop_fluid_tissue_medians(warm, table);
+  const IntraopDistanceMaps maps = prepare_intraop_maps(input.labels, table.brain_label(), ventricle);
+  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine);
+  if (!affine.converged) {
+    report = {{"applied", false}, {"why", "the labels' affine did not converge"}};
+    return input;
+  }
+  const segmentation::PreopFluidSpacesInput in{input.labels,       input.t1 ? &*input.t1 : nullptr,
+                                               warm.preop.labels,  warm.preop.t1,
+                                               affine.intraop_from_preop, table.brain_label(),
+                                               ventricle,          medians[0],
+                                               medians[1]};
+  segmentation::PreopFluidSpaces spaces = segmentation::adopt_preop_fluid_spaces(in, {});
+  report = std::move(spaces.report);
+  if (!(spaces.added_ml > 0)) return input;
+  IntraopInput out = input;
+  out.labels = std::move(spaces.labels);
+  return out;
+}
+
 }  // namespace
 
 ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
@@ -104,6 +137,11 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   const LabelTable& table = params.label_table;
   validate_intraop_input(input, table);
   Stopwatch watch;
+  nlohmann::json fluid_spaces = {{"applied", false}, {"why", "labels used exactly"}};
+  std::optional<IntraopInput> with_spaces;
+  if (use == GivenLabelsUse::refine) with_spaces = with_preop_fluid_spaces(warm, input, params, fluid_spaces);
+  const bool spaces_added = fluid_spaces.value("added_ml", 0.0) > 0;
+  const IntraopInput& adopted = spaces_added ? *with_spaces : input;
   double check_seconds = 0;
   auto check = std::async(std::launch::async, [&] {
     SerialOnThisThread beside_the_stages;
@@ -120,7 +158,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   // it ends up the answer.
   PassOptions labels_pass;
   labels_pass.guard_tissue = use != GivenLabelsUse::refine;
-  ScanResult result = run_intraop_on_working_grid(warm, input, params, progress, "", labels_pass);
+  ScanResult result = run_intraop_on_working_grid(warm, adopted, params, progress, "", labels_pass);
   segmentation::LabelImageCheck c = check.get();
   if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
     const nlohmann::json first_timings = result.timings["intraop"];
@@ -134,17 +172,22 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     // Labels that disagree grossly with their image are not refined: the
     // answer says so (above). Labels whose own pass the gates refused are
     // not either: that refusal is the answer's, with its reason.
-    refine_given_labels(warm, input, params, progress, watch, result);
+    refine_given_labels(warm, adopted, params, progress, watch, result);
     if (!result.metrics["given_labels"].value("refined", false)) {
       nlohmann::json given_labels = result.metrics["given_labels"];
       const double before = watch.seconds();
-      result = run_intraop_on_working_grid(warm, input, params, progress);
+      result = run_intraop_on_working_grid(warm, adopted, params, progress);
       result.timings["intraop"]["earlier_passes"] = before;
       result.metrics["given_labels"] = std::move(given_labels);
     }
   } else {
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
   }
+  result.metrics["given_labels"]["preop_fluid_spaces"] = std::move(fluid_spaces);
+  // Labels that took fluid spaces back are what the stages used: shown as
+  // the scan's labels unless a refinement replaced them.
+  if (!result.intraop_labels && spaces_added && result.kind == ResultKind::nonrigid)
+    result.intraop_labels = adopted.labels;
   // The answer waits for the check: the wait is part of what the surgeon waits for.
   result.timings["intraop"][std::string(stages::kTotal)] = watch.seconds() + input.read_seconds;
   c.metrics["seconds"] = check_seconds;

@@ -90,8 +90,7 @@ std::vector<std::uint16_t> ventricle_labels(const LabelTable& table) { return ta
 // its T1 and its own fluid and tissue intensities. Without ventricles in the
 // preop labels there is no fluid to compare with: the medians are equal and
 // the test is off.
-segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, const LabelImage& carried,
-                                      const Eigen::Matrix4d& intraop_from_preop) {
+const std::array<double, 2>& preop_fluid_tissue_medians(WarmState& warm, const LabelTable& table) {
   if (!warm.preop_fluid_tissue_medians) {
     const auto vent = ventricle_labels(table);
     std::vector<float> fluid, tissue;
@@ -103,11 +102,17 @@ segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, 
     const double f = median_in_place(fluid), t = median_in_place(tissue);
     warm.preop_fluid_tissue_medians = fluid.empty() || tissue.empty() ? std::array<double, 2>{0, 0} : std::array<double, 2>{f, t};
   }
+  return *warm.preop_fluid_tissue_medians;
+}
+
+segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, const LabelImage& carried,
+                                      const Eigen::Matrix4d& intraop_from_preop) {
+  const auto& medians = preop_fluid_tissue_medians(warm, table);
   segmentation::PreopSeen seen;
   seen.image = &warm.preop.t1;
   seen.preop_from_intraop = intraop_from_preop.inverse();
-  seen.fluid_median = (*warm.preop_fluid_tissue_medians)[0];
-  seen.tissue_median = (*warm.preop_fluid_tissue_medians)[1];
+  seen.fluid_median = medians[0];
+  seen.tissue_median = medians[1];
   const auto resectable = table.resectable_labels();
   if (!resectable.empty()) seen.resectable = mask_of_labels(carried, resectable);
   return seen;

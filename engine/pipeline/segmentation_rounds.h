@@ -5,6 +5,7 @@
 // it is worked on (ScanOnGrid: the carried preop, the segmentation of a
 // round, its gates, the passes of the stages), the rounds so far and the
 // answer made of them. Internal to the pipeline library.
+#include <array>
 #include <optional>
 #include <string>
 #include <vector>
@@ -35,6 +36,10 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
                                     nlohmann::json& metrics);
 
 std::vector<std::uint16_t> ventricle_labels(const LabelTable& table);
+
+// The preop T1's medians over its ventricles (fluid) and its brain label
+// (tissue), once per preop; both 0 without ventricles in the preop labels.
+const std::array<double, 2>& preop_fluid_tissue_medians(WarmState& warm, const LabelTable& table);
 
 // The preop where the head's placement puts it (segmentation::PreopSeen):
 // its T1 and its own fluid and tissue intensities. Without ventricles in the
