@@ -100,11 +100,8 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
   first.metrics["given_labels"] = std::move(report);
 }
 
-// Labels an image will refine give back the fluid spaces the preop counts as
-// brain and they leave out (segmentation/preop_fluid_spaces.h), placed by
-// their own affine: their pass then carries the preop without pulling its
-// surface into those pits, and the refinement's prior is the preop's brain.
-// Labels used exactly are the site's own word and are left as they are.
+}  // namespace
+
 IntraopInput with_preop_fluid_spaces(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                                      nlohmann::json& report) {
   const LabelTable& table = params.label_table;
@@ -129,8 +126,6 @@ IntraopInput with_preop_fluid_spaces(WarmState& warm, const IntraopInput& input,
   out.labels = std::move(spaces.labels);
   return out;
 }
-
-}  // namespace
 
 ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                                       GivenLabelsUse use, const ProgressFn& progress, bool with_quality_metrics) {

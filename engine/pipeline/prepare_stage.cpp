@@ -1,4 +1,6 @@
 #include "pipeline/prepare_stage.h"
+
+#include "pipeline/labels_with_image.h"
 #include "pipeline/segmentation_rounds.h"
 #include "pipeline/working_grid.h"
 #include "protocol/stage_names.h"
@@ -129,8 +131,18 @@ ScanResult register_image_only(WarmState& warm, const ImageF& image, double read
 
 ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                                  const ProgressFn& progress, bool with_quality_metrics) {
-  ScanResult result = run_intraop_on_working_grid(warm, input, params, progress);
-  if (with_quality_metrics) add_quality_metrics(warm, input, params, result, progress);
+  // Labels alone take back the fluid spaces the preop counts as brain (the
+  // preop's T1 tells fluid there); labels whose image the configuration
+  // does not check them against are used as given.
+  nlohmann::json fluid_spaces = {{"applied", false}, {"why", "labels used as given (check_given_labels off)"}};
+  std::optional<IntraopInput> with_spaces;
+  if (!input.t1) with_spaces = with_preop_fluid_spaces(warm, input, params, fluid_spaces);
+  const bool spaces_added = fluid_spaces.value("added_ml", 0.0) > 0;
+  const IntraopInput& used = spaces_added ? *with_spaces : input;
+  ScanResult result = run_intraop_on_working_grid(warm, used, params, progress);
+  result.metrics["given_labels"] = {{"use", "as given"}, {"preop_fluid_spaces", std::move(fluid_spaces)}};
+  if (spaces_added && result.kind == ResultKind::nonrigid) result.intraop_labels = used.labels;
+  if (with_quality_metrics) add_quality_metrics(warm, used, params, result, progress);
   return result;
 }
 
