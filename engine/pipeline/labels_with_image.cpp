@@ -179,10 +179,6 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
   }
   result.metrics["given_labels"]["preop_fluid_spaces"] = std::move(fluid_spaces);
-  // Labels that took fluid spaces back are what the stages used: shown as
-  // the scan's labels unless a refinement replaced them.
-  if (!result.intraop_labels && spaces_added && result.kind == ResultKind::nonrigid)
-    result.intraop_labels = adopted.labels;
   // The answer waits for the check: the wait is part of what the surgeon waits for.
   result.timings["intraop"][std::string(stages::kTotal)] = watch.seconds() + input.read_seconds;
   c.metrics["seconds"] = check_seconds;
@@ -190,7 +186,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   // The figures judge the labels the stages used: the refined segmentation
   // when it stands.
   if (with_quality_metrics)
-    add_quality_metrics(warm, IntraopInput{result.intraop_labels ? *result.intraop_labels : input.labels, input.t1},
+    add_quality_metrics(warm, IntraopInput{result.intraop_labels ? *result.intraop_labels : adopted.labels, input.t1},
                         params, result, progress);
   return result;
 }

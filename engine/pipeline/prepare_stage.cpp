@@ -141,7 +141,6 @@ ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, con
   const IntraopInput& used = spaces_added ? *with_spaces : input;
   ScanResult result = run_intraop_on_working_grid(warm, used, params, progress);
   result.metrics["given_labels"] = {{"use", "as given"}, {"preop_fluid_spaces", std::move(fluid_spaces)}};
-  if (spaces_added && result.kind == ResultKind::nonrigid) result.intraop_labels = used.labels;
   if (with_quality_metrics) add_quality_metrics(warm, used, params, result, progress);
   return result;
 }
