@@ -21,8 +21,8 @@ namespace brainshift {
 // leave out given back (segmentation/preop_fluid_spaces.h), placed by their
 // own affine: their pass then carries the preop without pulling its surface
 // into those pits (docs/DESIGN.md "Given labels and the preop's fluid
-// spaces"). The input as it was when none is found; `report` says what was
-// done. Used for labels an image refines and for labels alone; labels used
+// spaces"). The input's labels as they were when none is found; its
+// read_seconds grow by this step's time; `report` says what was done. Used for labels an image refines and for labels alone; labels used
 // exactly with their image are the site's own word and are left as given.
 IntraopInput with_preop_fluid_spaces(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
                                      nlohmann::json& report);

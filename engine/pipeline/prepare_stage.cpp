@@ -137,8 +137,7 @@ ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, con
   nlohmann::json fluid_spaces = {{"applied", false}, {"why", "labels used as given (check_given_labels off)"}};
   std::optional<IntraopInput> with_spaces;
   if (!input.t1) with_spaces = with_preop_fluid_spaces(warm, input, params, fluid_spaces);
-  const bool spaces_added = fluid_spaces.value("added_ml", 0.0) > 0;
-  const IntraopInput& used = spaces_added ? *with_spaces : input;
+  const IntraopInput& used = with_spaces ? *with_spaces : input;
   ScanResult result = run_intraop_on_working_grid(warm, used, params, progress);
   result.metrics["given_labels"] = {{"use", "as given"}, {"preop_fluid_spaces", std::move(fluid_spaces)}};
   if (with_quality_metrics) add_quality_metrics(warm, used, params, result, progress);
