@@ -1,6 +1,6 @@
 #include "pipeline/prepare_stage.h"
 
-#include "pipeline/labels_with_image.h"
+#include "pipeline/preop_fluid_spaces_stage.h"
 #include "pipeline/segmentation_rounds.h"
 #include "pipeline/working_grid.h"
 #include "protocol/stage_names.h"

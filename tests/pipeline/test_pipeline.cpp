@@ -601,12 +601,19 @@ TEST_F(PipelineTest, LabelsThatLeakBeyondTheirImageAreReportedAndNotACleanResult
   // Refined by their image (the default): the segmentation used is a part.
   EXPECT_TRUE(ok.metrics["given_labels"].value("refined", false)) << ok.metrics["given_labels"].dump();
   EXPECT_TRUE(ok.intraop_labels.has_value());
+  // Labels that share the preop's definition of the brain take no fluid
+  // space back (segmentation/preop_fluid_spaces.h).
+  const auto& spaces = ok.metrics["given_labels"]["preop_fluid_spaces"];
+  EXPECT_TRUE(spaces.value("applied", false)) << spaces.dump();
+  EXPECT_LT(spaces.value("added_ml", 1e9), 1.0) << spaces.dump();
   ScanInput exact = good;
   exact.labels_use = GivenLabelsUse::exact;
   const ScanResult as_given = session_->register_scan(exact, nullptr);
   EXPECT_EQ(as_given.kind, ResultKind::nonrigid);
   EXPECT_FALSE(as_given.intraop_labels) << "labels used as given are not a derived part";
   EXPECT_FALSE(as_given.metrics["given_labels"].value("refined", true));
+  EXPECT_FALSE(as_given.metrics["given_labels"]["preop_fluid_spaces"].value("applied", true))
+      << "labels used exactly are the site's word";
 
   // The brain grown by 6 mm, as a leaking threshold segmenter does.
   ScanInput leak = good;
