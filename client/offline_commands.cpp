@@ -120,7 +120,7 @@ int run_register_rank0(const RegisterOptions& o) {
   // After the answer, as the daemon does: not part of "total".
   // The prepared input: the segmentation the engine made (of an image alone,
   // or given labels refined by their image), or the labels as given.
-  const IntraopInput prepared{result.intraop_labels ? *result.intraop_labels : *scan.labels, scan.image};
+  const IntraopInput prepared{result.labels_used(scan.labels), scan.image};
   session.add_uncertainty(prepared, result, [](const std::string& s, double f, double t) { print_progress("intraop", s, f, t); });
   DeferredOutputOptions outputs;
   outputs.label_table = &session.parameters().label_table;

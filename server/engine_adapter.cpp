@@ -52,8 +52,9 @@ EngineScanOutput EngineAdapter::register_scan(const std::optional<LabelImage>& l
   output.intraop_seconds = result.timings["intraop"].value(std::string(protocol::stages::kTotal), 0.0);
   // The deferred parts judge the labels the stages used: the engine's
   // segmentation of the image when it made one (an image alone, or labels
-  // refined by their image), else those pushed.
-  const LabelImage& used = result.intraop_labels ? *result.intraop_labels : labels.value();
+  // refined by their image), else those pushed with the fluid spaces they
+  // took back (ScanResult::labels_used).
+  const LabelImage& used = result.labels_used(labels);
   deferred_ = std::make_unique<Deferred>(Deferred{IntraopInput{used, image}, std::move(result)});
   return output;
 }

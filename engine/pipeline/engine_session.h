@@ -81,6 +81,19 @@ struct ScanResult {
   // given): the segmentation the stages used and the posterior of its choice.
   std::optional<LabelImage> intraop_labels;
   std::optional<ImageF> segmentation_confidence;
+  // Set when given labels were registered with fluid spaces taken back
+  // (pipeline/preop_fluid_spaces_stage.h) and no segmentation replaced
+  // them: the labels the stages used, which the deferred parts (quality
+  // figures, uncertainty) judge. Not a result part (PROTOCOL.md 5.3).
+  std::optional<LabelImage> given_labels_used;
+  // The labels the stages registered: the engine's segmentation, else the
+  // given labels as used, else those pushed (an image alone has none: its
+  // result always holds the segmentation).
+  const LabelImage& labels_used(const std::optional<LabelImage>& pushed) const {
+    if (intraop_labels) return *intraop_labels;
+    if (given_labels_used) return *given_labels_used;
+    return pushed.value();
+  }
 };
 
 struct WarmState;  // mesh, surfaces, bindings, FEM model: see engine_session.cpp

@@ -130,7 +130,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   segmentation::LabelImageCheck c = check.get();
   if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
     const nlohmann::json first_timings = result.timings["intraop"];
-    result = run_intraop_on_working_grid(warm, input, params, progress,
+    result = run_intraop_on_working_grid(warm, adopted, params, progress,
                                          "the intraop labels disagree with the intraop image: " + c.failure);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
@@ -152,6 +152,8 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
   }
   result.metrics["given_labels"]["preop_fluid_spaces"] = std::move(fluid_spaces);
+  if (with_spaces && !result.intraop_labels && with_spaces->labels.voxels != input.labels.voxels)
+    result.given_labels_used = with_spaces->labels;
   // The answer waits for the check: the wait is part of what the surgeon waits for.
   result.timings["intraop"][std::string(stages::kTotal)] = watch.seconds() + input.read_seconds;
   c.metrics["seconds"] = check_seconds;
@@ -159,7 +161,8 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   // The figures judge the labels the stages used: the refined segmentation
   // when it stands.
   if (with_quality_metrics)
-    add_quality_metrics(warm, IntraopInput{result.intraop_labels ? *result.intraop_labels : adopted.labels, input.t1},
+    add_quality_metrics(warm,
+                        IntraopInput{result.intraop_labels ? *result.intraop_labels : adopted.labels, input.t1},
                         params, result, progress);
   return result;
 }

@@ -140,6 +140,7 @@ ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, con
   const IntraopInput& used = with_spaces ? *with_spaces : input;
   ScanResult result = run_intraop_on_working_grid(warm, used, params, progress);
   result.metrics["given_labels"] = {{"use", "as given"}, {"preop_fluid_spaces", std::move(fluid_spaces)}};
+  if (with_spaces && with_spaces->labels.voxels != input.labels.voxels) result.given_labels_used = with_spaces->labels;
   if (with_quality_metrics) add_quality_metrics(warm, used, params, result, progress);
   return result;
 }
