@@ -121,6 +121,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   std::optional<IntraopInput> with_spaces;
   if (use == GivenLabelsUse::refine) with_spaces = with_preop_fluid_spaces(warm, input, params, fluid_spaces);
   const IntraopInput& adopted = with_spaces ? *with_spaces : input;
+  const bool spaces_added = fluid_spaces.value("added_ml", 0.0) > 0;
   // Labels their image will refine make the refinement's prior: their pass
   // is not guarded (PassOptions::guard_tissue); it is run again guarded when
   // it ends up the answer.
@@ -152,8 +153,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
   }
   result.metrics["given_labels"]["preop_fluid_spaces"] = std::move(fluid_spaces);
-  if (with_spaces && !result.intraop_labels && with_spaces->labels.voxels != input.labels.voxels)
-    result.given_labels_used = with_spaces->labels;
+  if (spaces_added && !result.intraop_labels) result.given_labels_used = adopted.labels;
   // The answer waits for the check: the wait is part of what the surgeon waits for.
   result.timings["intraop"][std::string(stages::kTotal)] = watch.seconds() + input.read_seconds;
   c.metrics["seconds"] = check_seconds;

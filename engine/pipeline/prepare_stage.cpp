@@ -138,9 +138,10 @@ ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, con
   std::optional<IntraopInput> with_spaces;
   if (!input.t1) with_spaces = with_preop_fluid_spaces(warm, input, params, fluid_spaces);
   const IntraopInput& used = with_spaces ? *with_spaces : input;
+  const bool spaces_added = fluid_spaces.value("added_ml", 0.0) > 0;
   ScanResult result = run_intraop_on_working_grid(warm, used, params, progress);
   result.metrics["given_labels"] = {{"use", "as given"}, {"preop_fluid_spaces", std::move(fluid_spaces)}};
-  if (with_spaces && with_spaces->labels.voxels != input.labels.voxels) result.given_labels_used = with_spaces->labels;
+  if (spaces_added) result.given_labels_used = used.labels;
   if (with_quality_metrics) add_quality_metrics(warm, used, params, result, progress);
   return result;
 }
