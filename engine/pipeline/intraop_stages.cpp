@@ -60,7 +60,7 @@ struct StageClock {
 
 // The intraop T1 corrects the interior of the non-rigid field
 // (registration/intensity_refinement.h), before the Jacobian gate sees it.
-nlohmann::json refine_interior(VectorImage3& field, const WarmState& warm, const IntraopInput& input,
+nlohmann::json refine_interior(VectorImage3& field, WarmState& warm, const IntraopInput& input,
                                const IntraopDistanceMaps& maps, const PipelineParameters& params,
                                const std::string& failure) {
   const auto skipped = [](const char* why) { return nlohmann::json{{"applied", false}, {"skipped", why}}; };
@@ -70,7 +70,8 @@ nlohmann::json refine_interior(VectorImage3& field, const WarmState& warm, const
   std::vector<std::uint16_t> tissue;
   for (const auto& e : params.label_table.entries)
     if (e.role != LabelRole::cavity) tissue.push_back(e.value);
-  const IntensityRefinementInput in{*input.t1, input.labels, maps.outer_sdf_mm, warm.preop.t1, tissue, 0};
+  IntensityRefinementInput in{*input.t1, input.labels, maps.outer_sdf_mm, warm.preop.t1, tissue, 0};
+  if (params.intensity.match_point_spread) in.preop_t1_at_resolution = &preop_t1_at_resolution(warm, field.grid);
   return refine_with_intensity(field, in, params.intensity);
 }
 

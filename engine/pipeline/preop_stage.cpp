@@ -14,6 +14,7 @@
 #include "models/surface_models.h"
 #include "pipeline/plausibility_stage.h"
 #include "pipeline/warm_state.h"
+#include "registration/intensity_refinement.h"
 #include "protocol/stage_names.h"
 
 namespace brainshift {
@@ -245,6 +246,16 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
   if (meshed) warm->timings["meshing"] = meshing_report(mesh_stats);
   warm->preop = std::move(input);
   return warm;
+}
+
+const ImageF& preop_t1_at_resolution(WarmState& warm, const Grid3& grid) {
+  auto& kept = warm.preop_t1_blurred;
+  const Eigen::Vector3d sigma = preop_point_spread_sigma_voxels(warm.preop.t1.grid, grid);
+  for (const auto& b : kept)
+    if ((b.sigma_voxels - sigma).cwiseAbs().maxCoeff() < 1e-9) return b.t1;
+  if (kept.size() >= 2) kept.erase(kept.begin());
+  kept.push_back({sigma, preop_at_intraop_resolution(warm.preop.t1, grid)});
+  return kept.back().t1;
 }
 
 }  // namespace brainshift

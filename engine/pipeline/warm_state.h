@@ -74,7 +74,21 @@ struct WarmState {
   // tissue), for telling fluid the preop already held from a gap
   // (segmentation::PreopSeen); made on the first scan given without labels.
   std::optional<std::array<double, 2>> preop_fluid_tissue_medians;
+  // The preop T1 at the resolution of the grids the interior refinement
+  // last worked on (preop_t1_at_resolution): a scanner sends every scan of
+  // a session on the same grid, and the image-only path's two passes share
+  // one, so the blur (about 0.15 s) is made once, not per pass.
+  struct BlurredPreop {
+    Eigen::Vector3d sigma_voxels;
+    ImageF t1;
+  };
+  std::vector<BlurredPreop> preop_t1_blurred;
 };
+
+// The preop T1 as a scanner with `grid`'s voxels records it
+// (registration/intensity_refinement.h, match_point_spread), kept in
+// warm.preop_t1_blurred for the last two resolutions asked for.
+const ImageF& preop_t1_at_resolution(WarmState& warm, const Grid3& grid);
 
 // The preop phase on rank 0 (drives the workers through fem).
 std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,

@@ -40,7 +40,11 @@ void check_inputs(const VectorImage3& u, const IntensityRefinementInput& in) {
     throw InputError("intensity refinement: the brain distance map is not on the field's grid");
   if (in.preop_t1.grid.voxel_count() == 0 || in.preop_t1.voxels.size() != in.preop_t1.grid.voxel_count())
     throw InputError("intensity refinement: the preop image is empty");
+  if (in.preop_t1_at_resolution && !in.preop_t1_at_resolution->grid.same_geometry(in.preop_t1.grid))
+    throw InputError("intensity refinement: the blurred preop is not on the preop's grid");
 }
+
+}  // namespace
 
 // The preop T1 as the intraop scanner would record it: each intraop voxel
 // integrates a box of one pixel in-plane (variance h^2 / 12) and a slice
@@ -49,24 +53,30 @@ void check_inputs(const VectorImage3& u, const IntensityRefinementInput& in) {
 // voxel's own box (p^2 / 12) is already in the preop. Without it a sharp
 // 1 mm preop is compared with a 2.4 mm slice's partial-volume average. The
 // covariance is read on the preop's axes (its diagonal; exact for aligned
-// grids). A copy; the preop itself when nothing needs blurring.
-ImageF preop_at_intraop_resolution(const ImageF& preop, const Grid3& intraop) {
-  const Vec3 h = intraop.spacing_mm(), pre = preop.grid.spacing_mm();
+// grids).
+Eigen::Vector3d preop_point_spread_sigma_voxels(const Grid3& preop, const Grid3& intraop) {
+  const Eigen::Vector3d h = intraop.spacing_mm(), pre = preop.spacing_mm();
   int slice = 2;
   for (int a = 0; a < 3; ++a)
     if (h[a] > h[slice] * (1 + 1e-6)) slice = a;
-  Vec3 variance = h.cwiseProduct(h) / 12.0;
+  Eigen::Vector3d variance = h.cwiseProduct(h) / 12.0;
   variance[slice] = std::pow(h[slice] / 2.3548, 2);
-  Mat3 r_in = intraop.world_from_voxel.topLeftCorner<3, 3>(), r_pre = preop.grid.world_from_voxel.topLeftCorner<3, 3>();
+  Eigen::Matrix3d r_in = intraop.world_from_voxel.topLeftCorner<3, 3>(), r_pre = preop.world_from_voxel.topLeftCorner<3, 3>();
   for (int a = 0; a < 3; ++a) r_in.col(a).normalize(), r_pre.col(a).normalize();
-  const Mat3 on_preop_axes = r_pre.transpose() * r_in * variance.asDiagonal() * r_in.transpose() * r_pre;
-  Vec3 sigma_voxels;
+  const Eigen::Matrix3d on_preop_axes = r_pre.transpose() * r_in * variance.asDiagonal() * r_in.transpose() * r_pre;
+  Eigen::Vector3d sigma_voxels;
   for (int a = 0; a < 3; ++a)
     sigma_voxels[a] = std::sqrt(std::max(0.0, on_preop_axes(a, a) - pre[a] * pre[a] / 12.0)) / pre[a];
+  return sigma_voxels;
+}
+
+ImageF preop_at_intraop_resolution(const ImageF& preop, const Grid3& intraop) {
   ImageF out = preop;
-  gaussian_smooth_voxels(out, sigma_voxels);
+  gaussian_smooth_voxels(out, preop_point_spread_sigma_voxels(preop.grid, intraop));
   return out;
 }
+
+namespace {
 
 double median_intensity(const std::vector<Sample>& s) {
   std::vector<double> v;
@@ -139,8 +149,11 @@ IntensityRefinementReport refine_with_intensity(VectorImage3& pullback_mm, const
     return report;
   }
   Lattice lattice(boxes.region, pullback_mm.grid, p.lattice_spacing_mm);
-  const ImageF blurred = p.match_point_spread ? preop_at_intraop_resolution(input.preop_t1, pullback_mm.grid) : ImageF();
-  const LinearSampler preop(p.match_point_spread ? blurred : input.preop_t1);
+  const bool blur_here = p.match_point_spread && !input.preop_t1_at_resolution;
+  const ImageF blurred = blur_here ? preop_at_intraop_resolution(input.preop_t1, pullback_mm.grid) : ImageF();
+  const LinearSampler preop(!p.match_point_spread ? input.preop_t1
+                            : blur_here           ? blurred
+                                                  : *input.preop_t1_at_resolution);
   Samples samples = prepare_samples(pullback_mm, input, p, lattice, preop, boxes);
   report.candidates = samples.candidates;
   report.samples = samples.motion.size();

@@ -77,7 +77,9 @@ struct IntensityRefinementParameters {
   // point-spread function (a box in-plane, a slice profile of FWHM one slice
   // across), not with the sharp preop: at 2-3 mm slices partial volume
   // otherwise reads as misalignment (0.15 T cases 0.03-0.07 mm closer,
-  // docs/PERFORMANCE.md 9.1). A blurred copy of the preop per scan (~0.15 s).
+  // docs/PERFORMANCE.md 9.1). A blurred copy of the preop (about 0.15 s of
+  // work); the caller may keep it for the next scan on a grid of the same
+  // resolution (IntensityRefinementInput::preop_t1_at_resolution).
   bool match_point_spread = true;
   // Used only with smoothing_length_mm = 0: fixed weights, against the data
   // term normalised by its residual spread. Membrane weight (dimensionless);
@@ -138,7 +140,19 @@ struct IntensityRefinementInput {
   // Label of voxels whose intensity does not follow the brain (outside, a
   // resection cavity): samples keep boundary_margin_mm away from them.
   std::uint16_t background_label = 0;
+  // With match_point_spread: the preop T1 already blurred to the field
+  // grid's resolution (preop_at_intraop_resolution for a grid of the same
+  // preop_point_spread_sigma_voxels); null: made here.
+  const ImageF* preop_t1_at_resolution = nullptr;
 };
+
+// The blur, in preop voxels per preop axis, that takes the preop T1 to what a
+// scanner with `intraop`'s voxels records (match_point_spread): grids of the
+// same spacing and axes give the same blur, and so the same blurred preop.
+Eigen::Vector3d preop_point_spread_sigma_voxels(const Grid3& preop, const Grid3& intraop);
+
+// The preop T1 blurred by preop_point_spread_sigma_voxels(preop.grid, intraop).
+ImageF preop_at_intraop_resolution(const ImageF& preop, const Grid3& intraop);
 
 struct IntensityRefinementReport {
   bool applied = false;

@@ -364,6 +364,41 @@ TEST_F(IntensityRefinementTest, BadInputsAreClearErrors) {
   EXPECT_THROW(refine_with_intensity(u, moved, IntensityRefinementParameters{}), InputError);
 }
 
+// The pipeline keeps the blurred preop between passes and scans on grids of
+// the same resolution: handed in, it gives the field blurring here gives,
+// and the blur depends on the grid's spacing and axes, not on its position.
+TEST_F(IntensityRefinementTest, ABlurredPreopHandedInGivesTheSameField) {
+  const Crop c = make_crop(/*deform=*/true, 0.1, 0.02, low_field());
+  const IntensityRefinementInput in{c.intraop_t1, c.labels, c.brain_sdf_mm, *t1_, {1}, 0};
+  VectorImage3 here(c.labels.grid), handed(c.labels.grid);
+  ASSERT_TRUE(refine_with_intensity(here, in, IntensityRefinementParameters{}).applied);
+  Grid3 shifted = c.labels.grid;
+  shifted.world_from_voxel.col(3).head<3>() += Eigen::Vector3d(13.0, -7.0, 4.5);
+  EXPECT_EQ(preop_point_spread_sigma_voxels(t1_->grid, shifted), preop_point_spread_sigma_voxels(t1_->grid, c.labels.grid));
+  const ImageF blurred = preop_at_intraop_resolution(*t1_, shifted);
+  IntensityRefinementInput with = in;
+  with.preop_t1_at_resolution = &blurred;
+  ASSERT_TRUE(refine_with_intensity(handed, with, IntensityRefinementParameters{}).applied);
+  for (std::size_t v = 0; v < here.vectors.size(); ++v) ASSERT_EQ(here.vectors[v], handed.vectors[v]) << v;
+  // It is what the refinement compares with: the sharp preop handed in
+  // instead gives another field.
+  with.preop_t1_at_resolution = t1_;
+  VectorImage3 sharp(c.labels.grid);
+  ASSERT_TRUE(refine_with_intensity(sharp, with, IntensityRefinementParameters{}).applied);
+  double largest_difference_mm = 0;
+  for (std::size_t v = 0; v < here.vectors.size(); ++v)
+    largest_difference_mm = std::max(largest_difference_mm, double((here.vectors[v] - sharp.vectors[v]).norm()));
+  EXPECT_GT(largest_difference_mm, 1e-3);
+  // A coarser grid blurs more; another preop grid is refused.
+  Grid3 coarser = c.labels.grid;
+  coarser.world_from_voxel.topLeftCorner<3, 3>() *= 1.5;
+  EXPECT_GT(preop_point_spread_sigma_voxels(t1_->grid, coarser).sum(),
+            preop_point_spread_sigma_voxels(t1_->grid, c.labels.grid).sum());
+  const ImageF wrong(c.intraop_t1.grid, 1.f);
+  with.preop_t1_at_resolution = &wrong;
+  EXPECT_THROW(refine_with_intensity(handed, with, IntensityRefinementParameters{}), InputError);
+}
+
 TEST_F(IntensityRefinementTest, WithoutTissueLabelsNothingIsDone) {
   const Crop c = make_crop(true, 0.0, 0.0);
   VectorImage3 u(c.labels.grid);
