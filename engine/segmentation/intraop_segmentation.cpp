@@ -116,22 +116,60 @@ bool likelier_fluid(const std::vector<GaussianClass>& classes, double x) {
 }
 
 // Where the fluid test turns: from the fluid class's mean toward the nearest
-// parenchyma class's, the first intensity the test no longer calls fluid.
-// {fluid mean, boundary}; equal when the classes give no such point.
-std::pair<double, double> fluid_boundary(const std::vector<GaussianClass>& classes) {
+// parenchyma class's (the tissue that borders fluid: grey matter in a T1),
+// the first intensity the test no longer calls fluid. turn == fluid_mean
+// when the classes give no such point.
+struct FluidTurn {
+  double fluid_mean = 0, turn = 0, tissue_mean = 0;
+};
+FluidTurn fluid_boundary(const std::vector<GaussianClass>& classes) {
   const GaussianClass* fluid = heaviest_class(classes, Tissue::ventricle);
-  if (!fluid) return {0, 0};
+  if (!fluid) return {};
   const GaussianClass* tissue = nullptr;
   for (const auto& c : classes)
     if (c.tissue == Tissue::parenchyma && (!tissue || std::abs(c.mean - fluid->mean) < std::abs(tissue->mean - fluid->mean)))
       tissue = &c;
-  if (!tissue) return {fluid->mean, fluid->mean};
+  if (!tissue) return {fluid->mean, fluid->mean, fluid->mean};
   const int steps = 1000;
   for (int s = 1; s <= steps; ++s) {
     const double x = fluid->mean + (tissue->mean - fluid->mean) * s / steps;
-    if (!likelier_fluid(classes, x)) return {fluid->mean, x};
+    if (!likelier_fluid(classes, x)) return {fluid->mean, x, tissue->mean};
   }
-  return {fluid->mean, tissue->mean};
+  return {fluid->mean, tissue->mean, tissue->mean};
+}
+
+// The tissue beside a component of open fluid (raw_ratio_to_tissue_beside):
+// within 3 mm of it, the cortex beneath a sinking's gap (2.5-3 mm of grey
+// matter) and a voxel of partial volume at the wall, near enough that a
+// coil's field (varying over centimetres) is the same on both sides.
+constexpr double kTissueBesideMm = 3.0;
+
+// Raw intensities of a component (its voxels, component == c) and of the
+// brain tissue beside it (brain, neither fluid nor ventricle, within
+// shell_mm of it): their medians' ratio, or NaN when either is empty.
+// Both are read in the image as recorded: over a few millimetres a coil's
+// field is the same on both sides of the component's wall, so the ratio is
+// the tissues' own, whatever bias the classes were fitted with.
+double raw_ratio_to_tissue_beside(const ImageF& image, const Image3<std::int32_t>& components, int c, const Mask& brain,
+                                  const Mask& fluid, const Mask& ventricle, double shell_mm) {
+  Mask own(components.grid, 0);
+  for (std::size_t v = 0; v < own.voxels.size(); ++v) own.voxels[v] = components.voxels[v] == c;
+  const VoxelBox box = grow_box(bounding_box_voxels(own), own.grid, shell_mm + own.grid.spacing_mm().maxCoeff());
+  if (box.empty) return std::numeric_limits<double>::quiet_NaN();
+  const Mask near = dilate(crop_to_box(own, box), shell_mm);
+  std::vector<float> inside, beside;
+  const Grid3& g = near.grid;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        if (!near.at(i, j, k)) continue;
+        const std::size_t w = own.grid.index(i + box.lo[0], j + box.lo[1], k + box.lo[2]);
+        if (own.voxels[w]) inside.push_back(image.voxels[w]);
+        else if (brain.voxels[w] && !fluid.voxels[w] && !ventricle.voxels[w]) beside.push_back(image.voxels[w]);
+      }
+  if (inside.empty() || beside.empty()) return std::numeric_limits<double>::quiet_NaN();
+  const double tissue = median_in_place(beside);
+  return tissue > 0 ? median_in_place(inside) / tissue : std::numeric_limits<double>::quiet_NaN();
 }
 
 // Fluid labelled parenchyma that is thicker than any sulcus (it survives an
@@ -251,16 +289,30 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
     // finer than a voxel, which every outline counts as brain) passes the
     // test only where noise takes it across: its median lies at the turn
     // (docs/DESIGN.md "Automatic intraop segmentation", item 7).
-    const auto [fluid_mean, turn] = fluid_boundary(classes);
+    const FluidTurn t = fluid_boundary(classes);
+    // 0 at the fluid class's mean, 1 where the fluid test turns.
+    const auto toward_turn_of = [&](double x) {
+      return t.turn != t.fluid_mean ? (x - t.fluid_mean) / (t.turn - t.fluid_mean) : 0.0;
+    };
     for (std::size_t c = 1; c < size.size(); ++c)
       if (open_to_outside[c]) {
         const Eigen::Vector3d m = sum[c] / static_cast<double>(size[c]);
         const double median = median_in_place(intensities[c]);
-        // 0 at the fluid class's mean, 1 where the fluid test turns.
-        const double toward_turn = turn != fluid_mean ? (median - fluid_mean) / (turn - fluid_mean) : 0.0;
+        const double toward_turn = toward_turn_of(median);
+        // The same test against the tissue beside it in the raw image: a
+        // fitted bias that bends at the brain's edge (a quadratic taking
+        // the deep grey matter's and enlarged ventricles' partial volume
+        // for a field, steep where it extrapolates) makes tissue there look
+        // like fluid once corrected, never darker than the tissue beside it
+        // (docs/DESIGN.md "Automatic intraop segmentation", item 7).
+        const double ratio = raw_ratio_to_tissue_beside(image, components, static_cast<int>(c), brain, fluid,
+                                                        ventricle, kTissueBesideMm);
+        const double local_toward_turn = std::isfinite(ratio) ? toward_turn_of(ratio * t.tissue_mean) : 0.0;
         nlohmann::json record = {{"ml", static_cast<double>(size[c]) * voxel_ml}, {"ventricles_mm", near[c]},
                                  {"max_depth_mm", deep[c]}, {"centroid_mm", {m[0], m[1], m[2]}},
-                                 {"median_intensity", median}, {"median_toward_fluid_turn", toward_turn}};
+                                 {"median_intensity", median}, {"median_toward_fluid_turn", toward_turn},
+                                 {"raw_ratio_to_tissue_beside", std::isfinite(ratio) ? ratio : -1.0},
+                                 {"beside_toward_fluid_turn", local_toward_turn}};
         // What the preop held there: 0 at its fluid, 1 at its tissue.
         double preop_toward_tissue = 1;
         if (!preop[c].empty()) {
@@ -269,7 +321,7 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
           record["preop_toward_tissue"] = preop_toward_tissue;
         }
         out.components.push_back(record);
-        if (toward_turn >= max_median_toward_turn) {
+        if (toward_turn >= max_median_toward_turn || local_toward_turn >= max_median_toward_turn) {
           out.partial_fluid_ml += static_cast<double>(size[c]) * voxel_ml;
           open_to_outside[c] = false;
         } else if (preop_toward_tissue < min_preop_toward_tissue) {
