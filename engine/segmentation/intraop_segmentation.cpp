@@ -184,7 +184,7 @@ double raw_ratio_to_tissue_beside(const ImageF& image, const Image3<std::int32_t
 struct OpenFluid {
   Mask moved;                          // the gap's fluid, moved out of the brain
   double next_to_ventricles_ml = 0;    // thick fluid left in: continuous with the ventricles
-  double partial_fluid_ml = 0;         // left in: its median nearer the fluid test's turn than the fluid
+  double partial_fluid_ml = 0;         // left in: its median, or its raw ratio to the tissue beside it, nearer the turn
   double fluid_before_ml = 0;          // left in: fluid in the preop as well (a cistern, a fissure)
   nlohmann::json components = nlohmann::json::array();  // diagnostic: each open component >= min_gap_ml
 };
