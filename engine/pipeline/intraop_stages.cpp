@@ -184,6 +184,20 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   PlausibilityReport plausibility;
   const std::string implausible = check_input_plausibility(warm, input, brain_region, A, params, plausibility);
   if (failure.empty()) failure = implausible;
+  // The labels refused for their own geometry: the affine fitted to them
+  // carries their error (a head does not shrink or swell), so the fallback
+  // is its rigid part about the preop brain's centre (quality/
+  // plausibility_gates.h).
+  const bool rigid_fallback = !failure.empty() && failure == implausible && refuses_labels_geometry(plausibility);
+  const Eigen::Matrix4d delivered_A =
+      rigid_fallback ? rigid_part(A, warm.affine_samples.outer_moments.centroid_mm) : A;
+  if (rigid_fallback) {
+    result.intraop_from_preop = delivered_A;
+    metrics["affine"]["fallback_transform"] = "rigid part of the affine (the labels' geometry was refused)";
+    nlohmann::json rows = nlohmann::json::array();
+    for (int r = 0; r < 4; ++r) rows.push_back({A(r, 0), A(r, 1), A(r, 2), A(r, 3)});
+    metrics["affine"]["refused_intraop_from_preop"] = rows;
+  }
 
   clock.start(stages::kSurface);
   std::vector<Eigen::Vector3d> fixed_values;
@@ -195,7 +209,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
 
   clock.start(stages::kSolve);
   MeshDeformation deformation;
-  deformation.intraop_from_preop = A;
+  deformation.intraop_from_preop = delivered_A;
   deformation.nonrigid_mm.assign(warm.fem.mesh().node_count(), Eigen::Vector3d::Zero());
   if (failure.empty()) {
     try {

@@ -106,6 +106,18 @@ GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen
 using ExtentAlong = std::function<double(const Eigen::Vector3d& direction_preop)>;
 std::vector<GateResult> affine_gates(const Eigen::Matrix4d& intraop_from_preop, const PlausibilityLimits& limits,
                                      const ExtentAlong& visible_extent_mm);
+// The rigid part of an affine: the rotation of its polar decomposition
+// L = R S, and the translation that puts centre_mm (preop frame) where the
+// affine puts it. What a head can do between two scans.
+Eigen::Matrix4d rigid_part(const Eigen::Matrix4d& intraop_from_preop, const Eigen::Vector3d& centre_mm);
+
+// The gates that judge the geometry of the labels the affine was fitted to
+// (volume, affine_stretch): when one refuses, the affine carries the
+// labels' error (a lost lobe shrinks it, a leak inflates it) and the
+// affine-only fallback delivers its rigid part instead (docs/DESIGN.md,
+// "Quality gates").
+bool refuses_labels_geometry(const PlausibilityReport& report);
+
 // The stretch limit along a direction whose brain extent in view is extent_mm.
 double affine_stretch_limit(double extent_mm, const PlausibilityLimits& limits);
 

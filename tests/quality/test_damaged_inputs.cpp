@@ -192,11 +192,11 @@ TEST_F(DamagedInputs, AnOutlineLeakingFourVoxelsIn3DIsRefused) {
   expect_refused("leak 4 voxels 3D", labels_only(leak), {"volume", "affine_stretch"});
 }
 
-// A refused scan's answer is the affine alone: its uncertainty map carries
-// the surface residual the affine leaves through the model, not the
-// non-rigid floor. (It cannot see an error of the affine itself: the leak
-// stretched the affine, 6.3 mm off, while the residual gives a 1.5 mm band.
-// The fallback is marked; the map does not make it trustworthy.)
+// A refused scan's answer is the affine alone (here its rigid part, the
+// leak having stretched the affine fitted to it): its uncertainty map
+// carries the surface residual that transform leaves through the model, not
+// the non-rigid floor. The fallback is marked; the map does not make it
+// trustworthy.
 TEST_F(DamagedInputs, ARefusedScansMapCarriesTheResidualTheAffineLeaves) {
   const IntraopInput scan = labels_only(leaked(case_->intraop_labels, 4));
   ScanResult r = session_->register_scan(scan, nullptr);
@@ -206,6 +206,31 @@ TEST_F(DamagedInputs, ARefusedScansMapCarriesTheResidualTheAffineLeaves) {
   EXPECT_GT(u["samples"].get<int>(), 0);
   const double floor_mm = kBand95PerRms * u["quantisation_rms_mm"].get<double>();
   EXPECT_GT(u["band95_mm"]["median"].get<double>(), 2 * floor_mm) << u.dump();
+}
+
+// Labels refused for their own geometry (a leak stretches the affine fitted
+// to them by a quarter): the fallback delivers the affine's rigid part, since
+// a head does not swell, and it lies nearer the truth than the refused
+// affine does.
+TEST_F(DamagedInputs, ARefusalOfTheLabelsGeometryDeliversTheAffinesRigidPart) {
+  const ScanResult r = session_->register_scan(labels_only(leaked(case_->intraop_labels, 4)), nullptr);
+  ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
+  ASSERT_TRUE(r.metrics["affine"].contains("fallback_transform")) << r.metrics["affine"].dump();
+  const Eigen::Matrix3d R = r.intraop_from_preop.topLeftCorner<3, 3>();
+  EXPECT_NEAR(R.determinant(), 1.0, 1e-9);
+  EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).norm(), 1e-9);
+  ScanResult refused = r;
+  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
+  const double refused_scale = refused.intraop_from_preop.topLeftCorner<3, 3>().determinant();
+  EXPECT_GT(refused_scale, 1.2) << "the leak no longer stretches";
+  const auto delivered = evaluation::evaluate_result("rigid part", *case_, r);
+  const auto stretched = evaluation::evaluate_result("refused affine", *case_, refused);
+  // The field delivered is the rigid part's, and nearer the truth.
+  EXPECT_NEAR(delivered.nonrigid_mean_mm, delivered.affine_mean_mm, 0.05);
+  EXPECT_LT(delivered.nonrigid_mean_mm, stretched.affine_mean_mm - 1.0)
+      << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
 }
 
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {
