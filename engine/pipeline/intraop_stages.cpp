@@ -183,12 +183,12 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   // then says what else is wrong with the input.
   PlausibilityReport plausibility;
   const std::string implausible = check_input_plausibility(warm, input, brain_region, A, params, plausibility);
-  if (failure.empty()) failure = implausible;
   // The labels refused for their own geometry: the affine fitted to them
   // carries their error (a head does not shrink or swell), so the fallback
   // is its rigid part about the preop brain's centre (quality/
   // plausibility_gates.h).
-  const bool rigid_fallback = !failure.empty() && failure == implausible && refuses_labels_geometry(plausibility);
+  const bool rigid_fallback = failure.empty() && !implausible.empty() && refuses_labels_geometry(plausibility);
+  if (failure.empty()) failure = implausible;
   const Eigen::Matrix4d delivered_A =
       rigid_fallback ? rigid_part(A, warm.affine_samples.outer_moments.centroid_mm) : A;
   if (rigid_fallback) {

@@ -138,12 +138,20 @@ double affine_stretch_limit(double extent_mm, const PlausibilityLimits& limits) 
          limits.affine_sink_share * limits.max_sink_depth_mm / std::max(extent_mm, kLeastExtentMm);
 }
 
-Eigen::Matrix4d rigid_part(const Eigen::Matrix4d& A, const Eigen::Vector3d& centre_mm) {
-  const Eigen::Matrix3d L = A.topLeftCorner<3, 3>();
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(L, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  // Rotation part of the polar decomposition L = R S.
+namespace {
+
+// Rotation part of the polar decomposition L = R S, from L's SVD.
+Eigen::Matrix3d polar_rotation(const Eigen::JacobiSVD<Eigen::Matrix3d>& svd) {
   Eigen::Matrix3d R = svd.matrixU() * svd.matrixV().transpose();
   if (R.determinant() < 0) R = -R;
+  return R;
+}
+
+}  // namespace
+
+Eigen::Matrix4d rigid_part(const Eigen::Matrix4d& A, const Eigen::Vector3d& centre_mm) {
+  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(A.topLeftCorner<3, 3>(), Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Eigen::Matrix3d R = polar_rotation(svd);
   Eigen::Matrix4d out = Eigen::Matrix4d::Identity();
   out.topLeftCorner<3, 3>() = R;
   out.block<3, 1>(0, 3) = (A * centre_mm.homogeneous()).head<3>() - R * centre_mm;
@@ -190,7 +198,7 @@ std::vector<GateResult> affine_gates(const Eigen::Matrix4d& A, const Plausibilit
   stretch.extra = {{"principal_stretches", {s[0], s[1], s[2]}}, {"determinant", L.determinant()},
                    {"directions", directions}};
 
-  const Eigen::Matrix3d R = rigid_part(A, Eigen::Vector3d::Zero()).topLeftCorner<3, 3>();
+  const Eigen::Matrix3d R = polar_rotation(svd);
   const double angle_deg = Eigen::AngleAxisd(R).angle() * 180.0 / M_PI;
   GateResult rotation;
   rotation.name = "head_rotation";
