@@ -318,15 +318,17 @@ Subject make_subject(const ImageF& atlas_t1, const LabelImage& atlas_labels, con
     t.radius_mm = spec.mass_effect->radius_mm;
     t.lobulation = spec.mass_effect->lobulation;
     t.intensity_fraction = spec.mass_effect->intensity_fraction;
+    t.cyst_radius_fraction = spec.mass_effect->cyst_radius_fraction;
     t.seed = spec.seed;
     t.label = spec.tumor_label;
     t.brain_labels = spec.brain_labels;
     tumor = t;
   }
   if (tumor) {
+    tumor->fluid_labels = {spec.ventricle_label};
     const TumorImplantResult r = implant_tumor(out.t1, out.labels, *tumor);
     d["tumor"] = {{"centre_mm", {r.centre_mm.x(), r.centre_mm.y(), r.centre_mm.z()}}, {"volume_ml", r.volume_ml},
-                  {"radius_mm", tumor->radius_mm}};
+                  {"radius_mm", tumor->radius_mm}, {"cyst_ml", r.cyst_ml}};
   }
   d["seconds"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   out.description = std::move(d);

@@ -46,6 +46,7 @@ struct MassEffectSpec {
   double push_mm = 6;
   double lobulation = 0.15;
   double intensity_fraction = 0.6;   // tumour T1 / brain median (hypointense)
+  double cyst_radius_fraction = 0;   // a fluid core (TumorImplantSpec)
 };
 
 struct SubjectSpec {

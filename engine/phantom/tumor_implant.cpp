@@ -90,10 +90,17 @@ TumorImplantResult implant_tumor(ImageF& t1, LabelImage& labels, const TumorImpl
     result.centre_mm = centroid + (cortex_t - spec.depth_mm) * out;
   }
 
-  const float tumor_value = static_cast<float>(spec.intensity_fraction * median_in(t1, labels, brain));
+  if (!(spec.cyst_radius_fraction >= 0 && spec.cyst_radius_fraction < 1))
+    throw InputError("tumor implant: the cyst's radius fraction must be in [0, 1)");
+  const double brain_median = median_in(t1, labels, brain);
+  const float tumor_value = static_cast<float>(spec.intensity_fraction * brain_median);
+  std::array<bool, 65536> fluid{};
+  for (auto l : spec.fluid_labels) fluid[l] = true;
+  const double fluid_median = median_in(t1, labels, fluid);
+  const float cyst_value = static_cast<float>(fluid_median > 0 ? fluid_median : 0.3 * brain_median);
   const LobulatedRadius radius(spec.lobulation, spec.seed);
   const double voxel_ml = std::abs(labels.grid.world_from_voxel.topLeftCorner<3, 3>().determinant()) / 1000.0;
-  std::size_t taken = 0;
+  std::size_t taken = 0, cyst_taken = 0;
   const auto& d = labels.grid.dims;
   for (int k = 0; k < d[2]; ++k)
     for (int j = 0; j < d[1]; ++j)
@@ -108,14 +115,20 @@ TumorImplantResult implant_tumor(ImageF& t1, LabelImage& labels, const TumorImpl
         const double s = n - edge;
         if (s > 0.5) continue;
         const double inside = std::clamp(0.5 - s, 0.0, 1.0);
-        t1.voxels[v] = static_cast<float>(inside * tumor_value + (1 - inside) * t1.voxels[v]);
+        // The cyst's wall, also with a 1 mm partial-volume rim, inside the tumour's.
+        const double in_cyst =
+            spec.cyst_radius_fraction > 0 ? std::clamp(0.5 - (n - spec.cyst_radius_fraction * edge), 0.0, 1.0) : 0.0;
+        const double solid_value = in_cyst * cyst_value + (1 - in_cyst) * tumor_value;
+        t1.voxels[v] = static_cast<float>(inside * solid_value + (1 - inside) * t1.voxels[v]);
         if (s <= 0) {
           labels.voxels[v] = spec.label;
           ++taken;
+          if (in_cyst >= 0.5) ++cyst_taken;
         }
       }
   if (taken == 0) throw InputError("tumor implant: the tumor takes no voxel (radius too small or no tissue there)");
   result.volume_ml = taken * voxel_ml;
+  result.cyst_ml = cyst_taken * voxel_ml;
   return result;
 }
 

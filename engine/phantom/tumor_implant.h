@@ -28,11 +28,19 @@ struct TumorImplantSpec {
   std::vector<std::uint16_t> replaceable{1, 3};
   std::vector<std::uint16_t> brain_labels{1, 2, 3, 4};
   double intensity_fraction = 0.6;   // of the brain's median T1 intensity
+  // A cystic tumour: a fluid core of this fraction of the tumour's radius
+  // (same lobulated shape and centre), at the median T1 of the labels in
+  // `fluid_labels` (the subject's own CSF; 0.3 of the brain median without
+  // them). Still the tumour label, as a segmentation of the preop draws it.
+  // 0: a solid tumour.
+  double cyst_radius_fraction = 0;
+  std::vector<std::uint16_t> fluid_labels{2};
 };
 
 struct TumorImplantResult {
   Eigen::Vector3d centre_mm;
   double volume_ml = 0;
+  double cyst_ml = 0;
 };
 
 // Modifies t1 and labels in place (same grid required). InputError when the

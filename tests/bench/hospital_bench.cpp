@@ -177,10 +177,21 @@ int main(int argc, char** argv) {
   app.add_option("--reseed", reseed,
                  "draw every selected case and subject again from other seeds (K > 0; cases named CASE_reseedK): "
                  "a family of cases the engine was never tuned on");
+  double cyst_fraction = 0;
+  app.add_option("--cystic-tumours", cyst_fraction,
+                 "the subjects' tumours get a fluid core of this fraction of their radius (0-0.9; cases named "
+                 "CASE_cystF): a cystic tumour, fluid in the preop where its labels say tumour")
+      ->check(CLI::Range(0.0, 0.9));
   bool list_subjects = false;
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
-  const std::vector<HospitalCaseSpec> suite = reseeded(with_snr_sweep(selected(cases, subjects), snr_sweep), reseed);
+  std::vector<HospitalCaseSpec> suite = reseeded(with_snr_sweep(selected(cases, subjects), snr_sweep), reseed);
+  if (cyst_fraction > 0)
+    for (auto& c : suite) {
+      char suffix[32];
+      std::snprintf(suffix, sizeof suffix, "_cyst%g", cyst_fraction);
+      c.deformation.name += suffix;
+    }
   if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {
     std::set<std::string> seen;
@@ -205,7 +216,7 @@ int main(int argc, char** argv) {
       failed_subject = spec.subject;  // until it is made
       session.reset();
       try {
-        subject = std::make_unique<Subject>(evaluation::make_named_subject(atlas, spec.subject, kReseedStride * reseed));
+        subject = std::make_unique<Subject>(evaluation::make_named_subject(atlas, spec.subject, kReseedStride * reseed, cyst_fraction));
       } catch (const std::exception& e) {
         emit({{"record", "preop"}, {"subject", spec.subject}, {"status", "failed"}, {"note", std::string("subject: ") + e.what()}});
         subject.reset();

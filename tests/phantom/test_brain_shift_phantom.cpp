@@ -308,6 +308,29 @@ TEST(TumorImplant, ALobulatedTumorOfAboutTheAskedSizeInTissueOnly) {
   EXPECT_LT(shift(R + 15), shift(R + 5));
 }
 
+TEST(TumorImplant, ACysticTumourHasAFluidCoreAtTheVentriclesT1StillLabelledTumour) {
+  Preop p = synthetic_preop();  // ventricles (label 2) at T1 20, tissue about 100
+  TumorImplantSpec spec;
+  spec.direction = {0.6, 0.5, 0.6};
+  spec.depth_mm = 20;
+  spec.radius_mm = 10;
+  spec.cyst_radius_fraction = 0.6;
+  const TumorImplantResult r = implant_tumor(p.t1, p.labels, spec);
+  // The core holds about 0.6^3 of the tumour (the walls' rims blur it).
+  EXPECT_NEAR(r.cyst_ml / r.volume_ml, 0.216, 0.08);
+  const Eigen::Vector3d c = (p.labels.grid.voxel_from_world() * r.centre_mm.homogeneous()).head<3>();
+  const int i = std::lround(c.x()), j = std::lround(c.y()), k = std::lround(c.z());
+  EXPECT_EQ(p.labels.at(i, j, k), 4) << "the cyst is part of the tumour's label";
+  EXPECT_NEAR(p.t1.at(i, j, k), 20.f, 1e-3f) << "the core is at the ventricles' T1";
+  // Between the cyst's wall (6 mm, lobulated by at most 15 %) and the
+  // tumour's (10 mm): the solid tumour's T1, 0.6 of the brain's median.
+  const int ring = std::lround(c.x() + 8.0 / 1.5);
+  EXPECT_EQ(p.labels.at(ring, j, k), 4);
+  EXPECT_NEAR(p.t1.at(ring, j, k), 60.f, 8.f);
+  spec.cyst_radius_fraction = 1.0;
+  EXPECT_THROW(implant_tumor(p.t1, p.labels, spec), InputError);
+}
+
 TEST(TumorImplant, BadSpecsAreClearErrors) {
   Preop p = synthetic_preop();
   TumorImplantSpec spec;

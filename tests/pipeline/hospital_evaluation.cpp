@@ -15,11 +15,14 @@ AtlasInputs load_atlas_inputs(const std::string& atlas_cache, const std::string&
   return {std::move(atlas.t1), std::move(atlas.labels)};
 }
 
-Subject make_named_subject(const AtlasInputs& atlas, const std::string& name, std::uint64_t seed_offset) {
+Subject make_named_subject(const AtlasInputs& atlas, const std::string& name, std::uint64_t seed_offset,
+                           double cyst_radius_fraction) {
   for (auto s : hospital_subjects())
     if (s.name == name) {
       s.seed += seed_offset;
       if (s.tumor) s.tumor->seed += seed_offset;
+      if (s.tumor) s.tumor->cyst_radius_fraction = cyst_radius_fraction;
+      if (s.mass_effect) s.mass_effect->cyst_radius_fraction = cyst_radius_fraction;
       return make_subject(atlas.t1, atlas.labels, s);
     }
   throw InputError("no hospital subject named '" + name + "'");

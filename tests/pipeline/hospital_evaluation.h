@@ -20,7 +20,10 @@ AtlasInputs load_atlas_inputs(const std::string& atlas_cache,
 // The subject of hospital_subjects() with this name (InputError if none).
 // seed_offset > 0: the subject's random reshaping (and its tumour's shape)
 // drawn again from other seeds: another head of the same kind.
-Subject make_named_subject(const AtlasInputs& atlas, const std::string& name, std::uint64_t seed_offset = 0);
+// cyst_radius_fraction > 0: the subject's tumour, if it has one, is cystic
+// (TumorImplantSpec::cyst_radius_fraction).
+Subject make_named_subject(const AtlasInputs& atlas, const std::string& name, std::uint64_t seed_offset = 0,
+                           double cyst_radius_fraction = 0);
 
 // What the engine is given: segmentation + intraop T1, segmentation alone,
 // or the image alone (only where the engine accepts it).
