@@ -131,8 +131,10 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   segmentation::LabelImageCheck c = check.get();
   if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
     const nlohmann::json first_timings = result.timings["intraop"];
+    PassOptions refused;
+    refused.forced_fallback_refuses_labels = true;
     result = run_intraop_on_working_grid(warm, adopted, params, progress,
-                                         "the intraop labels disagree with the intraop image: " + c.failure);
+                                         "the intraop labels disagree with the intraop image: " + c.failure, refused);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
                                       {"refined", false},

@@ -119,6 +119,11 @@ struct PassOptions {
   // labels keep a tolerance of their outline's uncertainty (TissueGuard::
   // outline_tolerance_mm), within which a segmenter may have eroded brain.
   bool segmented_by_engine = false;
+  // The forced fallback refuses the labels themselves (the labels-vs-image
+  // check found them at odds with their image): the affine fitted to them
+  // carries their error, so the fallback delivers its rigid part, as after
+  // a refusal of their geometry (quality/plausibility_gates.h, rigid_part).
+  bool forced_fallback_refuses_labels = false;
 };
 
 // The intraop stages on rank 0. Without quality metrics, result.metrics holds

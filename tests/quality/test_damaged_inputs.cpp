@@ -233,6 +233,33 @@ TEST_F(DamagedInputs, ARefusalOfTheLabelsGeometryDeliversTheAffinesRigidPart) {
       << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
 }
 
+// The same leak pushed with its image: the labels-vs-image check refuses it
+// before any gate, and the affine it was fitted to is as stretched, so the
+// fallback is the rigid part there too (docs/DESIGN.md "Quality gates").
+TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageDeliverTheAffinesRigidPart) {
+  ScanInput scan;
+  scan.labels = leaked(case_->intraop_labels, 3);
+  scan.image = case_->intraop_t1;
+  const ScanResult r = session_->register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
+  ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos)
+      << r.fallback_reason << r.metrics["label_image_check"].dump();
+  EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""),
+            "rigid part of the affine (the labels disagree with their image)");
+  const Eigen::Matrix3d R = r.intraop_from_preop.topLeftCorner<3, 3>();
+  EXPECT_NEAR(R.determinant(), 1.0, 1e-9);
+  EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).norm(), 1e-9);
+  ScanResult refused = r;
+  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
+  const auto delivered = evaluation::evaluate_result("rigid part", *case_, r);
+  const auto stretched = evaluation::evaluate_result("refused affine", *case_, refused);
+  EXPECT_NEAR(delivered.nonrigid_mean_mm, delivered.affine_mean_mm, 0.05);
+  EXPECT_LT(delivered.nonrigid_mean_mm, stretched.affine_mean_mm - 1.0)
+      << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
+}
+
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {
   LabelImage lost = case_->intraop_labels;
   const Eigen::Vector3d c = centroid(lost) + Eigen::Vector3d(38, 0, 0);
