@@ -188,16 +188,17 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   // shrink or swell), so the fallback is its rigid part about the preop
   // brain's centre (quality/plausibility_gates.h).
   const bool geometry_refused = failure.empty() && !implausible.empty() && refuses_labels_geometry(plausibility);
-  const bool image_refused = pass.forced_fallback_refuses_labels && !forced_fallback.empty() && affine.converged;
-  const bool rigid_fallback = geometry_refused || image_refused;
+  std::optional<FallbackTransform> fallback_transform;
+  if (!forced_fallback.empty() && pass.forced_fallback_transform)
+    fallback_transform = pass.forced_fallback_transform;
+  else if (geometry_refused)
+    fallback_transform = FallbackTransform{rigid_part(A, warm.affine_samples.outer_moments.centroid_mm),
+                                           "rigid part of the affine (the labels' geometry was refused)"};
   if (failure.empty()) failure = implausible;
-  const Eigen::Matrix4d delivered_A =
-      rigid_fallback ? rigid_part(A, warm.affine_samples.outer_moments.centroid_mm) : A;
-  if (rigid_fallback) {
+  const Eigen::Matrix4d delivered_A = fallback_transform ? fallback_transform->intraop_from_preop : A;
+  if (fallback_transform) {
     result.intraop_from_preop = delivered_A;
-    metrics["affine"]["fallback_transform"] =
-        image_refused ? "rigid part of the affine (the labels disagree with their image)"
-                      : "rigid part of the affine (the labels' geometry was refused)";
+    metrics["affine"]["fallback_transform"] = fallback_transform->what;
     nlohmann::json rows = nlohmann::json::array();
     for (int r = 0; r < 4; ++r) rows.push_back({A(r, 0), A(r, 1), A(r, 2), A(r, 3)});
     metrics["affine"]["refused_intraop_from_preop"] = rows;

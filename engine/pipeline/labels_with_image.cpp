@@ -5,6 +5,7 @@
 #include <future>
 #include <optional>
 
+#include "core/errors.h"
 #include "core/parallel.h"
 #include "core/timer.h"
 #include "image/resample.h"
@@ -12,6 +13,9 @@
 #include "pipeline/segmentation_rounds.h"
 #include "pipeline/working_grid.h"
 #include "protocol/stage_names.h"
+#include "quality/plausibility_gates.h"
+#include "registration/affine_registration.h"
+#include "registration/boundary_samples.h"
 #include "segmentation/label_image_check.h"
 
 namespace brainshift {
@@ -98,6 +102,50 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
   first.metrics["given_labels"] = std::move(report);
 }
 
+// The fallback's transform for labels the check refused: they may not even
+// lie where their image does (shifted, mirrored, another scan's), so the
+// affine fitted to them is not trusted, its rigid part included. The image
+// is registered as an image-only scan begins, on the first round's grid:
+// the preop head placed on it (place_preop_by_head), the first round's
+// segmentation under that placement, and the brain's affine on that
+// segmentation; its rigid part is delivered (a head does not change size
+// between two scans). The head's placement alone is not enough: on the
+// test's head whose scan cuts the skull it was 6 mm off. When the image
+// cannot give it (the classifier refuses, the affine does not converge),
+// the labels' affine's rigid part.
+FallbackTransform image_fallback(WarmState& warm, const ImageF& image, const Eigen::Matrix4d& labels_affine,
+                                 const PipelineParameters& params, nlohmann::json& report) {
+  const Eigen::Vector3d centre_mm = warm.affine_samples.outer_moments.centroid_mm;
+  try {
+    const Grid3 grid = working_grid(image.grid, params.auto_segmentation.passes.prior_spacing_mm);
+    const ImageF coarse = grid.dims == image.grid.dims ? image : downsample_linear(image, grid);
+    const Eigen::Matrix4d placement = place_preop_by_head(warm, coarse, params.affine, report["head_placement"]);
+    const ProgressFn silent;  // ScanOnGrid keeps a reference
+    const ScanOnGrid s(warm, coarse, 0.0, params, silent, placement);
+    const Rounds r = first_segmentation(s, 0.0);
+    if (!r.seg.refusal.empty()) throw ComputeError("the classifier refused the image: " + r.seg.refusal);
+    // The gates judge a segmentation to be registered non-rigidly; a brain
+    // a tenth too small still has its place and axes, and the rigid part
+    // keeps only those. Reported, not refused.
+    if (!r.gates.failure.empty()) report["segmentation_gates"] = r.gates.failure;
+    const auto cavities = params.label_table.cavity_labels();
+    const IntraopDistanceMaps maps = prepare_intraop_maps(r.seg.labels, outline_mask(r.seg.labels),
+                                                          params.label_table.brain_label(),
+                                                          cavities.empty() ? 0 : cavities.front());
+    const AffineRegistrationResult a = register_affine(warm.affine_samples, maps, params.affine, &placement);
+    report["converged"] = a.converged;
+    report["rms_surface_distance_mm"] = a.rms_surface_distance_mm;
+    if (!a.converged) throw ComputeError("the brain's affine on the image's segmentation did not converge");
+    return {rigid_part(a.intraop_from_preop, centre_mm),
+            "rigid part of the affine registered on the intraop image's own segmentation (the labels disagree with "
+            "their image)"};
+  } catch (const std::exception& e) {
+    report["error"] = e.what();
+  }
+  return {rigid_part(labels_affine, centre_mm),
+          "rigid part of the labels' affine (the labels disagree with their image; the image gave no affine)"};
+}
+
 }  // namespace
 
 ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
@@ -132,9 +180,11 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
     const nlohmann::json first_timings = result.timings["intraop"];
     PassOptions refused;
-    refused.forced_fallback_refuses_labels = true;
+    nlohmann::json from_image;
+    refused.forced_fallback_transform = image_fallback(warm, *input.t1, result.intraop_from_preop, params, from_image);
     result = run_intraop_on_working_grid(warm, adopted, params, progress,
                                          "the intraop labels disagree with the intraop image: " + c.failure, refused);
+    result.metrics["affine"]["fallback_from_image"] = std::move(from_image);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
                                       {"refined", false},

@@ -103,6 +103,13 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
 // AutoSegmentationParameters::passes (docs/DESIGN.md "Automatic intraop
 // segmentation", item 9). Such a result is never the answer: the caller runs
 // the full pass when it would be.
+// A transform the affine-only fallback delivers, and what it is (reported
+// in metrics.affine.fallback_transform).
+struct FallbackTransform {
+  Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
+  std::string what;
+};
+
 struct PassOptions {
   bool prior_only = false;
   // The affine's warm start (register_affine): a previous pass's, on a
@@ -119,11 +126,12 @@ struct PassOptions {
   // labels keep a tolerance of their outline's uncertainty (TissueGuard::
   // outline_tolerance_mm), within which a segmenter may have eroded brain.
   bool segmented_by_engine = false;
-  // The forced fallback refuses the labels themselves (the labels-vs-image
-  // check found them at odds with their image): the affine fitted to them
-  // carries their error, so the fallback delivers its rigid part, as after
-  // a refusal of their geometry (quality/plausibility_gates.h, rigid_part).
-  bool forced_fallback_refuses_labels = false;
+  // What a forced fallback delivers instead of the pass's affine: set when
+  // the fallback refuses the labels themselves (the labels-vs-image check
+  // found them at odds with their image), since the affine fitted to them
+  // carries their error, a shift included. Unset: the affine, or its rigid
+  // part after the gates refused the labels' geometry.
+  std::optional<FallbackTransform> forced_fallback_transform = std::nullopt;
 };
 
 // The intraop stages on rank 0. Without quality metrics, result.metrics holds

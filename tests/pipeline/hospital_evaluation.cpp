@@ -123,6 +123,7 @@ ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) 
       for (const auto& d : g.value("directions", nlohmann::json::array()))
         run.affine_stretch["brain_extent_in_view_mm"].push_back(d["brain_extent_in_view_mm"]);
     }
+    if (result.metrics.contains("label_image_check")) run.label_image_check = result.metrics["label_image_check"];
     if (result.warped_labels.grid.same_geometry(c.true_labels.grid))
       run.warped_beyond_truth = warped_beyond_truth(result.warped_labels, c.true_labels);
     // The uncertainty map, after the answer as the daemon makes it.
@@ -158,7 +159,8 @@ nlohmann::json mode_json(const ModeRun& r) {
           {"uncertainty_band_mm", c.predicted_band_mm},
           {"segmentation", r.segmentation},
           {"affine_stretch", r.affine_stretch},
-          {"warped_beyond_truth", r.warped_beyond_truth}};
+          {"warped_beyond_truth", r.warped_beyond_truth},
+          {"label_image_check", r.label_image_check}};
 }
 
 nlohmann::json brief(const nlohmann::json& d) {

@@ -39,6 +39,7 @@ struct ModeRun {
   nlohmann::json segmentation;  // image only: Dice of the automatic segmentation vs the true labels
   nlohmann::json affine_stretch;  // the plausibility gate's value, limit and brain extents in view
   nlohmann::json warped_beyond_truth;  // preop tissue the warped labels draw outside the true brain
+  nlohmann::json label_image_check;    // labels with their image: the check's figures (metrics.label_image_check)
 };
 
 // The preop tissue the warped labels draw outside the true intraop brain:

@@ -245,7 +245,8 @@ TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageDeliverTheAffinesRigidPart) {
   ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos)
       << r.fallback_reason << r.metrics["label_image_check"].dump();
   EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""),
-            "rigid part of the affine (the labels disagree with their image)");
+            "rigid part of the affine registered on the intraop image's own segmentation (the labels disagree with "
+            "their image)");
   const Eigen::Matrix3d R = r.intraop_from_preop.topLeftCorner<3, 3>();
   EXPECT_NEAR(R.determinant(), 1.0, 1e-9);
   EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).norm(), 1e-9);
@@ -258,6 +259,33 @@ TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageDeliverTheAffinesRigidPart) {
   EXPECT_NEAR(delivered.nonrigid_mean_mm, delivered.affine_mean_mm, 0.05);
   EXPECT_LT(delivered.nonrigid_mean_mm, stretched.affine_mean_mm - 1.0)
       << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
+}
+
+// Labels of the scan moved 10 mm (a segmentation of another series, or
+// saved with another header): the check refuses them, and the affine fitted
+// to them carries the shift, rigid part and all. The fallback registers the
+// image's own segmentation instead, so it lies where the brain does.
+TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
+  ScanInput scan;
+  scan.labels = LabelImage(case_->intraop_labels.grid, 0);
+  const Grid3& g = scan.labels->grid;
+  const int shift_voxels = static_cast<int>(std::lround(10.0 / g.spacing_mm().y()));
+  for_each_voxel(g, [&](int i, int j, int k) {
+    if (j >= shift_voxels) scan.labels->at(i, j, k) = case_->intraop_labels.at(i, j - shift_voxels, k);
+  });
+  scan.image = case_->intraop_t1;
+  const ScanResult r = session_->register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
+  ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos) << r.fallback_reason;
+  ScanResult refused = r;
+  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
+  const auto delivered = evaluation::evaluate_result("from the image", *case_, r);
+  const auto shifted = evaluation::evaluate_result("labels' affine", *case_, refused);
+  EXPECT_GT(shifted.affine_mean_mm, 7.0) << "the labels' affine no longer carries the shift";
+  EXPECT_LT(delivered.nonrigid_mean_mm, 4.0) << delivered.nonrigid_mean_mm << " vs " << shifted.affine_mean_mm
+                                             << r.metrics["affine"].dump();
 }
 
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {
