@@ -102,9 +102,10 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
   first.metrics["given_labels"] = std::move(report);
 }
 
-// The fallback's transform for labels the check refused: they may not even
-// lie where their image does (shifted, mirrored, another scan's), so the
-// affine fitted to them is not trusted, its rigid part included. The image
+// The fallback's transform for labels refused with their image (by the
+// check, or by the gates that judge their geometry): they may not even lie
+// where their image does (shifted, mirrored, another scan's), so the affine
+// fitted to them is not trusted, its rigid part included. The image
 // is registered as an image-only scan begins, on the first round's grid:
 // the preop head placed on it (place_preop_by_head), the first round's
 // segmentation under that placement, and the brain's affine on that
@@ -114,7 +115,7 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
 // cannot give it (the classifier refuses, the affine does not converge),
 // the labels' affine's rigid part.
 FallbackTransform image_fallback(WarmState& warm, const ImageF& image, const Eigen::Matrix4d& labels_affine,
-                                 const PipelineParameters& params, nlohmann::json& report) {
+                                 const PipelineParameters& params, const std::string& why, nlohmann::json& report) {
   const Eigen::Vector3d centre_mm = warm.affine_samples.outer_moments.centroid_mm;
   try {
     const Grid3 grid = working_grid(image.grid, params.auto_segmentation.passes.prior_spacing_mm);
@@ -137,13 +138,11 @@ FallbackTransform image_fallback(WarmState& warm, const ImageF& image, const Eig
     report["rms_surface_distance_mm"] = a.rms_surface_distance_mm;
     if (!a.converged) throw ComputeError("the brain's affine on the image's segmentation did not converge");
     return {rigid_part(a.intraop_from_preop, centre_mm),
-            "rigid part of the affine registered on the intraop image's own segmentation (the labels disagree with "
-            "their image)"};
+            "rigid part of the affine registered on the intraop image's own segmentation (" + why + ")"};
   } catch (const std::exception& e) {
     report["error"] = e.what();
   }
-  return {rigid_part(labels_affine, centre_mm),
-          "rigid part of the labels' affine (the labels disagree with their image; the image gave no affine)"};
+  return {rigid_part(labels_affine, centre_mm), "rigid part of the labels' affine (" + why + "; the image gave no affine)"};
 }
 
 }  // namespace
@@ -177,18 +176,31 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   labels_pass.guard_tissue = use != GivenLabelsUse::refine;
   ScanResult result = run_intraop_on_working_grid(warm, adopted, params, progress, "", labels_pass);
   segmentation::LabelImageCheck c = check.get();
-  if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
+  // The labels refused: the fallback's transform comes from their image
+  // (image_fallback), whether the check or the gates judging the labels'
+  // geometry refused them.
+  const auto fall_back_on_the_image = [&](const std::string& reason, const std::string& why) {
     const nlohmann::json first_timings = result.timings["intraop"];
     PassOptions refused;
     nlohmann::json from_image;
-    refused.forced_fallback_transform = image_fallback(warm, *input.t1, result.intraop_from_preop, params, from_image);
-    result = run_intraop_on_working_grid(warm, adopted, params, progress,
-                                         "the intraop labels disagree with the intraop image: " + c.failure, refused);
+    refused.forced_fallback_transform = image_fallback(warm, *input.t1, result.intraop_from_preop, params, why, from_image);
+    result = run_intraop_on_working_grid(warm, adopted, params, progress, reason, refused);
     result.metrics["affine"]["fallback_from_image"] = std::move(from_image);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
+  };
+  const bool geometry_refused =
+      result.kind != ResultKind::nonrigid && result.metrics["affine"].contains("fallback_transform");
+  if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
+    fall_back_on_the_image("the intraop labels disagree with the intraop image: " + c.failure,
+                           "the labels disagree with their image");
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
                                       {"refined", false},
                                       {"why", "the labels disagree grossly with their image (label_image_check)"}};
+  } else if (geometry_refused) {
+    fall_back_on_the_image(result.fallback_reason, "the labels' geometry was refused");
+    result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
+                                      {"refined", false},
+                                      {"why", "the gates refused the labels' geometry"}};
   } else if (use == GivenLabelsUse::refine && result.kind == ResultKind::nonrigid) {
     // Labels that disagree grossly with their image are not refined: the
     // answer says so (above). Labels whose own pass the gates refused are

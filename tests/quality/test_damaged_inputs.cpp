@@ -288,6 +288,30 @@ TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
                                              << r.metrics["affine"].dump();
 }
 
+// Labels whose geometry the gates refuse, pushed with their image (the leak
+// of four voxels stretches their affine beyond the affine_stretch gate):
+// the image says where the brain is, so the fallback is the rigid part of
+// the image's own affine, and the gate's reason stands.
+TEST_F(DamagedInputs, AGeometryRefusalWithItsImageFallsBackToTheImagesOwnAffine) {
+  ScanInput scan;
+  scan.labels = leaked(case_->intraop_labels, 4);
+  scan.image = case_->intraop_t1;
+  const ScanResult r = session_->register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
+  ASSERT_EQ(r.fallback_reason.rfind("plausibility gate", 0), 0u) << r.fallback_reason;
+  EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""),
+            "rigid part of the affine registered on the intraop image's own segmentation (the labels' geometry was "
+            "refused)");
+  ScanResult refused = r;
+  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
+  const auto delivered = evaluation::evaluate_result("from the image", *case_, r);
+  const auto stretched = evaluation::evaluate_result("refused affine", *case_, refused);
+  EXPECT_LT(delivered.nonrigid_mean_mm, stretched.affine_mean_mm - 1.0)
+      << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
+}
+
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {
   LabelImage lost = case_->intraop_labels;
   const Eigen::Vector3d c = centroid(lost) + Eigen::Vector3d(38, 0, 0);
