@@ -102,21 +102,18 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
   first.metrics["given_labels"] = std::move(report);
 }
 
-// The fallback's transform for labels refused with their image (by the
-// check, or by the gates that judge their geometry): they may not even lie
-// where their image does (shifted, mirrored, another scan's), so the affine
-// fitted to them is not trusted, its rigid part included. The image
-// is registered as an image-only scan begins, on the first round's grid:
-// the preop head placed on it (place_preop_by_head), the first round's
-// segmentation under that placement, and the brain's affine on that
-// segmentation; its rigid part is delivered (a head does not change size
-// between two scans). The head's placement alone is not enough: on the
-// test's head whose scan cuts the skull it was 6 mm off. When the image
-// cannot give it (the classifier refuses, the affine does not converge),
-// the labels' affine's rigid part.
-FallbackTransform image_fallback(WarmState& warm, const ImageF& image, const Eigen::Matrix4d& labels_affine,
-                                 const PipelineParameters& params, const std::string& why, nlohmann::json& report) {
-  const Eigen::Vector3d centre_mm = warm.affine_samples.outer_moments.centroid_mm;
+// The brain's affine registered on the image's own segmentation, as an
+// image-only scan begins, on the first round's grid: the preop head placed
+// on the image (place_preop_by_head), the first round's segmentation under
+// that placement, the brain's affine on that segmentation. The
+// segmentation's own gates are reported, not obeyed: they judge a
+// segmentation to be registered non-rigidly, and a brain a tenth too small
+// still has its place and axes. The head's placement alone is not enough:
+// on the test's head, whose scan cuts the skull, its rigid part was 6 mm
+// off. nullopt, with the reason in `report`, when the classifier refuses
+// the image or the affine does not converge.
+std::optional<Eigen::Matrix4d> image_own_affine(WarmState& warm, const ImageF& image, const PipelineParameters& params,
+                                                nlohmann::json& report) {
   try {
     const Grid3 grid = working_grid(image.grid, params.auto_segmentation.passes.prior_spacing_mm);
     const ImageF coarse = grid.dims == image.grid.dims ? image : downsample_linear(image, grid);
@@ -125,9 +122,6 @@ FallbackTransform image_fallback(WarmState& warm, const ImageF& image, const Eig
     const ScanOnGrid s(warm, coarse, 0.0, params, silent, placement);
     const Rounds r = first_segmentation(s, 0.0);
     if (!r.seg.refusal.empty()) throw ComputeError("the classifier refused the image: " + r.seg.refusal);
-    // The gates judge a segmentation to be registered non-rigidly; a brain
-    // a tenth too small still has its place and axes, and the rigid part
-    // keeps only those. Reported, not refused.
     if (!r.gates.failure.empty()) report["segmentation_gates"] = r.gates.failure;
     const auto cavities = params.label_table.cavity_labels();
     const IntraopDistanceMaps maps = prepare_intraop_maps(r.seg.labels, outline_mask(r.seg.labels),
@@ -137,11 +131,25 @@ FallbackTransform image_fallback(WarmState& warm, const ImageF& image, const Eig
     report["converged"] = a.converged;
     report["rms_surface_distance_mm"] = a.rms_surface_distance_mm;
     if (!a.converged) throw ComputeError("the brain's affine on the image's segmentation did not converge");
-    return {rigid_part(a.intraop_from_preop, centre_mm),
-            "rigid part of the affine registered on the intraop image's own segmentation (" + why + ")"};
+    return a.intraop_from_preop;
   } catch (const std::exception& e) {
     report["error"] = e.what();
   }
+  return std::nullopt;
+}
+
+// The fallback's transform for labels refused with their image (by the
+// check, or by the gates that judge their geometry): they may not even lie
+// where their image does (shifted, mirrored, another scan's), so the affine
+// fitted to them is not trusted, its rigid part included. The rigid part of
+// the image's own affine is delivered (a head does not change size between
+// two scans); when the image gives none, the labels' affine's rigid part.
+FallbackTransform image_fallback(const WarmState& warm, const std::optional<Eigen::Matrix4d>& image_affine,
+                                 const Eigen::Matrix4d& labels_affine, const std::string& why) {
+  const Eigen::Vector3d centre_mm = warm.affine_samples.outer_moments.centroid_mm;
+  if (image_affine)
+    return {rigid_part(*image_affine, centre_mm),
+            "rigid part of the affine registered on the intraop image's own segmentation (" + why + ")"};
   return {rigid_part(labels_affine, centre_mm), "rigid part of the labels' affine (" + why + "; the image gave no affine)"};
 }
 
@@ -183,7 +191,8 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     const nlohmann::json first_timings = result.timings["intraop"];
     PassOptions refused;
     nlohmann::json from_image;
-    refused.forced_fallback_transform = image_fallback(warm, *input.t1, result.intraop_from_preop, params, why, from_image);
+    const auto image_affine = image_own_affine(warm, *input.t1, params, from_image);
+    refused.forced_fallback_transform = image_fallback(warm, image_affine, result.intraop_from_preop, why);
     result = run_intraop_on_working_grid(warm, adopted, params, progress, reason, refused);
     result.metrics["affine"]["fallback_from_image"] = std::move(from_image);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
