@@ -20,6 +20,7 @@
 #include "daemon_harness.h"
 #include "igtl_receiver.h"
 #include "image/nifti_io.h"
+#include "image/resample.h"
 #include "process.h"
 #include "protocol/result_outputs.h"
 #include "synthetic_case.h"
@@ -171,6 +172,30 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   EXPECT_EQ(refined_metrics["given_labels"].value("use", ""), "refine") << refined_metrics["given_labels"].dump();
   EXPECT_TRUE(refined_metrics["given_labels"].value("refined", false)) << refined_metrics["given_labels"].dump();
   EXPECT_TRUE(fs::exists(dir / "refined" / "intraop_labels.nii.gz"));
+
+  // Labels that do not lie where their image does (moved 10 mm: a header or
+  // a series mix-up) are refused by the labels-vs-image check: exit 4, and
+  // the affine-only fallback comes from the image's own segmentation, not
+  // from the labels, so it still recovers the known shift.
+  write_label_image(dir / "moved_labels.nii.gz",
+                    resample_nearest(truth, truth.grid, Eigen::Affine3d(Eigen::Translation3d(0, -10, 0)).matrix()));
+  r = cli(daemon, {"push", "--labels", path("moved_labels.nii.gz"), "--image", path("scan_t1.nii.gz"), "--id",
+                   "or1-img-1-moved", "--wait"});
+  ASSERT_EQ(r.code, 4) << r.err << daemon.log();
+  const std::string moved_id = r.out.substr(0, r.out.find('\n'));
+  r = cli(daemon, {"pull", "--scan", moved_id, "--out", path("moved"), "--parts", "field,metrics"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto moved_metrics = nlohmann::json::parse(read_file(dir / "moved" / "metrics.json"));
+  EXPECT_NE(moved_metrics.value("fallback_reason", "").find("disagree with the intraop image"), std::string::npos)
+      << moved_metrics.value("fallback_reason", "");
+  EXPECT_NE(moved_metrics["affine"].value("fallback_transform", "").find("intraop image's own segmentation"),
+            std::string::npos)
+      << moved_metrics["affine"].dump();
+  const VectorImage3 moved_field = read_vector_image(dir / "moved" / "field.nii.gz");
+  double moved_error_mm = 0;
+  for (std::size_t v = 0; v < truth.voxels.size(); ++v)
+    if (truth.voxels[v]) moved_error_mm += (moved_field.vectors[v].cast<double>() + kShiftMm).norm() / truth_brain;
+  EXPECT_LT(moved_error_mm, 2.0) << "the fallback follows the moved labels";
 
   // The image-only scan's parts are served from the store by a restarted daemon.
   EXPECT_EQ(cli(daemon, {"shutdown", "--reason", "test"}).code, 0);
