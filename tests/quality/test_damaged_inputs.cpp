@@ -102,6 +102,23 @@ Image3<T> flipped_first_axis(const Image3<T>& in) {
   return out;
 }
 
+// A fallback's result with the affine it refused (metrics.affine.
+// refused_intraop_from_preop) in place of the transform it delivered: what
+// the fallback would have been without its rigid or image-based transform.
+void expect_rigid(const Eigen::Matrix4d& intraop_from_preop) {
+  const Eigen::Matrix3d R = intraop_from_preop.topLeftCorner<3, 3>();
+  EXPECT_NEAR(R.determinant(), 1.0, 1e-9);
+  EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).norm(), 1e-9);
+}
+
+ScanResult with_refused_affine(const ScanResult& r) {
+  ScanResult refused = r;
+  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
+  return refused;
+}
+
 struct Outcome {
   std::string how;  // "refused: ...", "input error: ...", or "nonrigid"
   bool refused = false;
@@ -160,6 +177,15 @@ class DamagedInputs : public ::testing::Test {
     for (const auto& g : gates) tripped |= p.contains(g) && p[g].value("tested", false) && !p[g].value("passed", true);
     EXPECT_TRUE(tripped) << name << ": none of the expected gates failed: " << p.dump(1);
   }
+  // A fallback's field is its transform's, and that transform lies nearer
+  // the truth than the affine it refused, by more than margin_mm.
+  static void expect_nearer_than_the_refused_affine(const ScanResult& r, double margin_mm) {
+    const auto delivered = evaluation::evaluate_result("delivered", *case_, r);
+    const auto refused = evaluation::evaluate_result("refused affine", *case_, with_refused_affine(r));
+    EXPECT_NEAR(delivered.nonrigid_mean_mm, delivered.affine_mean_mm, 0.05);
+    EXPECT_LT(delivered.nonrigid_mean_mm, refused.affine_mean_mm - margin_mm)
+        << delivered.nonrigid_mean_mm << " vs " << refused.affine_mean_mm;
+  }
   static IntraopInput both(LabelImage labels, ImageF t1) { return {std::move(labels), std::move(t1)}; }
   static IntraopInput labels_only(LabelImage labels) { return {std::move(labels), std::nullopt}; }
 
@@ -216,27 +242,18 @@ TEST_F(DamagedInputs, ARefusalOfTheLabelsGeometryDeliversTheAffinesRigidPart) {
   const ScanResult r = session_->register_scan(labels_only(leaked(case_->intraop_labels, 4)), nullptr);
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_TRUE(r.metrics["affine"].contains("fallback_transform")) << r.metrics["affine"].dump();
-  const Eigen::Matrix3d R = r.intraop_from_preop.topLeftCorner<3, 3>();
-  EXPECT_NEAR(R.determinant(), 1.0, 1e-9);
-  EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).norm(), 1e-9);
-  ScanResult refused = r;
-  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
-  for (int i = 0; i < 4; ++i)
-    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
+  expect_rigid(r.intraop_from_preop);
+  const ScanResult refused = with_refused_affine(r);
   const double refused_scale = refused.intraop_from_preop.topLeftCorner<3, 3>().determinant();
   EXPECT_GT(refused_scale, 1.2) << "the leak no longer stretches";
-  const auto delivered = evaluation::evaluate_result("rigid part", *case_, r);
-  const auto stretched = evaluation::evaluate_result("refused affine", *case_, refused);
-  // The field delivered is the rigid part's, and nearer the truth.
-  EXPECT_NEAR(delivered.nonrigid_mean_mm, delivered.affine_mean_mm, 0.05);
-  EXPECT_LT(delivered.nonrigid_mean_mm, stretched.affine_mean_mm - 1.0)
-      << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
+  expect_nearer_than_the_refused_affine(r, 1.0);
 }
 
-// The same leak pushed with its image: the labels-vs-image check refuses it
-// before any gate, and the affine it was fitted to is as stretched, so the
-// fallback is the rigid part there too (docs/DESIGN.md "Quality gates").
-TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageDeliverTheAffinesRigidPart) {
+// A leak pushed with its image: the labels-vs-image check refuses it before
+// any gate, and the affine fitted to it is stretched, so the fallback is a
+// rigid transform from the image's own segmentation (docs/DESIGN.md
+// "Quality gates").
+TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageFallBackToARigidTransformFromTheImage) {
   ScanInput scan;
   scan.labels = leaked(case_->intraop_labels, 3);
   scan.image = case_->intraop_t1;
@@ -247,18 +264,8 @@ TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageDeliverTheAffinesRigidPart) {
   EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""),
             "rigid part of the affine registered on the intraop image's own segmentation (the labels disagree with "
             "their image)");
-  const Eigen::Matrix3d R = r.intraop_from_preop.topLeftCorner<3, 3>();
-  EXPECT_NEAR(R.determinant(), 1.0, 1e-9);
-  EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).norm(), 1e-9);
-  ScanResult refused = r;
-  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
-  for (int i = 0; i < 4; ++i)
-    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
-  const auto delivered = evaluation::evaluate_result("rigid part", *case_, r);
-  const auto stretched = evaluation::evaluate_result("refused affine", *case_, refused);
-  EXPECT_NEAR(delivered.nonrigid_mean_mm, delivered.affine_mean_mm, 0.05);
-  EXPECT_LT(delivered.nonrigid_mean_mm, stretched.affine_mean_mm - 1.0)
-      << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
+  expect_rigid(r.intraop_from_preop);
+  expect_nearer_than_the_refused_affine(r, 1.0);
 }
 
 // Labels of the scan moved 10 mm (a segmentation of another series, or
@@ -277,10 +284,7 @@ TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
   const ScanResult r = session_->register_scan(scan, nullptr);
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos) << r.fallback_reason;
-  ScanResult refused = r;
-  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
-  for (int i = 0; i < 4; ++i)
-    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
+  const ScanResult refused = with_refused_affine(r);
   const auto delivered = evaluation::evaluate_result("from the image", *case_, r);
   const auto shifted = evaluation::evaluate_result("labels' affine", *case_, refused);
   EXPECT_GT(shifted.affine_mean_mm, 7.0) << "the labels' affine no longer carries the shift";
@@ -302,14 +306,8 @@ TEST_F(DamagedInputs, AGeometryRefusalWithItsImageFallsBackToTheImagesOwnAffine)
   EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""),
             "rigid part of the affine registered on the intraop image's own segmentation (the labels' geometry was "
             "refused)");
-  ScanResult refused = r;
-  const auto& rows = r.metrics["affine"]["refused_intraop_from_preop"];
-  for (int i = 0; i < 4; ++i)
-    for (int j = 0; j < 4; ++j) refused.intraop_from_preop(i, j) = rows[i][j].get<double>();
-  const auto delivered = evaluation::evaluate_result("from the image", *case_, r);
-  const auto stretched = evaluation::evaluate_result("refused affine", *case_, refused);
-  EXPECT_LT(delivered.nonrigid_mean_mm, stretched.affine_mean_mm - 1.0)
-      << delivered.nonrigid_mean_mm << " vs " << stretched.affine_mean_mm;
+  expect_rigid(r.intraop_from_preop);
+  expect_nearer_than_the_refused_affine(r, 1.0);
 }
 
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {
