@@ -183,10 +183,11 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   // then says what else is wrong with the input.
   PlausibilityReport plausibility;
   const std::string implausible = check_input_plausibility(warm, input, brain_region, A, params, plausibility);
-  // The labels refused for their own geometry, or found at odds with their
-  // image: the affine fitted to them carries their error (a head does not
-  // shrink or swell), so the fallback is its rigid part about the preop
-  // brain's centre (quality/plausibility_gates.h).
+  // The labels refused for their own geometry: the affine fitted to them
+  // carries their error (a head does not shrink or swell), so the fallback
+  // is its rigid part about the preop brain's centre (quality/
+  // plausibility_gates.h). A caller that refused labels with their image
+  // hands in the transform to deliver (PassOptions::forced_fallback_transform).
   const bool geometry_refused = failure.empty() && !implausible.empty() && refuses_labels_geometry(plausibility);
   std::optional<FallbackTransform> fallback_transform;
   if (!forced_fallback.empty() && pass.forced_fallback_transform)

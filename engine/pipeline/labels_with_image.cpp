@@ -197,6 +197,8 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     result.metrics["affine"]["fallback_from_image"] = std::move(from_image);
     result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
   };
+  // run_intraop names a fallback transform only after the gates refused
+  // the labels' geometry (volume, affine_stretch).
   const bool geometry_refused =
       result.kind != ResultKind::nonrigid && result.metrics["affine"].contains("fallback_transform");
   if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {

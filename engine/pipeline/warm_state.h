@@ -96,6 +96,13 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
                                             const ProgressFn& progress,
                                             std::optional<TetMesh> stored_mesh);
 
+// A transform the affine-only fallback delivers, and what it is (reported
+// in metrics.affine.fallback_transform).
+struct FallbackTransform {
+  Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
+  std::string what;
+};
+
 // What a pass of the stages is for, and where it may start. The answer needs
 // everything; the image-only path's pass a re-match follows only carries the
 // preop labels for the re-match's prior (prepare_stage.h): its field, its
@@ -103,12 +110,6 @@ std::unique_ptr<WarmState> build_warm_state(MPI_Comm comm, PreopInput input,
 // AutoSegmentationParameters::passes (docs/DESIGN.md "Automatic intraop
 // segmentation", item 9). Such a result is never the answer: the caller runs
 // the full pass when it would be.
-// A transform the affine-only fallback delivers, and what it is (reported
-// in metrics.affine.fallback_transform).
-struct FallbackTransform {
-  Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
-  std::string what;
-};
 
 struct PassOptions {
   bool prior_only = false;
@@ -127,10 +128,11 @@ struct PassOptions {
   // outline_tolerance_mm), within which a segmenter may have eroded brain.
   bool segmented_by_engine = false;
   // What a forced fallback delivers instead of the pass's affine: set when
-  // the fallback refuses the labels themselves (the labels-vs-image check
-  // found them at odds with their image), since the affine fitted to them
-  // carries their error, a shift included. Unset: the affine, or its rigid
-  // part after the gates refused the labels' geometry.
+  // labels that came with their image were refused (by the labels-vs-image
+  // check, or by the gates that judge their geometry), since the affine
+  // fitted to them carries their error, a shift included
+  // (pipeline/labels_with_image.cpp). Unset: the affine, or its rigid part
+  // after the gates refused the labels' geometry.
   std::optional<FallbackTransform> forced_fallback_transform = std::nullopt;
 };
 
