@@ -71,8 +71,9 @@ TumorImplantResult implant_tumor(ImageF& t1, LabelImage& labels, const TumorImpl
   if (!t1.grid.same_geometry(labels.grid) || t1.voxels.size() != labels.voxels.size())
     throw InputError("tumor implant: the T1 and the labels must share one grid");
   if (!(spec.radius_mm > 0 && spec.depth_mm >= 0 && spec.lobulation >= 0 && spec.lobulation < 0.5 &&
-        spec.direction.norm() > 0))
-    throw InputError("tumor implant: radius > 0, depth >= 0, lobulation in [0, 0.5) and a direction are required");
+        spec.direction.norm() > 0 && spec.cyst_radius_fraction >= 0 && spec.cyst_radius_fraction < 1))
+    throw InputError("tumor implant: radius > 0, depth >= 0, lobulation in [0, 0.5), a direction and a cyst's "
+                     "radius fraction in [0, 1) are required");
   std::array<bool, 65536> brain{}, replaceable{};
   for (auto l : spec.brain_labels) brain[l] = true;
   for (auto l : spec.replaceable) replaceable[l] = true;
@@ -90,8 +91,6 @@ TumorImplantResult implant_tumor(ImageF& t1, LabelImage& labels, const TumorImpl
     result.centre_mm = centroid + (cortex_t - spec.depth_mm) * out;
   }
 
-  if (!(spec.cyst_radius_fraction >= 0 && spec.cyst_radius_fraction < 1))
-    throw InputError("tumor implant: the cyst's radius fraction must be in [0, 1)");
   const double brain_median = median_in(t1, labels, brain);
   const float tumor_value = static_cast<float>(spec.intensity_fraction * brain_median);
   std::array<bool, 65536> fluid{};

@@ -20,8 +20,10 @@ Subject make_named_subject(const AtlasInputs& atlas, const std::string& name, st
   for (auto s : hospital_subjects())
     if (s.name == name) {
       s.seed += seed_offset;
-      if (s.tumor) s.tumor->seed += seed_offset;
-      if (s.tumor) s.tumor->cyst_radius_fraction = cyst_radius_fraction;
+      if (s.tumor) {
+        s.tumor->seed += seed_offset;
+        s.tumor->cyst_radius_fraction = cyst_radius_fraction;
+      }
       if (s.mass_effect) s.mass_effect->cyst_radius_fraction = cyst_radius_fraction;
       return make_subject(atlas.t1, atlas.labels, s);
     }

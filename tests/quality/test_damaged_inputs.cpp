@@ -187,6 +187,14 @@ class DamagedInputs : public ::testing::Test {
         << delivered.nonrigid_mean_mm << " vs " << refused.affine_mean_mm;
   }
   static IntraopInput both(LabelImage labels, ImageF t1) { return {std::move(labels), std::move(t1)}; }
+  // Labels with the case's image, through the engine's whole path for a
+  // pushed scan (the labels-vs-image check, a fallback on the image).
+  static ScanResult register_with_the_image(LabelImage labels) {
+    ScanInput scan;
+    scan.labels = std::move(labels);
+    scan.image = case_->intraop_t1;
+    return session_->register_scan(scan, nullptr);
+  }
   static IntraopInput labels_only(LabelImage labels) { return {std::move(labels), std::nullopt}; }
 
   static PreopInput* preop_;
@@ -254,10 +262,7 @@ TEST_F(DamagedInputs, ARefusalOfTheLabelsGeometryDeliversTheAffinesRigidPart) {
 // rigid transform from the image's own segmentation (docs/DESIGN.md
 // "Quality gates").
 TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageFallBackToARigidTransformFromTheImage) {
-  ScanInput scan;
-  scan.labels = leaked(case_->intraop_labels, 3);
-  scan.image = case_->intraop_t1;
-  const ScanResult r = session_->register_scan(scan, nullptr);
+  const ScanResult r = register_with_the_image(leaked(case_->intraop_labels, 3));
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos)
       << r.fallback_reason << r.metrics["label_image_check"].dump();
@@ -273,15 +278,13 @@ TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageFallBackToARigidTransformFromThe
 // to them carries the shift, rigid part and all. The fallback registers the
 // image's own segmentation instead, so it lies where the brain does.
 TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
-  ScanInput scan;
-  scan.labels = LabelImage(case_->intraop_labels.grid, 0);
-  const Grid3& g = scan.labels->grid;
+  LabelImage moved(case_->intraop_labels.grid, 0);
+  const Grid3& g = moved.grid;
   const int shift_voxels = static_cast<int>(std::lround(10.0 / g.spacing_mm().y()));
   for_each_voxel(g, [&](int i, int j, int k) {
-    if (j >= shift_voxels) scan.labels->at(i, j, k) = case_->intraop_labels.at(i, j - shift_voxels, k);
+    if (j >= shift_voxels) moved.at(i, j, k) = case_->intraop_labels.at(i, j - shift_voxels, k);
   });
-  scan.image = case_->intraop_t1;
-  const ScanResult r = session_->register_scan(scan, nullptr);
+  const ScanResult r = register_with_the_image(std::move(moved));
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos) << r.fallback_reason;
   const ScanResult refused = with_refused_affine(r);
@@ -297,10 +300,7 @@ TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
 // the image says where the brain is, so the fallback is the rigid part of
 // the image's own affine, and the gate's reason stands.
 TEST_F(DamagedInputs, AGeometryRefusalWithItsImageFallsBackToTheImagesOwnAffine) {
-  ScanInput scan;
-  scan.labels = leaked(case_->intraop_labels, 4);
-  scan.image = case_->intraop_t1;
-  const ScanResult r = session_->register_scan(scan, nullptr);
+  const ScanResult r = register_with_the_image(leaked(case_->intraop_labels, 4));
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_EQ(r.fallback_reason.rfind("plausibility gate", 0), 0u) << r.fallback_reason;
   EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""),
