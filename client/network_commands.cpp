@@ -247,6 +247,9 @@ bool still_pending(const ScanResultReply& r, std::string_view part) {
 }
 
 int exit_code_of(const ResultKindInfo& result) {
+  // A caution does not make the result a fallback: it is non-rigid and
+  // usable, to be read with the caution beside it.
+  if (!result.caution.empty()) std::cerr << "CAUTION: " << result.caution << '\n';
   if (result.kind == ResultKind::nonrigid) return kExitOk;
   std::cerr << "WARNING: non-rigid registration refused ("
             << (result.fallback_reason.empty() ? "no reason given" : result.fallback_reason)
@@ -261,7 +264,7 @@ int exit_code_of_metrics(const std::string& metrics_json) {
     const auto metrics = nlohmann::json::parse(metrics_json);
     const auto kind = result_kind_from_string(metrics.value("result", ""));
     if (!kind) throw std::runtime_error("\"result\" is neither nonrigid nor affine_only_fallback");
-    return exit_code_of({*kind, metrics.value("fallback_reason", "")});
+    return exit_code_of({*kind, metrics.value("fallback_reason", ""), metrics.value("caution", "")});
   } catch (const std::exception& e) {
     throw CommandError(kExitError, std::string("unreadable metrics from the server: ") + e.what());
   }

@@ -21,6 +21,7 @@
 #include "phantom/phantom_dicom.h"
 #include "pipeline/engine_session.h"
 #include "pipeline/scan_outputs.h"
+#include "pipeline/scan_report.h"
 
 namespace brainshift::cli {
 namespace fs = std::filesystem;
@@ -130,6 +131,8 @@ int run_register_rank0(const RegisterOptions& o) {
   write_scan_outputs(result, scan.image ? &*scan.image : nullptr, o.out, outputs);
   std::fprintf(stderr, "[intraop] total      %8.3f s\n", result.timings["intraop"]["total"].get<double>());
   std::cout << "wrote " << o.out << '\n';
+  if (const std::string caution = result_caution(result.metrics); !caution.empty())
+    std::fprintf(stderr, "CAUTION: %s\n", caution.c_str());
   if (result.kind == ResultKind::affine_only_fallback) {
     std::fprintf(stderr, "WARNING: non-rigid registration refused (%s); the outputs hold the AFFINE-ONLY result\n",
                  result.fallback_reason.c_str());

@@ -27,6 +27,7 @@ ErrorInfo error_info_from_json(const nlohmann::json& j, const std::string& conte
 void add_result_kind(nlohmann::json& object, const ResultKindInfo& result) {
   object["kind"] = std::string(to_string(result.kind));
   if (result.kind == ResultKind::affine_only_fallback) object["fallback_reason"] = result.fallback_reason;
+  if (!result.caution.empty()) object["caution"] = result.caution;
 }
 
 std::optional<ResultKindInfo> result_kind_from_json(const nlohmann::json& object, const std::string& context) {
@@ -35,7 +36,7 @@ std::optional<ResultKindInfo> result_kind_from_json(const nlohmann::json& object
   if (!text) return std::nullopt;
   const auto kind = result_kind_from_string(*text);
   if (!kind) f.fail("kind", "must be \"nonrigid\" or \"affine_only_fallback\"");
-  return ResultKindInfo{*kind, f.text("fallback_reason")};
+  return ResultKindInfo{*kind, f.text("fallback_reason"), f.text("caution")};
 }
 
 }  // namespace brainshift::protocol

@@ -31,6 +31,9 @@ struct ErrorInfo {
 struct ResultKindInfo {
   ResultKind kind = ResultKind::nonrigid;
   std::string fallback_reason{};  // "" for nonrigid
+  // A non-rigid result to be read with care, and why ("caution", revision 6):
+  // e.g. given labels the image's refinement changed grossly. "" for none.
+  std::string caution{};
   bool operator==(const ResultKindInfo&) const = default;
 };
 
@@ -38,7 +41,8 @@ nlohmann::json to_json_value(const MeshSize& mesh);
 MeshSize mesh_size_from_json(const nlohmann::json& j, const std::string& context);
 nlohmann::json to_json_value(const ErrorInfo& error);
 ErrorInfo error_info_from_json(const nlohmann::json& j, const std::string& context);
-// Adds "kind" (and "fallback_reason" for the fallback) to a header or object.
+// Adds "kind" (and "fallback_reason" for the fallback, "caution" when there
+// is one) to a header or object.
 void add_result_kind(nlohmann::json& object, const ResultKindInfo& result);
 // nullopt when "kind" is absent; throws ProtocolError(kInvalidRequest) for an
 // unknown kind.

@@ -241,7 +241,7 @@ std::optional<CaseStore::Entry> CaseStore::read_scan_dir(const fs::path& sdir) c
       r.state = StoredScanState::done;
       const auto kind = protocol::result_kind_from_string(meta.at("kind").get<std::string>());
       if (!kind) throw std::runtime_error("unknown result kind " + meta.at("kind").dump());
-      r.result = {*kind, meta.value("fallback_reason", "")};
+      r.result = {*kind, meta.value("fallback_reason", ""), meta.value("caution", "")};
       for (const auto& f : meta.at("files")) {
         const std::string ds = f.at("dataset").get<std::string>();
         entry.files[f.at("name").get<std::string>()] =
@@ -464,7 +464,7 @@ void CaseStore::save_result(const std::string& scan_id, const std::map<std::stri
   json meta{{"format", kStoreFormat}, {"state", "done"},
             {"finished_at", finished_at.empty() ? protocol::utc_now() : finished_at},
             {"kind", std::string(protocol::to_string(result.kind))}, {"fallback_reason", result.fallback_reason},
-            {"files", json::array()}};
+            {"caution", result.caution}, {"files", json::array()}};
   std::size_t i = 0;
   for (const auto& [name, bytes] : files)
     meta["files"].push_back({{"name", name}, {"dataset", "files/" + std::to_string(i++)}, {"size", bytes.size()}});

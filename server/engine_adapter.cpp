@@ -48,7 +48,7 @@ EngineScanOutput EngineAdapter::register_scan(const std::optional<LabelImage>& l
   EngineScanOutput output;
   output.files = encode_scan_outputs(result, ImageEncoding::plain);
   progress(outputs_stage, 1.0, std::chrono::duration<double>(std::chrono::steady_clock::now() - t_outputs).count());
-  output.result = {result.kind, result.fallback_reason};
+  output.result = {result.kind, result.fallback_reason, result_caution(result.metrics)};
   output.intraop_seconds = result.timings["intraop"].value(std::string(protocol::stages::kTotal), 0.0);
   // The deferred parts judge the labels the stages used: the engine's
   // segmentation of the image when it made one (an image alone, or labels

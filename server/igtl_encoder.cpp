@@ -241,6 +241,7 @@ std::string status_text(const ResultContent& r) {
                    {"finished_at", r.finished_at}};
   if (r.client_scan_id) j["client_scan_id"] = *r.client_scan_id;
   if (!r.problems.empty()) j["problems"] = r.problems;
+  if (!r.result.caution.empty()) j["caution"] = r.result.caution;
   return j.dump();
 }
 

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <future>
 #include <optional>
 
@@ -9,6 +10,7 @@
 #include "core/parallel.h"
 #include "core/timer.h"
 #include "image/resample.h"
+#include "pipeline/prepare_stage.h"
 #include "pipeline/preop_fluid_spaces_stage.h"
 #include "pipeline/segmentation_rounds.h"
 #include "pipeline/working_grid.h"
@@ -65,6 +67,54 @@ std::optional<ScanResult> refine_on_grid(WarmState& warm, const ImageF& image, c
   return answer(s, std::move(r), std::move(seg_metrics), scan_watch, false);
 }
 
+// What the image's refinement changed in the given labels, measured as the
+// labels-vs-image check measures disagreement (its band, its sureness, its
+// limit): brain the refined segmentation added beyond the band (a lobe the
+// segmenter lost) and brain it removed (a leak). The refined answer stands
+// on the image, so a lost lobe is no hazard to it; but the site's segmenter
+// erred, and whoever reads the answer must see where and by how much (a
+// lobe lost within the check's wide prior passes the check: 14 ml seen of a
+// 144 ml ball, docs/PERFORMANCE.md 12.35). Beyond the check's limit the
+// change is `gross` and the answer carries a `caution`. Cavity values are
+// taken out of the given outline: the segmentation draws a cavity as 0.
+nlohmann::json refinement_changes(const LabelImage& given, const ScanResult& refined, const LabelTable& table,
+                                  const segmentation::LabelImageCheckParameters& p) {
+  if (!refined.intraop_labels || !refined.segmentation_confidence) return {{"measured", false}};
+  Stopwatch watch;
+  LabelImage given_tissue = given;
+  for (const std::uint16_t c : table.cavity_labels())
+    for (auto& v : given_tissue.voxels)
+      if (v == c) v = 0;
+  const Mask given_brain = outline_mask(given_tissue);
+  const Mask refined_brain = outline_mask(*refined.intraop_labels);
+  const auto& confidence = *refined.segmentation_confidence;
+  const segmentation::Disagreement added =
+      segmentation::disagreement_beyond_band(refined_brain, given_brain, confidence, p.min_posterior, p.band_mm);
+  const segmentation::Disagreement removed =
+      segmentation::disagreement_beyond_band(given_brain, refined_brain, confidence, p.min_posterior, p.band_mm);
+  const double limit_ml = p.max_disagreement_fraction * volume_ml(given_brain);
+  nlohmann::json j = {{"measured", true},
+                      {"added", segmentation::to_json(added)},
+                      {"removed", segmentation::to_json(removed)},
+                      {"band_mm", p.band_mm},
+                      {"limit_ml", limit_ml},
+                      {"seconds", watch.seconds()}};
+  const auto where = [](const segmentation::Disagreement& d) {
+    char text[160];
+    std::snprintf(text, sizeof text, "%.0f ml, up to %.0f mm deep, centred at (%.0f, %.0f, %.0f) mm RAS", d.volume_ml,
+                  d.max_depth_mm, d.centroid_mm[0], d.centroid_mm[1], d.centroid_mm[2]);
+    return std::string(text);
+  };
+  std::string caution;
+  if (added.volume_ml > limit_ml) caution = "brain the given labels lack: " + where(added);
+  if (removed.volume_ml > limit_ml)
+    caution += (caution.empty() ? "" : "; ") + std::string("labelled brain the image does not show: ") + where(removed);
+  j["gross"] = !caution.empty();
+  if (!caution.empty())
+    j["caution"] = "the image's segmentation was registered, not the given labels, which disagree with it: " + caution;
+  return j;
+}
+
 // The labels' pass refined by the image (refine_on_grid), on the working
 // grid when the labels' grid is finer (as an image-only scan is worked);
 // the refined answer carried back to the labels' grid. `first` is replaced
@@ -75,10 +125,12 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
   const double first_pass_seconds = first.timings["intraop"].value("total", 0.0);
   Stopwatch watch;
   const Grid3 work = working_grid(input.labels.grid, params.auto_segmentation.working_spacing_mm);
+  const segmentation::LabelImageCheckParameters& check = params.auto_segmentation.label_image_check;
   std::optional<ScanResult> refined;
   if (work.dims == input.labels.grid.dims) {
     refined = refine_on_grid(warm, *input.t1, input.labels, first, input.read_seconds, params, progress, scan_watch,
                              report);
+    if (refined) report["changes"] = refinement_changes(input.labels, *refined, params.label_table, check);
   } else {
     const ImageF image = downsample_linear(*input.t1, work);
     const LabelImage given = downsample_labels(input.labels, work);
@@ -87,6 +139,7 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
     const double own_seconds = watch.lap();
     refined = refine_on_grid(warm, image, given, first, input.read_seconds, params, progress, scan_watch, report);
     if (refined) {
+      report["changes"] = refinement_changes(given, *refined, params.label_table, check);
       watch.lap();
       carry_to_grid(warm, *refined, input.labels.grid);
       report_working_grid(*refined, work, input.labels.grid, own_seconds + watch.lap());
@@ -98,6 +151,8 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
   if (refined) {
     refined->timings["intraop"]["given_labels_pass"] = first_pass_seconds;
     first = std::move(*refined);
+    // Beside "result": a non-rigid answer to be read with care.
+    if (report["changes"].value("gross", false)) first.metrics["caution"] = report["changes"]["caution"];
   }
   first.metrics["given_labels"] = std::move(report);
 }
@@ -201,21 +256,60 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   // the labels' geometry (volume, affine_stretch).
   const bool geometry_refused =
       result.kind != ResultKind::nonrigid && result.metrics["affine"].contains("fallback_transform");
-  if (!c.failure.empty() && result.kind == ResultKind::nonrigid) {
+  // Labels to be refined by their image that are refused give way to the
+  // image alone: the site asked for the image's judgement, and the image's
+  // own answer (validated as image-only scans are) is far nearer the truth
+  // than any transform from the refused labels (docs/DESIGN.md "Quality
+  // gates"). The answer is non-rigid with a caution, never clean. Labels
+  // used exactly (a site's hand correction) are not replaced: the marked
+  // fallback, with the reason.
+  std::string image_alone_refused;  // why the image's own answer was not taken
+  const auto answer_from_the_image = [&](const std::string& why) {
+    const nlohmann::json first_timings = result.timings["intraop"];
+    std::optional<ScanResult> own;
+    try {
+      own = register_image_only(warm, *input.t1, input.read_seconds, params, progress, false);
+    } catch (const InputError& e) {  // the image cannot be classified: the labels' fallback stands
+      image_alone_refused = e.what();
+      return false;
+    }
+    if (own->kind != ResultKind::nonrigid) {
+      image_alone_refused = own->fallback_reason;
+      return false;
+    }
+    result = std::move(*own);
+    result.timings["intraop"]["earlier_passes"] = first_timings.value("total", 0.0);
+    result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
+                                      {"refined", false},
+                                      {"disregarded", true},
+                                      {"why", why}};
+    result.metrics["caution"] = "the given labels were disregarded (" + why +
+                                "); the image's own segmentation was registered";
+    return true;
+  };
+  const bool check_refused = !c.failure.empty();
+  bool disregarded = false;
+  if (use == GivenLabelsUse::refine && (check_refused || result.kind != ResultKind::nonrigid))
+    disregarded = answer_from_the_image(check_refused     ? "they disagree with their image: " + c.failure
+                                        : geometry_refused ? "the gates refused their geometry: " + result.fallback_reason
+                                                           : "a gate refused their registration: " + result.fallback_reason);
+  const auto refused_labels = [&](const std::string& why) {
+    result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}, {"why", why}};
+    if (!image_alone_refused.empty()) result.metrics["given_labels"]["image_alone_refused"] = image_alone_refused;
+  };
+  if (disregarded) {
+    // The image's own answer stands, with its caution (answer_from_the_image).
+  } else if (check_refused && result.kind == ResultKind::nonrigid) {
     fall_back_on_the_image("the intraop labels disagree with the intraop image: " + c.failure,
                            "the labels disagree with their image");
-    result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
-                                      {"refined", false},
-                                      {"why", "the labels disagree grossly with their image (label_image_check)"}};
+    refused_labels("the labels disagree grossly with their image (label_image_check)");
   } else if (geometry_refused) {
     fall_back_on_the_image(result.fallback_reason, "the labels' geometry was refused");
-    result.metrics["given_labels"] = {{"use", std::string(to_string(use))},
-                                      {"refined", false},
-                                      {"why", "the gates refused the labels' geometry"}};
+    refused_labels("the gates refused the labels' geometry");
   } else if (use == GivenLabelsUse::refine && result.kind == ResultKind::nonrigid) {
-    // Labels that disagree grossly with their image are not refined: the
-    // answer says so (above). Labels whose own pass the gates refused are
-    // not either: that refusal is the answer's, with its reason.
+    // Only labels that passed the check and their own pass get here: refused
+    // ones gave way to the image, or (the image refused too) to the
+    // fallback above.
     refine_given_labels(warm, adopted, params, progress, watch, result);
     if (!result.metrics["given_labels"].value("refined", false)) {
       nlohmann::json given_labels = result.metrics["given_labels"];
@@ -226,6 +320,7 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     }
   } else {
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}};
+    if (!image_alone_refused.empty()) result.metrics["given_labels"]["image_alone_refused"] = image_alone_refused;
   }
   result.metrics["given_labels"]["preop_fluid_spaces"] = std::move(fluid_spaces);
   if (spaces_added && !result.intraop_labels) result.given_labels_used = adopted.labels;

@@ -11,6 +11,12 @@ std::optional<double> number_at(const nlohmann::json& j, const char* a, const ch
 
 }  // namespace
 
+std::string result_caution(const nlohmann::json& metrics) {
+  return metrics.is_object() && metrics.contains("caution") && metrics["caution"].is_string()
+             ? metrics["caution"].get<std::string>()
+             : std::string();
+}
+
 std::vector<ReportLegendEntry> report_legend(const LabelTable& table) {
   std::vector<ReportLegendEntry> legend;
   for (const auto& e : table.entries) legend.push_back({e.value, e.name, e.colour});
@@ -23,6 +29,7 @@ ReportSummary report_summary(const ScanResult& result, const std::string& scan_i
   s.fallback = result.kind == ResultKind::affine_only_fallback;
   s.fallback_reason = result.fallback_reason;
   const nlohmann::json& m = result.metrics;
+  s.caution = result_caution(m);
   if (m.contains("labels") && m["labels"].is_object()) {
     const nlohmann::json none = nlohmann::json::object();
     const nlohmann::json& before = m.contains("labels_affine_only") ? m["labels_affine_only"] : none;

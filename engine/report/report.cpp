@@ -20,7 +20,9 @@ using report_detail::Raster;
 constexpr int kMargin = 14, kGap = 6, kRowLabelWidth = 150, kMinWidth = 940;
 constexpr const char* kFont = "DejaVu Sans";  // fonts-dejavu-core; fontconfig substitutes if absent
 const LabelColour kBackground{22, 22, 28}, kText{235, 235, 235}, kDim{170, 170, 180};
-const LabelColour kNonrigidBand{30, 110, 50}, kFallbackBand{170, 30, 30}, kNeutralBand{60, 70, 90};
+// White text reads on all four; amber dark enough for it.
+const LabelColour kNonrigidBand{30, 110, 50}, kCautionBand{165, 95, 0}, kFallbackBand{170, 30, 30},
+    kNeutralBand{60, 70, 90};
 
 struct Surface {
   explicit Surface(int width, int height)
@@ -182,10 +184,14 @@ class Page {
         !s.result_text.empty() ? s.result_text
         : s.fallback ? "Result: AFFINE-ONLY FALLBACK (the non-rigid correction was rejected): " +
                          (s.fallback_reason.empty() ? std::string("no reason given") : s.fallback_reason)
+        : !s.caution.empty() ? "Result: non-rigid correction. CAUTION: " + s.caution
                    : "Result: non-rigid correction (affine, surface match, elastic model)";
-    const auto lines = wrap(cr, result, L.width - 2 * kMargin - 16, 3);
+    const auto lines = wrap(cr, result, L.width - 2 * kMargin - 16, 4);
     L.result_band = {kMargin, y, L.width - 2 * kMargin, static_cast<int>(10 + 18 * lines.size())};
-    set_colour(cr, !s.result_text.empty() ? kNeutralBand : s.fallback ? kFallbackBand : kNonrigidBand);
+    set_colour(cr, !s.result_text.empty() ? kNeutralBand
+                   : s.fallback           ? kFallbackBand
+                   : !s.caution.empty()   ? kCautionBand
+                                          : kNonrigidBand);
     cairo_rectangle(cr, L.result_band.x, L.result_band.y, L.result_band.width, L.result_band.height);
     cairo_fill(cr);
     for (std::size_t i = 0; i < lines.size(); ++i) text(cr, kMargin + 8, y + 19 + 18 * i, lines[i], {255, 255, 255});

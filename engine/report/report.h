@@ -1,8 +1,9 @@
 #pragma once
 // report.png: one registration on one page, for the surgeon and the record.
 //
-//   title:   the scan id and the result kind (non-rigid, or the affine-only
-//            fallback with its reason on a red band);
+//   title:   the scan id and the result kind (non-rigid on a green band, or
+//            with a caution on an amber one, or the affine-only fallback
+//            with its reason on a red band);
 //   columns: axial, coronal, sagittal slices through one world point (their
 //            RAS position in the column header);
 //   row 1:   the intraop image with the contours of the warped preop
@@ -50,6 +51,9 @@ struct ReportSummary {
   std::string scan_id;
   bool fallback = false;        // the affine-only fallback result
   std::string fallback_reason;  // why, when fallback
+  // A non-rigid result to be read with care, and why (e.g. given labels the
+  // image's refinement changed grossly): the result line turns amber.
+  std::string caution;
   struct Overlap {
     std::string structure;
     std::optional<double> dice_affine, dice, mean_distance_affine_mm, mean_distance_mm;
@@ -110,7 +114,7 @@ struct ReportLayout {
   int width = 0, height = 0;
   double pixel_mm = 0;
   ReportRect title;        // the title line (scan id)
-  ReportRect result_band;  // the result line: green band, red for the fallback
+  ReportRect result_band;  // the result line: green band, amber with a caution, red for the fallback
   std::array<std::array<ReportRect, 3>, 3> panels{};  // [row][axial, coronal, sagittal]
   std::vector<ReportRect> legend_swatches;            // one per legend entry, filled with its colour
   ReportRect numbers;                                 // the key-numbers table

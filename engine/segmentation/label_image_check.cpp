@@ -1,6 +1,7 @@
 #include "segmentation/label_image_check.h"
 
 #include <cmath>
+#include <cstdio>
 
 #include "core/errors.h"
 #include "image/distance_map.h"
@@ -9,17 +10,14 @@
 #include "registration/boundary_samples.h"
 
 namespace brainshift::segmentation {
-namespace {
-
-// Voxels of `a` not in `b` that the classification chose surely, farther than
-// band_mm from b's surface.
-Disagreement beyond_band(const Mask& a, const Mask& b, const ImageF& confidence, const ImageF& distance_from_b_mm,
-                         const LabelImageCheckParameters& params) {
+Disagreement disagreement_beyond_band(const Mask& a, const Mask& b, const ImageF& confidence, double min_posterior,
+                                      double band_mm) {
+  const ImageF distance_from_b_mm = distance_to_mask_mm(b);
   Disagreement d;
   Mask m(a.grid, 0);
   for (std::size_t v = 0; v < a.voxels.size(); ++v)
-    m.voxels[v] = a.voxels[v] && !b.voxels[v] && confidence.voxels[v] >= params.min_posterior &&
-                  distance_from_b_mm.voxels[v] > params.band_mm;
+    m.voxels[v] = a.voxels[v] && !b.voxels[v] && confidence.voxels[v] >= min_posterior &&
+                  distance_from_b_mm.voxels[v] > band_mm;
   d.volume_ml = volume_ml(m);
   if (d.volume_ml <= 0) return d;
   for (std::size_t v = 0; v < m.voxels.size(); ++v)
@@ -32,8 +30,6 @@ Disagreement beyond_band(const Mask& a, const Mask& b, const ImageF& confidence,
 nlohmann::json to_json(const Disagreement& d) {
   return {{"volume_ml", d.volume_ml}, {"max_depth_mm", d.max_depth_mm}, {"centroid_mm", d.centroid_mm}};
 }
-
-}  // namespace
 
 LabelImageCheck check_labels_against_image(const ImageF& full_image, const LabelImage& full_labels,
                                            std::uint16_t brain_label,
@@ -73,17 +69,14 @@ LabelImageCheck check_labels_against_image(const ImageF& full_image, const Label
     check.metrics = {{"checked", false}, {"why", seg.refusal}};
     return check;
   }
-  // Distances from each outline's surface, measured outside it.
-  const ImageF outside_seen = distance_to_mask_mm(seen);
-  const ImageF outside_given = distance_to_mask_mm(given);
-  check.labels_not_image = beyond_band(given, seen, seg.confidence, outside_seen, params);
-  check.image_not_labels = beyond_band(seen, given, seg.confidence, outside_given, params);
+  check.labels_not_image = disagreement_beyond_band(given, seen, seg.confidence, params.min_posterior, params.band_mm);
+  check.image_not_labels = disagreement_beyond_band(seen, given, seg.confidence, params.min_posterior, params.band_mm);
   const double limit_ml = params.max_disagreement_fraction * check.brain_ml;
   auto describe = [&](const Disagreement& d, const char* what) {
-    return std::string(what) + ": " + std::to_string(d.volume_ml) + " ml beyond " + std::to_string(params.band_mm) +
-           " mm, up to " + std::to_string(d.max_depth_mm) + " mm deep, centred at (" +
-           std::to_string(d.centroid_mm[0]) + ", " + std::to_string(d.centroid_mm[1]) + ", " +
-           std::to_string(d.centroid_mm[2]) + ") mm RAS";
+    char text[200];
+    std::snprintf(text, sizeof text, "%.1f ml beyond %.0f mm, up to %.0f mm deep, centred at (%.0f, %.0f, %.0f) mm RAS",
+                  d.volume_ml, params.band_mm, d.max_depth_mm, d.centroid_mm[0], d.centroid_mm[1], d.centroid_mm[2]);
+    return std::string(what) + ": " + text;
   };
   if (check.labels_not_image.volume_ml > limit_ml)
     check.failure = describe(check.labels_not_image,

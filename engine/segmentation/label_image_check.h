@@ -64,6 +64,14 @@ struct LabelImageCheck {
   nlohmann::json metrics;
 };
 
+// Voxels of `a` not in `b` that a classification chose surely (its
+// confidence at least min_posterior), farther than band_mm outside b's
+// surface: the check's measure of disagreement, also used to say what the
+// image's refinement changed in given labels (pipeline/labels_with_image.cpp).
+Disagreement disagreement_beyond_band(const Mask& a, const Mask& b, const ImageF& confidence, double min_posterior,
+                                      double band_mm);
+nlohmann::json to_json(const Disagreement& d);
+
 // labels in the table's values on the image's grid. The volumes, depths and
 // centroid are measured on the check's grid (grid_spacing_mm).
 LabelImageCheck check_labels_against_image(const ImageF& image, const LabelImage& labels, std::uint16_t brain_label,

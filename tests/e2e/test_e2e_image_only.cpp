@@ -174,13 +174,33 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   EXPECT_TRUE(fs::exists(dir / "refined" / "intraop_labels.nii.gz"));
 
   // Labels that do not lie where their image does (moved 10 mm: a header or
-  // a series mix-up) are refused by the labels-vs-image check: exit 4, and
-  // the affine-only fallback comes from the image's own segmentation, not
-  // from the labels, so it still recovers the known shift.
+  // a series mix-up) are refused by the labels-vs-image check. To be refined
+  // (the default), they give way to the image's own answer: non-rigid
+  // (exit 0), never clean: the caution reaches the client with
+  // event.scan.done and stands in metrics.json.
   write_label_image(dir / "moved_labels.nii.gz",
                     resample_nearest(truth, truth.grid, Eigen::Affine3d(Eigen::Translation3d(0, -10, 0)).matrix()));
   r = cli(daemon, {"push", "--labels", path("moved_labels.nii.gz"), "--image", path("scan_t1.nii.gz"), "--id",
-                   "or1-img-1-moved", "--wait"});
+                   "or1-img-1-moved-refine", "--wait"});
+  ASSERT_EQ(r.code, 0) << r.err << daemon.log();
+  EXPECT_NE(r.err.find("CAUTION: the given labels were disregarded"), std::string::npos) << r.err;
+  const std::string disregarded_id = r.out.substr(0, r.out.find('\n'));
+  r = cli(daemon, {"pull", "--scan", disregarded_id, "--out", path("disregarded"), "--parts", "field,metrics"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto disregarded_metrics = nlohmann::json::parse(read_file(dir / "disregarded" / "metrics.json"));
+  EXPECT_NE(disregarded_metrics.value("caution", "").find("disagree with their image"), std::string::npos)
+      << disregarded_metrics.dump();
+  EXPECT_TRUE(disregarded_metrics["given_labels"].value("disregarded", false));
+  const VectorImage3 image_field = read_vector_image(dir / "disregarded" / "field.nii.gz");
+  double image_error_mm = 0;
+  for (std::size_t v = 0; v < truth.voxels.size(); ++v)
+    if (truth.voxels[v]) image_error_mm += (image_field.vectors[v].cast<double>() + kShiftMm).norm() / truth_brain;
+  EXPECT_LT(image_error_mm, 1.0) << "the image's own answer";
+  // Used exactly, they are the site's word and are not replaced: exit 4,
+  // and the affine-only fallback comes from the image's own segmentation,
+  // not from the labels, so it still recovers the known shift.
+  r = cli(daemon, {"push", "--labels", path("moved_labels.nii.gz"), "--image", path("scan_t1.nii.gz"), "--id",
+                   "or1-img-1-moved", "--labels-use", "exact", "--wait"});
   ASSERT_EQ(r.code, 4) << r.err << daemon.log();
   const std::string moved_id = r.out.substr(0, r.out.find('\n'));
   r = cli(daemon, {"pull", "--scan", moved_id, "--out", path("moved"), "--parts", "field,metrics"});

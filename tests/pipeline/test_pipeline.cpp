@@ -20,6 +20,7 @@
 #include "phantom/brain_shift_phantom.h"
 #include "mesh/vtk_io.h"
 #include "pipeline/engine_session.h"
+#include "pipeline/scan_report.h"  // result_caution
 #include "pipeline/scan_outputs.h"
 #include "synthetic_head.h"
 #include "temp_dir.h"  // tests/support
@@ -573,6 +574,71 @@ TEST_F(PipelineTest, LabelsWithADentTheImageDoesNotShowAreRefinedByIt) {
   EXPECT_LT(e_refined, 0.8);
 }
 
+// Labels that lost a lobe, refined by their image (the default). A ball of
+// 20 mm radius cut from the cortex passes the check (the image's
+// classification under the labels' wide prior sees part of it), and the
+// image's segmentation under the carried preop puts it back: the answer
+// stands on the image, and metrics given_labels.changes says where and how
+// much the labels lacked (below the check's limit here: no caution). Of 25
+// mm the check refuses, and the labels give way to the image's own answer,
+// with a caution.
+TEST_F(PipelineTest, ALobeTheLabelsLackIsReportedWhenTheImageRefinesThem) {
+  const Eigen::Vector3d shift(2.0, -1.0, 1.0);
+  const IntraopInput truth = translated_scan(*preop_, shift);
+  const Grid3& g = truth.labels.grid;
+  Eigen::Vector3d lateral(-1e9, 0, 0);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        if (truth.labels.at(i, j, k) != 0 && g.world_mm(i, j, k).x() > lateral.x()) lateral = g.world_mm(i, j, k);
+  Mask brain(g, 0);
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v) brain.voxels[v] = truth.labels.voxels[v] != 0;
+  const double brain_voxels = std::count(brain.voxels.begin(), brain.voxels.end(), 1);
+  auto field_error_mm = [&](const ScanResult& r) {
+    double mean = 0;
+    for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+      if (brain.voxels[v]) mean += (r.pullback_field_mm.vectors[v].cast<double>() + shift).norm() / brain_voxels;
+    return mean;
+  };
+  auto without_ball = [&](double radius_mm, double& lost_ml) {
+    ScanInput lost;
+    lost.labels = truth.labels;
+    lost.image = test::scanner_image(*truth.t1);
+    lost_ml = 0;
+    for (int k = 0; k < g.dims[2]; ++k)
+      for (int j = 0; j < g.dims[1]; ++j)
+        for (int i = 0; i < g.dims[0]; ++i)
+          if ((g.world_mm(i, j, k) - lateral).norm() < radius_mm && lost.labels->at(i, j, k) != 0) {
+            lost.labels->at(i, j, k) = 0;
+            lost_ml += g.spacing_mm().prod() / 1000.0;
+          }
+    return lost;
+  };
+  double lost_ml = 0;
+  const ScanResult r = session_->register_scan(without_ball(20.0, lost_ml), nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  ASSERT_TRUE(r.metrics["label_image_check"].value("passed", false)) << r.metrics["label_image_check"].dump();
+  ASSERT_TRUE(r.metrics["given_labels"].value("refined", false)) << r.metrics["given_labels"].dump();
+  const nlohmann::json& changes = r.metrics["given_labels"]["changes"];
+  ASSERT_TRUE(changes.value("measured", false)) << changes.dump();
+  // The 3 mm band is left out of the count, and the ball's rim with it.
+  EXPECT_GT(changes["added"]["volume_ml"].get<double>(), 0.4 * lost_ml) << changes.dump() << " of " << lost_ml;
+  EXPECT_LT(changes["removed"]["volume_ml"].get<double>(), 1.0) << changes.dump();
+  const auto& at = changes["added"]["centroid_mm"];
+  EXPECT_LT((Eigen::Vector3d(at[0], at[1], at[2]) - lateral).norm(), 20.0) << changes.dump();
+  EXPECT_EQ(changes.value("gross", true), changes["added"]["volume_ml"].get<double>() > changes["limit_ml"].get<double>());
+  EXPECT_EQ(result_caution(r.metrics).empty(), !changes.value("gross", true));
+  EXPECT_LT(field_error_mm(r), 0.8);
+
+  const ScanResult larger = session_->register_scan(without_ball(25.0, lost_ml), nullptr);
+  ASSERT_EQ(larger.kind, ResultKind::nonrigid) << larger.fallback_reason;
+  EXPECT_FALSE(larger.metrics["label_image_check"].value("passed", true)) << larger.metrics["label_image_check"].dump();
+  EXPECT_TRUE(larger.metrics["given_labels"].value("disregarded", false)) << larger.metrics["given_labels"].dump();
+  EXPECT_NE(result_caution(larger.metrics).find("the image shows brain the intraop labels lack"), std::string::npos)
+      << larger.metrics.dump();
+  EXPECT_LT(field_error_mm(larger), 0.8);
+}
+
 TEST_F(PipelineTest, AnImageWithoutFluidContrastIsRefusedWithTheReason) {
   const IntraopInput truth = translated_scan(*preop_, {1, 0, 0});
   ScanInput scan;
@@ -620,6 +686,7 @@ TEST_F(PipelineTest, LabelsThatLeakBeyondTheirImageAreReportedAndNotACleanResult
   const Mask grown = dilate(mask_of_labels(truth.labels, {1, 2}), 6.0);
   for (std::size_t v = 0; v < grown.voxels.size(); ++v)
     if (grown.voxels[v] && leak.labels->voxels[v] == 0) leak.labels->voxels[v] = 1;
+  leak.labels_use = GivenLabelsUse::exact;
   const ScanResult bad = session_->register_scan(leak, nullptr);
   EXPECT_EQ(bad.kind, ResultKind::affine_only_fallback);
   const auto& check = bad.metrics["label_image_check"];
@@ -627,7 +694,17 @@ TEST_F(PipelineTest, LabelsThatLeakBeyondTheirImageAreReportedAndNotACleanResult
   EXPECT_GT(check["labels_not_image"]["volume_ml"].get<double>(), 20.0) << check.dump();
   EXPECT_GT(check["labels_not_image"]["max_depth_mm"].get<double>(), 4.0) << check.dump();
   EXPECT_NE(bad.fallback_reason.find("disagree"), std::string::npos) << bad.fallback_reason;
-  // Not refined: that would hide from the surgeon that the labels were wrong.
   EXPECT_FALSE(bad.metrics["given_labels"].value("refined", true)) << bad.metrics["given_labels"].dump();
   EXPECT_FALSE(bad.intraop_labels.has_value());
+  // To be refined (the default), the leaking labels give way to the image's
+  // own answer: non-rigid, with the segmentation used as a part, and a
+  // caution, so the surgeon is not told the labels were fine.
+  leak.labels_use = GivenLabelsUse::refine;
+  const ScanResult image_instead = session_->register_scan(leak, nullptr);
+  EXPECT_EQ(image_instead.kind, ResultKind::nonrigid) << image_instead.fallback_reason;
+  EXPECT_EQ(image_instead.metrics["label_image_check"].value("passed", true), false);
+  EXPECT_TRUE(image_instead.metrics["given_labels"].value("disregarded", false));
+  EXPECT_TRUE(image_instead.intraop_labels.has_value());
+  EXPECT_NE(result_caution(image_instead.metrics).find("the given labels were disregarded"), std::string::npos)
+      << image_instead.metrics.value("caution", "");
 }

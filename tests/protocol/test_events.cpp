@@ -26,6 +26,9 @@ TEST(Events, EveryEventRoundTrips) {
   const bp::ScanDoneEvent fallback{"s-2", std::nullopt, 1.5,
                                    bp::ResultKindInfo{bp::ResultKind::affine_only_fallback, "Jacobian folded"}};
   EXPECT_EQ(bp::parse_scan_done_event(wire_trip(bp::make_event(fallback))), fallback);
+  const bp::ScanDoneEvent caution{"s-3", std::nullopt, 1.5,
+                                  bp::ResultKindInfo{bp::ResultKind::nonrigid, "", "brain the given labels lack"}};
+  EXPECT_EQ(bp::parse_scan_done_event(wire_trip(bp::make_event(caution))), caution);
   const bp::ScanFailedEvent scan_failed{"s-1", std::nullopt, "solve", {ErrorCode::kInternal, "solver diverged"}};
   EXPECT_EQ(bp::parse_scan_failed_event(wire_trip(bp::make_event(scan_failed))), scan_failed);
   const bp::ServerShutdownEvent bye{"admin request"};
@@ -49,6 +52,14 @@ TEST(Events, ScanDoneCarriesTheResultKindAndReadsAnOlderServersWithout) {
   const auto nonrigid = bp::make_event(bp::ScanDoneEvent{"s-1", std::nullopt, 1.0, bp::ResultKindInfo{}});
   EXPECT_EQ(nonrigid.header.at("kind"), "nonrigid");
   EXPECT_FALSE(nonrigid.header.contains("fallback_reason"));
+  EXPECT_FALSE(nonrigid.header.contains("caution"));
+  // A caution (revision 6) rides beside a non-rigid kind; a server before it
+  // sends none, read as no caution.
+  const auto cautioned = bp::make_event(
+      bp::ScanDoneEvent{"s-1", std::nullopt, 1.0, bp::ResultKindInfo{bp::ResultKind::nonrigid, "", "lobe lacking"}});
+  EXPECT_EQ(cautioned.header.at("kind"), "nonrigid");
+  EXPECT_EQ(cautioned.header.at("caution"), "lobe lacking");
+  EXPECT_EQ(bp::parse_scan_done_event(nonrigid).result->caution, "");
   // A revision 1 server sends no kind (PROTOCOL.md 10): read as unknown.
   auto older = nonrigid;
   older.header.erase("kind");

@@ -18,6 +18,7 @@
 #include "phantom/brain_shift_phantom.h"
 #include "phantom_evaluation.h"  // tests/pipeline
 #include "pipeline/engine_session.h"
+#include "pipeline/scan_report.h"  // result_caution
 #include "quality/uncertainty_map.h"
 #include "synthetic_head.h"  // tests/support
 
@@ -188,11 +189,13 @@ class DamagedInputs : public ::testing::Test {
   }
   static IntraopInput both(LabelImage labels, ImageF t1) { return {std::move(labels), std::move(t1)}; }
   // Labels with the case's image, through the engine's whole path for a
-  // pushed scan (the labels-vs-image check, a fallback on the image).
-  static ScanResult register_with_the_image(LabelImage labels) {
+  // pushed scan (the labels-vs-image check; refused labels refined give way
+  // to the image's own answer, used exactly to a fallback on the image).
+  static ScanResult register_with_the_image(LabelImage labels, GivenLabelsUse use = GivenLabelsUse::refine) {
     ScanInput scan;
     scan.labels = std::move(labels);
     scan.image = case_->intraop_t1;
+    scan.labels_use = use;
     return session_->register_scan(scan, nullptr);
   }
   static IntraopInput labels_only(LabelImage labels) { return {std::move(labels), std::nullopt}; }
@@ -257,12 +260,12 @@ TEST_F(DamagedInputs, ARefusalOfTheLabelsGeometryDeliversTheAffinesRigidPart) {
   expect_nearer_than_the_refused_affine(r, 1.0);
 }
 
-// A leak pushed with its image: the labels-vs-image check refuses it before
-// any gate, and the affine fitted to it is stretched, so the fallback is a
-// rigid transform from the image's own segmentation (docs/DESIGN.md
-// "Quality gates").
+// A leak pushed with its image to be used exactly: the labels-vs-image
+// check refuses it before any gate, and the affine fitted to it is
+// stretched, so the fallback is a rigid transform from the image's own
+// segmentation (docs/DESIGN.md "Quality gates").
 TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageFallBackToARigidTransformFromTheImage) {
-  const ScanResult r = register_with_the_image(leaked(case_->intraop_labels, 3));
+  const ScanResult r = register_with_the_image(leaked(case_->intraop_labels, 3), GivenLabelsUse::exact);
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos)
       << r.fallback_reason << r.metrics["label_image_check"].dump();
@@ -274,9 +277,10 @@ TEST_F(DamagedInputs, LabelsAtOddsWithTheirImageFallBackToARigidTransformFromThe
 }
 
 // Labels of the scan moved 10 mm (a segmentation of another series, or
-// saved with another header): the check refuses them, and the affine fitted
-// to them carries the shift, rigid part and all. The fallback registers the
-// image's own segmentation instead, so it lies where the brain does.
+// saved with another header), to be used exactly: the check refuses them,
+// and the affine fitted to them carries the shift, rigid part and all. The
+// fallback registers the image's own segmentation instead, so it lies where
+// the brain does.
 TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
   LabelImage moved(case_->intraop_labels.grid, 0);
   const Grid3& g = moved.grid;
@@ -284,7 +288,7 @@ TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
   for_each_voxel(g, [&](int i, int j, int k) {
     if (j >= shift_voxels) moved.at(i, j, k) = case_->intraop_labels.at(i, j - shift_voxels, k);
   });
-  const ScanResult r = register_with_the_image(std::move(moved));
+  const ScanResult r = register_with_the_image(std::move(moved), GivenLabelsUse::exact);
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_NE(r.fallback_reason.find("disagree with the intraop image"), std::string::npos) << r.fallback_reason;
   const ScanResult refused = with_refused_affine(r);
@@ -295,12 +299,12 @@ TEST_F(DamagedInputs, LabelsShiftedFromTheirImageFallBackToTheImagesOwnAffine) {
                                              << r.metrics["affine"].dump();
 }
 
-// Labels whose geometry the gates refuse, pushed with their image (the leak
-// of four voxels stretches their affine beyond the affine_stretch gate):
-// the image says where the brain is, so the fallback is the rigid part of
-// the image's own affine, and the gate's reason stands.
+// Labels whose geometry the gates refuse, pushed with their image to be used
+// exactly (the leak of four voxels stretches their affine beyond the
+// affine_stretch gate): the image says where the brain is, so the fallback
+// is the rigid part of the image's own affine, and the gate's reason stands.
 TEST_F(DamagedInputs, AGeometryRefusalWithItsImageFallsBackToTheImagesOwnAffine) {
-  const ScanResult r = register_with_the_image(leaked(case_->intraop_labels, 4));
+  const ScanResult r = register_with_the_image(leaked(case_->intraop_labels, 4), GivenLabelsUse::exact);
   ASSERT_EQ(r.kind, ResultKind::affine_only_fallback);
   ASSERT_EQ(r.fallback_reason.rfind("plausibility gate", 0), 0u) << r.fallback_reason;
   EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""),
@@ -308,6 +312,43 @@ TEST_F(DamagedInputs, AGeometryRefusalWithItsImageFallsBackToTheImagesOwnAffine)
             "refused)");
   expect_rigid(r.intraop_from_preop);
   expect_nearer_than_the_refused_affine(r, 1.0);
+}
+
+// The same refusals of labels to be refined by their image (the default):
+// the site asked for the image's judgement, so the answer is the image's
+// own (an image-only scan's), non-rigid, as near the truth as an image
+// alone gets, and never clean: it carries a caution naming the refusal.
+TEST_F(DamagedInputs, RefusedLabelsToBeRefinedGiveWayToTheImagesOwnAnswer) {
+  LabelImage moved(case_->intraop_labels.grid, 0);
+  const int shift_voxels = static_cast<int>(std::lround(10.0 / moved.grid.spacing_mm().y()));
+  for_each_voxel(moved.grid, [&](int i, int j, int k) {
+    if (j >= shift_voxels) moved.at(i, j, k) = case_->intraop_labels.at(i, j - shift_voxels, k);
+  });
+  ScanInput alone;
+  alone.image = case_->intraop_t1;
+  const ScanResult image_alone = session_->register_scan(alone, nullptr);
+  ASSERT_EQ(image_alone.kind, ResultKind::nonrigid) << image_alone.fallback_reason;
+  const double image_alone_mm = evaluation::evaluate_result("image alone", *case_, image_alone).nonrigid_mean_mm;
+  struct Refused {
+    const char* name;
+    LabelImage labels;
+    const char* why;
+  };
+  // (The leak of four voxels, refused for its geometry when used exactly, is
+  // refused by the check first here.)
+  for (const Refused& d : {Refused{"leak 3 voxels", leaked(case_->intraop_labels, 3), "disagree with their image"},
+                           Refused{"moved 10 mm", moved, "disagree with their image"},
+                           Refused{"leak 4 voxels", leaked(case_->intraop_labels, 4), "disagree with their image"}}) {
+    const ScanResult r = register_with_the_image(d.labels);
+    ASSERT_EQ(r.kind, ResultKind::nonrigid) << d.name << ": " << r.fallback_reason;
+    const nlohmann::json& given = r.metrics["given_labels"];
+    EXPECT_TRUE(given.value("disregarded", false)) << d.name << given.dump();
+    EXPECT_NE(given.value("why", "").find(d.why), std::string::npos) << d.name << given.dump();
+    EXPECT_NE(result_caution(r.metrics).find("the given labels were disregarded"), std::string::npos) << d.name;
+    ASSERT_TRUE(r.intraop_labels) << d.name << ": the image's segmentation is the answer's";
+    const double mm = evaluation::evaluate_result(d.name, *case_, r).nonrigid_mean_mm;
+    EXPECT_NEAR(mm, image_alone_mm, 0.05) << d.name;
+  }
 }
 
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {

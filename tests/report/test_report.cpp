@@ -201,6 +201,21 @@ TEST(Report, FallbackIsMarkedInTheTitleBand) {
   EXPECT_GT(differing, 100);
 }
 
+// A non-rigid result to be read with care (given labels the image's
+// refinement changed grossly) says so on an amber band, not the green one.
+TEST(Report, ACautionIsMarkedInTheTitleBand) {
+  const Scene s = make_scene();
+  ReportInputs in = inputs(s);
+  in.summary.caution = "brain the given labels lack: 131 ml, up to 17 mm deep, centred at (40, 10, 5) mm RAS";
+  ReportLayout L;
+  const Decoded d = decode(report_png_bytes(in, {}, &L));
+  EXPECT_EQ(d.at(L.result_band.x + L.result_band.width - 3, L.result_band.y + 2), (Rgb{165, 95, 0}));
+  // A fallback's red wins over a caution.
+  in.summary.fallback = true;
+  const Decoded f = decode(report_png_bytes(in, {}, &L));
+  EXPECT_EQ(f.at(L.result_band.x + L.result_band.width - 3, L.result_band.y + 2), (Rgb{170, 30, 30}));
+}
+
 // A fifth structure in the table gets its swatch and its contour colour.
 TEST(Report, LegendFollowsTheLabelTable) {
   Scene s = make_scene();

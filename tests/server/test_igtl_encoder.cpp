@@ -176,6 +176,12 @@ TEST(IgtlEncoder, StatusNamesScanKindAndReason) {
   auto ok = unpack<::igtl::StatusMessage>(sigtl::encode_result(r).back());
   EXPECT_EQ(ok->GetSubCode(), sigtl::kNonrigidSubcode);
   EXPECT_EQ(std::string(ok->GetErrorName()), "nonrigid");
+  EXPECT_FALSE(nlohmann::json::parse(ok->GetStatusString()).contains("caution"));
+  // A non-rigid result to be read with care stays non-rigid, its caution in the text.
+  r.result = {protocol::ResultKind::nonrigid, "", "brain the given labels lack: 120 ml"};
+  auto careful = unpack<::igtl::StatusMessage>(sigtl::encode_result(r).back());
+  EXPECT_EQ(careful->GetSubCode(), sigtl::kNonrigidSubcode);
+  EXPECT_EQ(nlohmann::json::parse(careful->GetStatusString()).at("caution"), r.result.caution);
 }
 
 TEST(IgtlEncoder, ResultOrderEndsWithStatusAndNamesPartsThatCannotBeSent) {
