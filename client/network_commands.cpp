@@ -591,7 +591,9 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
                    "labels) or exact (used as given; corrected by hand); default: the daemon's given_labels")
       ->check(CLI::IsMember({"refine", "exact"}));
   push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");
-  push->add_flag("--wait", pa->wait, "return once the result is ready (exit 4: affine-only fallback, 5: the scan failed)");
+  push->add_flag("--wait", pa->wait,
+                 "return once the result is ready (exit 4: affine-only fallback, 5: the scan failed; a caution "
+                 "on a non-rigid result is printed, exit 0)");
   push->add_option("--wait-timeout", pa->wait_s, "seconds to wait with --wait");
   push->callback([&o, exit_code, pa] { run(exit_code, [&] { return cmd_push(o, *pa); }); });
 

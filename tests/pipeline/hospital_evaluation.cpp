@@ -126,10 +126,17 @@ ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) 
         run.affine_stretch["brain_extent_in_view_mm"].push_back(d["brain_extent_in_view_mm"]);
     }
     if (result.metrics.contains("label_image_check")) run.label_image_check = result.metrics["label_image_check"];
+    if (input.labels && input.image && result.metrics.contains("given_labels")) {
+      const nlohmann::json& g = result.metrics["given_labels"];
+      run.given_labels = {{"refined", g.value("refined", false)},
+                          {"disregarded", g.value("disregarded", false)},
+                          {"caution", result.metrics.value("caution", "")}};
+      if (g.contains("changes")) run.given_labels["changes"] = g["changes"];
+    }
     if (result.warped_labels.grid.same_geometry(c.true_labels.grid))
       run.warped_beyond_truth = warped_beyond_truth(result.warped_labels, c.true_labels);
     // The uncertainty map, after the answer as the daemon makes it.
-    const IntraopInput prepared{input.labels ? *input.labels : *result.intraop_labels, input.image};
+    const IntraopInput prepared{result.labels_used(input.labels), input.image};
     session.add_uncertainty(prepared, result, nullptr);
     run.result = evaluate_result(c.phantom.description["name"].get<std::string>(), c.phantom, std::move(result));
   } catch (const InputError& e) {
@@ -162,7 +169,8 @@ nlohmann::json mode_json(const ModeRun& r) {
           {"segmentation", r.segmentation},
           {"affine_stretch", r.affine_stretch},
           {"warped_beyond_truth", r.warped_beyond_truth},
-          {"label_image_check", r.label_image_check}};
+          {"label_image_check", r.label_image_check},
+          {"given_labels", r.given_labels}};
 }
 
 nlohmann::json brief(const nlohmann::json& d) {

@@ -40,6 +40,9 @@ struct ModeRun {
   nlohmann::json affine_stretch;  // the plausibility gate's value, limit and brain extents in view
   nlohmann::json warped_beyond_truth;  // preop tissue the warped labels draw outside the true brain
   nlohmann::json label_image_check;    // labels with their image: the check's figures (metrics.label_image_check)
+  // labels with their image: refined or disregarded, what the refinement
+  // changed (metrics.given_labels.changes) and the result's caution
+  nlohmann::json given_labels;
 };
 
 // The preop tissue the warped labels draw outside the true intraop brain:
