@@ -256,8 +256,8 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   // the labels' geometry (volume, affine_stretch).
   const bool geometry_refused =
       result.kind != ResultKind::nonrigid && result.metrics["affine"].contains("fallback_transform");
-  // Labels to be refined by their image that are refused give way to the
-  // image alone: the site asked for the image's judgement, and the image's
+  // Labels to be refined by their image that are refused (by the check, or
+  // by the gates that judge their geometry) give way to the image alone: the site asked for the image's judgement, and the image's
   // own answer (validated as image-only scans are) is far nearer the truth
   // than any transform from the refused labels (docs/DESIGN.md "Quality
   // gates"). The answer is non-rigid with a caution, never clean. Labels
@@ -289,10 +289,11 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   };
   const bool check_refused = !c.failure.empty();
   bool disregarded = false;
-  if (use == GivenLabelsUse::refine && (check_refused || result.kind != ResultKind::nonrigid))
-    disregarded = answer_from_the_image(check_refused     ? "they disagree with their image: " + c.failure
-                                        : geometry_refused ? "the gates refused their geometry: " + result.fallback_reason
-                                                           : "a gate refused their registration: " + result.fallback_reason);
+  // Only refusals of the labels themselves: a fold, a residual or a solver
+  // failure in their pass says nothing against them, and its fallback stands.
+  if (use == GivenLabelsUse::refine && (check_refused || geometry_refused))
+    disregarded = answer_from_the_image(check_refused ? "they disagree with their image: " + c.failure
+                                                      : "the gates refused their geometry: " + result.fallback_reason);
   const auto refused_labels = [&](const std::string& why) {
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}, {"why", why}};
     if (!image_alone_refused.empty()) result.metrics["given_labels"]["image_alone_refused"] = image_alone_refused;
