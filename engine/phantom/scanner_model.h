@@ -10,8 +10,15 @@
 // (CSF -> 1, grey matter -> 0.45, white matter -> 0.3 of the CSF signal, so a
 // hypointense tumour is bright), fluid in the cavity, the gap and
 // subarachnoid CSF bright, blood dark (0.35), air 0, the rest of the head at
-// half its T1 value. The grid is the phantom's (PhantomSpec dims, spacing,
-// oblique_deg), so the truth field and the image share it.
+// half its T1 value. Or a contrast-enhanced T1 (gadolinium, as an intraop
+// scan that looks for residual tumour is made): the T1 with the dura
+// enhancing (the head within dura_mm of the intracranial space, the gap
+// and the cavity included, at 1.3 x white matter) and the resection margin
+// enhancing (tissue within dura_mm of the cavity's fluid or blood, at 1.2 x
+// white matter): a bright shell hugs the brain everywhere, and a bright rim
+// lines the cavity, where an outline drawn by intensity leaks. The grid is
+// the phantom's (PhantomSpec dims, spacing, oblique_deg), so the truth field
+// and the image share it.
 #include <Eigen/Dense>
 #include <random>
 #include <string>
@@ -24,7 +31,8 @@
 
 namespace brainshift {
 
-enum class Contrast { t1, t2_like };
+enum class Contrast { t1, t2_like, t1_contrast_enhanced };
+const char* contrast_name(Contrast c);
 
 struct ScannerSpec {
   std::string name = "1.5T_1mm";

@@ -182,6 +182,10 @@ int main(int argc, char** argv) {
                  "the subjects' tumours get a fluid core of this fraction of their radius (0-0.9; cases named "
                  "CASE_cystF): a cystic tumour, fluid in the preop where its labels say tumour")
       ->check(CLI::Range(0.0, 0.9));
+  bool contrast_enhanced = false;
+  app.add_flag("--contrast-enhanced", contrast_enhanced,
+               "every T1 case imaged contrast-enhanced (gadolinium: the dura and the resection margin enhance; "
+               "cases named CASE_gd): the bright shell round the brain an intensity outline leaks into");
   bool list_subjects = false;
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
@@ -192,6 +196,12 @@ int main(int argc, char** argv) {
       std::snprintf(suffix, sizeof suffix, "_cyst%g", cyst_fraction);
       c.deformation.name += suffix;
     }
+  if (contrast_enhanced)
+    for (auto& c : suite)
+      if (c.scanner.contrast == Contrast::t1) {
+        c.scanner.contrast = Contrast::t1_contrast_enhanced;
+        c.deformation.name += "_gd";
+      }
   if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {
     std::set<std::string> seen;

@@ -16,6 +16,7 @@
 #include <set>
 
 #include "core/errors.h"
+#include "image/distance_map.h"
 #include "phantom/hospital_suite.h"
 #include "synthetic_head.h"
 
@@ -228,6 +229,46 @@ TEST(HospitalSuite, AlgorithmicSegmentationErrsAsItsImageMakesIt) {
   // partial-volume voxels), not the T1's.
   EXPECT_NE(brain_ratio(t2), brain_ratio(iso));
   EXPECT_LT(label_dice(t2.phantom.intraop_labels, iso.phantom.intraop_labels, 1), 0.99);
+}
+
+// Gadolinium: a bright shell (the enhancing dura) hugs the brain; inside the
+// brain, away from any cavity, the image is the T1's, voxel for voxel (the
+// same seed draws the same noise).
+TEST(HospitalSuite, AContrastEnhancedT1BrightensAShellRoundTheBrainOnly) {
+  const HospitalCase t1 = make_hospital_case(synthetic_subject(), small_case(small_scanner({1.5, 1.5, 1.5}, Contrast::t1)));
+  const HospitalCase gd = make_hospital_case(
+      synthetic_subject(), small_case(small_scanner({1.5, 1.5, 1.5}, Contrast::t1_contrast_enhanced)));
+  const Grid3& g = t1.true_labels.grid;
+  Mask brain(g, 0), outside(g, 0);
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v) {
+    brain.voxels[v] = t1.true_labels.voxels[v] != 0;
+    outside.voxels[v] = !brain.voxels[v];
+  }
+  const ImageF out_mm = distance_to_mask_mm(brain), in_mm = distance_to_mask_mm(outside);
+  std::vector<float> brain_values;
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+    if (brain.voxels[v]) brain_values.push_back(t1.phantom.intraop_t1.voxels[v]);
+  std::nth_element(brain_values.begin(), brain_values.begin() + brain_values.size() / 2, brain_values.end());
+  const double brain_median = brain_values[brain_values.size() / 2];
+  double shell_gain = 0;
+  std::size_t shell = 0, deep = 0, deep_changed = 0;
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v) {
+    const double d = gd.phantom.intraop_t1.voxels[v] - t1.phantom.intraop_t1.voxels[v];
+    if (out_mm.voxels[v] > 0 && out_mm.voxels[v] <= 6.0) {
+      shell_gain += d;
+      ++shell;
+    }
+    if (in_mm.voxels[v] > 4.0) {
+      ++deep;
+      deep_changed += d != 0;
+    }
+  }
+  ASSERT_GT(shell, 0u);
+  ASSERT_GT(deep, 0u);
+  EXPECT_GT(shell_gain / shell, 0.1 * brain_median) << "no enhancing shell round the brain";
+  EXPECT_LT(static_cast<double>(deep_changed) / deep, 0.02) << "the brain itself changed";
+  EXPECT_EQ(gd.description["scanner"].value("contrast", ""), "t1_contrast_enhanced") << gd.description.dump();
+  EXPECT_GT(count(gd.phantom.intraop_labels, 2), 0u) << "the segmenter found no ventricles on the enhanced T1";
 }
 
 TEST(HospitalSuite, DeterministicFromTheSeed) {
