@@ -492,6 +492,18 @@ TEST_F(PipelineTest, WithoutACavityTheTumorIsNotTakenForResected) {
   EXPECT_FALSE(r.metrics["resection"].contains("system"));
 }
 
+// The centre of the labelled voxel farthest to the right (RAS x): where a
+// test cuts a piece of cortex from the labels.
+Eigen::Vector3d most_lateral_brain_point_mm(const LabelImage& labels) {
+  const Grid3& g = labels.grid;
+  Eigen::Vector3d lateral(-1e9, 0, 0);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        if (labels.at(i, j, k) != 0 && g.world_mm(i, j, k).x() > lateral.x()) lateral = g.world_mm(i, j, k);
+  return lateral;
+}
+
 }  // namespace
 
 // ---- Scans given as an image alone, and labels checked against their image ----
@@ -527,11 +539,7 @@ TEST_F(PipelineTest, LabelsWithADentTheImageDoesNotShowAreRefinedByIt) {
   const IntraopInput truth = translated_scan(*preop_, shift);
   // The dent: brain within 12 mm of the outline's most lateral voxel removed.
   const Grid3& g = truth.labels.grid;
-  Eigen::Vector3d lateral(-1e9, 0, 0);
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i)
-        if (truth.labels.at(i, j, k) != 0 && g.world_mm(i, j, k).x() > lateral.x()) lateral = g.world_mm(i, j, k);
+  const Eigen::Vector3d lateral = most_lateral_brain_point_mm(truth.labels);
   ScanInput dented;
   dented.labels = truth.labels;
   dented.image = test::scanner_image(*truth.t1);
@@ -586,11 +594,7 @@ TEST_F(PipelineTest, ALobeTheLabelsLackIsReportedWhenTheImageRefinesThem) {
   const Eigen::Vector3d shift(2.0, -1.0, 1.0);
   const IntraopInput truth = translated_scan(*preop_, shift);
   const Grid3& g = truth.labels.grid;
-  Eigen::Vector3d lateral(-1e9, 0, 0);
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i)
-        if (truth.labels.at(i, j, k) != 0 && g.world_mm(i, j, k).x() > lateral.x()) lateral = g.world_mm(i, j, k);
+  const Eigen::Vector3d lateral = most_lateral_brain_point_mm(truth.labels);
   Mask brain(g, 0);
   for (std::size_t v = 0; v < brain.voxels.size(); ++v) brain.voxels[v] = truth.labels.voxels[v] != 0;
   const double brain_voxels = std::count(brain.voxels.begin(), brain.voxels.end(), 1);
