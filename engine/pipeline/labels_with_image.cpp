@@ -257,10 +257,11 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
   const bool geometry_refused =
       result.kind != ResultKind::nonrigid && result.metrics["affine"].contains("fallback_transform");
   // Labels to be refined by their image that are refused (by the check, or
-  // by the gates that judge their geometry) give way to the image alone: the site asked for the image's judgement, and the image's
-  // own answer (validated as image-only scans are) is far nearer the truth
-  // than any transform from the refused labels (docs/DESIGN.md "Quality
-  // gates"). The answer is non-rigid with a caution, never clean. Labels
+  // by the gates that judge their geometry) give way to the image alone:
+  // the site asked for the image's judgement, and the image's own answer
+  // (validated as image-only scans are) is far nearer the truth than any
+  // transform from the refused labels (docs/DESIGN.md "Labels with their
+  // image"). The answer is non-rigid with a caution, never clean. Labels
   // used exactly (a site's hand correction) are not replaced: the marked
   // fallback, with the reason.
   std::string image_alone_refused;  // why the image's own answer was not taken
