@@ -114,7 +114,11 @@ std::string describe_event(const Message& e) {
       const auto d = parse_scan_done_event(e);
       std::snprintf(buf, sizeof buf, "%.3f s", d.seconds);
       os << "done     " << d.scan_id << ' ' << buf;
-      if (d.result) os << ' ' << to_string(d.result->kind);
+      if (d.result) {
+        os << ' ' << to_string(d.result->kind);
+        if (!d.result->fallback_reason.empty()) os << ": " << d.result->fallback_reason;
+        if (!d.result->caution.empty()) os << " CAUTION: " << d.result->caution;
+      }
       break;
     }
     case MessageType::kEventScanFailed: {
@@ -482,7 +486,11 @@ int cmd_list(const NetworkOptions& o, std::uint64_t limit) {
     std::cout << s.scan_id << '\t' << to_string(s.state) << '\t' << s.received_at << '\t'
               << s.client_scan_id.value_or("-");
     if (s.stage) std::cout << "\tstage " << *s.stage;
-    if (s.result) std::cout << '\t' << to_string(s.result->kind);
+    if (s.result) {
+      std::cout << '\t' << to_string(s.result->kind);
+      if (!s.result->fallback_reason.empty()) std::cout << '\t' << s.result->fallback_reason;
+      if (!s.result->caution.empty()) std::cout << "\tCAUTION: " << s.result->caution;
+    }
     if (s.error) std::cout << '\t' << s.error->message;
     std::cout << '\n';
   }

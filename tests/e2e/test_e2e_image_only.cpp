@@ -196,6 +196,10 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   for (std::size_t v = 0; v < truth.voxels.size(); ++v)
     if (truth.voxels[v]) image_error_mm += (image_field.vectors[v].cast<double>() + kShiftMm).norm() / truth_brain;
   EXPECT_LT(image_error_mm, 1.0) << "the image's own answer";
+  r = cli(daemon, {"list"});  // from scan.list.reply, as a monitor sees it
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find(disregarded_id + "\tdone\t"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("\tnonrigid\tCAUTION: the given labels were disregarded"), std::string::npos) << r.out;
   // Used exactly, they are the site's word and are not replaced: exit 4,
   // and the affine-only fallback comes from the image's own segmentation,
   // not from the labels, so it still recovers the known shift.
