@@ -96,6 +96,20 @@ struct ScanResult {
   }
 };
 
+// A non-rigid result to be read with care says why in metrics "caution"
+// (PROTOCOL.md 5.4): given labels refused or changed grossly by their
+// image, an image that looks contrast-enhanced. Each reason is appended.
+inline void add_caution(nlohmann::json& metrics, const std::string& why) {
+  const std::string before = metrics.is_object() ? metrics.value("caution", "") : "";
+  metrics["caution"] = before.empty() ? why : before + "; " + why;
+}
+// The result's caution; empty when it need not be read with care.
+inline std::string result_caution(const nlohmann::json& metrics) {
+  return metrics.is_object() && metrics.contains("caution") && metrics["caution"].is_string()
+             ? metrics["caution"].get<std::string>()
+             : std::string();
+}
+
 struct WarmState;  // mesh, surfaces, bindings, FEM model: see engine_session.cpp
 
 class EngineSession {

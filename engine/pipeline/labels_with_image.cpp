@@ -152,7 +152,7 @@ void refine_given_labels(WarmState& warm, const IntraopInput& input, const Pipel
     refined->timings["intraop"]["given_labels_pass"] = first_pass_seconds;
     first = std::move(*refined);
     // Beside "result": a non-rigid answer to be read with care.
-    if (report["changes"].value("gross", false)) first.metrics["caution"] = report["changes"]["caution"];
+    if (report["changes"].value("gross", false)) add_caution(first.metrics, report["changes"]["caution"]);
   }
   first.metrics["given_labels"] = std::move(report);
 }
@@ -284,8 +284,8 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
                                       {"refined", false},
                                       {"disregarded", true},
                                       {"why", why}};
-    result.metrics["caution"] = "the given labels were disregarded (" + why +
-                                "); the image's own segmentation was registered";
+    add_caution(result.metrics,
+                "the given labels were disregarded (" + why + "); the image's own segmentation was registered");
     return true;
   };
   const bool check_refused = !c.failure.empty();

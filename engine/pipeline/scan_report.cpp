@@ -11,12 +11,6 @@ std::optional<double> number_at(const nlohmann::json& j, const char* a, const ch
 
 }  // namespace
 
-std::string result_caution(const nlohmann::json& metrics) {
-  return metrics.is_object() && metrics.contains("caution") && metrics["caution"].is_string()
-             ? metrics["caution"].get<std::string>()
-             : std::string();
-}
-
 std::vector<ReportLegendEntry> report_legend(const LabelTable& table) {
   std::vector<ReportLegendEntry> legend;
   for (const auto& e : table.entries) legend.push_back({e.value, e.name, e.colour});

@@ -13,10 +13,6 @@ namespace brainshift {
 // The legend of the table (every entry, in table order, with its colour).
 std::vector<ReportLegendEntry> report_legend(const LabelTable& table);
 
-// Why a non-rigid result is to be read with care: metrics "caution" (given
-// labels the image's refinement changed grossly); empty when it need not be.
-std::string result_caution(const nlohmann::json& metrics);
-
 // The key numbers from result.metrics: "labels" / "labels_affine_only" (Dice,
 // mean surface distance), "jacobian.min" and the largest "surfaces.*.
 // max_residual_mm"; what the metrics lack stays absent ("n/a").

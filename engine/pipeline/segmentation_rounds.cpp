@@ -8,6 +8,7 @@
 #include "field/warp.h"
 #include "image/image_stats.h"
 #include "protocol/stage_names.h"
+#include "segmentation/enhanced_shell.h"
 #include "segmentation/head_mask.h"
 
 namespace brainshift {
@@ -247,6 +248,16 @@ ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, con
     r.result = s.run_pass(r.seg, false, unused, &same_labels_affine);
   }
   ScanResult result = std::move(r.result);
+  // Plausibility of the image, not agreement with it: a bright shell round
+  // the brain (an enhancing dura) is classified with it (enhanced_shell.h).
+  const segmentation::EnhancedShell shell =
+      segmentation::enhanced_shell(s.image, r.seg.bias, outline_mask(r.seg.labels), r.seg.classes);
+  seg_metrics["enhanced_shell"] = shell.metrics;
+  if (shell.enhanced)
+    add_caution(result.metrics,
+                "the image looks contrast-enhanced (" + std::to_string(static_cast<int>(100 * shell.bright_fraction)) +
+                    " % of the tissue 1.5-3 mm outside the brain as bright as brain: an enhancing dura); the "
+                    "automatic segmentation may hold the dura, and the answer be millimetres off at the surface");
   seg_metrics["classifier"] = r.seg.report;
   seg_metrics["gates"] = r.gates.metrics;
   seg_metrics["rounds"] = r.report;

@@ -119,6 +119,9 @@ ModeRun run_mode(EngineSession& session, const HospitalCase& c, InputMode mode) 
                                                 session.parameters().label_table.cavity_labels());
     if (result.metrics.contains("segmentation") && result.metrics["segmentation"].contains("rounds"))
       run.segmentation["volume_gate"] = volume_gate_rounds(result.metrics["segmentation"]);
+    if (result.metrics.contains("segmentation") && result.metrics["segmentation"].contains("enhanced_shell"))
+      run.segmentation["enhanced_shell"] = result.metrics["segmentation"]["enhanced_shell"];
+    run.caution = result_caution(result.metrics);
     if (result.metrics.contains("plausibility") && result.metrics["plausibility"].contains("affine_stretch")) {
       const auto& g = result.metrics["plausibility"]["affine_stretch"];
       run.affine_stretch = {{"value", g.value("value", 0.0)}, {"limit", g.value("limit", "")}};
@@ -170,7 +173,8 @@ nlohmann::json mode_json(const ModeRun& r) {
           {"affine_stretch", r.affine_stretch},
           {"warped_beyond_truth", r.warped_beyond_truth},
           {"label_image_check", r.label_image_check},
-          {"given_labels", r.given_labels}};
+          {"given_labels", r.given_labels},
+          {"caution", r.caution}};
 }
 
 nlohmann::json brief(const nlohmann::json& d) {

@@ -43,6 +43,7 @@ struct ModeRun {
   // labels with their image: refined or disregarded, what the refinement
   // changed (metrics.given_labels.changes) and the result's caution
   nlohmann::json given_labels;
+  std::string caution;  // the result's (metrics.caution), any mode
 };
 
 // The preop tissue the warped labels draw outside the true intraop brain:

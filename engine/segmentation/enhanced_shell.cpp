@@ -1,0 +1,49 @@
+#include "segmentation/enhanced_shell.h"
+
+#include <algorithm>
+#include <vector>
+
+#include "image/distance_map.h"
+
+namespace brainshift::segmentation {
+
+EnhancedShell enhanced_shell(const ImageF& image, const ImageF& bias, const Mask& brain,
+                             const std::vector<GaussianClass>& classes, const EnhancedShellParameters& params) {
+  EnhancedShell out;
+  const auto untested = [&](const char* why) {
+    out.why_not_tested = why;
+    out.metrics = {{"tested", false}, {"why", why}};
+    return out;
+  };
+  if (!image.grid.same_geometry(brain.grid) || !bias.grid.same_geometry(brain.grid))
+    return untested("the image, its bias and the segmentation are on different grids");
+  if (fluid_is_bright(classes)) return untested("a bright-fluid image: its CSF rim is bright by nature");
+  std::vector<float> inside;
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v)
+    if (brain.voxels[v]) inside.push_back(image.voxels[v] / bias.voxels[v]);
+  if (inside.empty()) return untested("no brain");
+  std::nth_element(inside.begin(), inside.begin() + inside.size() / 2, inside.end());
+  const double bright = params.bright_fraction_of_brain_median * inside[inside.size() / 2];
+  const ImageF outside_mm = distance_to_mask_mm(brain, params.outer_mm + brain.grid.spacing_mm().maxCoeff());
+  std::size_t shell = 0, lit = 0;
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v) {
+    const float d = outside_mm.voxels[v];
+    if (!(d > params.inner_mm && d <= params.outer_mm)) continue;
+    ++shell;
+    lit += image.voxels[v] / bias.voxels[v] >= bright;
+  }
+  // A shell of a few hundred voxels (a field of view that holds little
+  // of the brain's surround) says nothing.
+  if (shell < 1000) return untested("too little of the brain's surround is in the image");
+  out.tested = true;
+  out.bright_fraction = static_cast<double>(lit) / static_cast<double>(shell);
+  out.enhanced = out.bright_fraction > params.max_bright_fraction;
+  out.metrics = {{"tested", true},
+                 {"bright_fraction", out.bright_fraction},
+                 {"limit", params.max_bright_fraction},
+                 {"shell_mm", {params.inner_mm, params.outer_mm}},
+                 {"enhanced", out.enhanced}};
+  return out;
+}
+
+}  // namespace brainshift::segmentation

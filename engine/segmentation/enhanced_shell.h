@@ -1,0 +1,43 @@
+#pragma once
+// Does a bright shell hug the segmented brain? On a T1 made without
+// contrast, what lies 1.5-3 mm outside the brain's outline is the
+// subarachnoid CSF, the dura and the skull's inner table, all dark (the
+// suite's unenhanced scans: 1-4 % of those voxels as bright as 0.8 of the
+// brain's median); after gadolinium the dura enhances (17-31 % there), and
+// where it lies on the cortex the classifier cannot part it from the brain
+// (docs/DESIGN.md "Automatic intraop segmentation", item 13). Measured, not
+// corrected: the answer is cautioned. Not tested on a bright-fluid image
+// (T2-like), whose CSF rim is bright by nature.
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "segmentation/tissue_em.h"
+
+namespace brainshift::segmentation {
+
+struct EnhancedShellParameters {
+  double inner_mm = 1.5;  // beyond the outline's partial volume (a voxel)
+  double outer_mm = 3.0;  // before the diploe's fat (the inner table and dura are 2-4 mm thick together)
+  double bright_fraction_of_brain_median = 0.8;  // brighter than the CSF/bone partial volume, as bright as cortex
+  // Above this share of the shell's voxels bright, the image is taken as
+  // enhanced: 2.5 x the most seen on an unenhanced scan of the suite, 0.6 x
+  // the least on an enhanced one (docs/PERFORMANCE.md 12.36).
+  double max_bright_fraction = 0.10;
+};
+
+struct EnhancedShell {
+  bool tested = false;
+  double bright_fraction = 0;  // of the shell's voxels in the image
+  bool enhanced = false;
+  std::string why_not_tested;
+  nlohmann::json metrics;
+};
+
+// image and bias (multiplicative) on brain's grid; brain is the outline
+// (holes filled). classes: the segmentation's fitted classes.
+EnhancedShell enhanced_shell(const ImageF& image, const ImageF& bias, const Mask& brain,
+                             const std::vector<GaussianClass>& classes, const EnhancedShellParameters& params = {});
+
+}  // namespace brainshift::segmentation

@@ -1,0 +1,72 @@
+// Is the image contrast-enhanced (segmentation/enhanced_shell.h)? A ball of
+// brain in dark CSF and bone, with and without a bright shell (an enhancing
+// dura) 1.5-3.5 mm outside it; noise at an SNR of 10, a smooth bias.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+#include "segmentation/enhanced_shell.h"
+
+using namespace brainshift;
+using namespace brainshift::segmentation;
+
+namespace {
+
+struct Scene {
+  ImageF image, bias;
+  Mask brain;
+};
+
+// dura: the shell's intensity (0: no shell, the unenhanced scan).
+Scene ball_scene(float dura) {
+  Grid3 g;
+  g.dims = {90, 90, 90};
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  g.world_from_voxel.block<3, 1>(0, 3) = Eigen::Vector3d(-45, -45, -45);
+  Scene s{ImageF(g, 0.f), ImageF(g, 1.f), Mask(g, 0)};
+  std::mt19937_64 rng(5);
+  std::normal_distribution<float> noise(0.f, 10.f);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        const double r = p.norm();
+        const float b = static_cast<float>(1.0 + 0.2 * p.x() / 45.0);  // the coil's bias, +-20 %
+        float value = r < 30 ? 100.f : r < 41 ? 25.f : 140.f;          // brain, CSF and bone, scalp
+        if (dura > 0 && r >= 31.5 && r < 33.5) value = dura;
+        const std::size_t v = g.index(i, j, k);
+        s.image.voxels[v] = b * value + noise(rng);
+        s.bias.voxels[v] = b;
+        s.brain.voxels[v] = r < 30;
+      }
+  return s;
+}
+
+std::vector<GaussianClass> t1_classes() {
+  return {{Tissue::parenchyma, 100, 10, 1.0}, {Tissue::ventricle, 25, 8, 1.0}, {Tissue::outside, 25, 20, 1.0}};
+}
+
+}  // namespace
+
+TEST(EnhancedShell, ABrightShellRoundTheBrainIsFoundAndItsAbsenceIsNot) {
+  const Scene plain = ball_scene(0), enhanced = ball_scene(120);
+  const EnhancedShell p = enhanced_shell(plain.image, plain.bias, plain.brain, t1_classes());
+  const EnhancedShell e = enhanced_shell(enhanced.image, enhanced.bias, enhanced.brain, t1_classes());
+  ASSERT_TRUE(p.tested) << p.why_not_tested;
+  ASSERT_TRUE(e.tested) << e.why_not_tested;
+  EXPECT_FALSE(p.enhanced) << p.metrics.dump();
+  EXPECT_LT(p.bright_fraction, 0.02) << "dark CSF at an SNR of 10 is not bright";
+  EXPECT_TRUE(e.enhanced) << e.metrics.dump();
+  EXPECT_GT(e.bright_fraction, 0.5) << "the shell fills most of 1.5-3 mm";
+}
+
+TEST(EnhancedShell, ABrightFluidImageIsNotTested) {
+  const Scene s = ball_scene(120);
+  std::vector<GaussianClass> t2 = t1_classes();
+  t2[1].mean = 200;  // the ventricles' fluid brighter than the parenchyma
+  const EnhancedShell r = enhanced_shell(s.image, s.bias, s.brain, t2);
+  EXPECT_FALSE(r.tested);
+  EXPECT_FALSE(r.enhanced);
+  EXPECT_FALSE(r.metrics.value("tested", true));
+}
