@@ -35,13 +35,39 @@ EnhancedShell enhanced_shell(const ImageF& image, const ImageF& bias, const Mask
   // A shell of a few hundred voxels (a field of view that holds little
   // of the brain's surround) says nothing.
   if (shell < 1000) return untested("too little of the brain's surround is in the image");
+  // Where the segmentation took the shell in, it lies on the outline: the
+  // outline's outer layer is then as bright as the layer beneath it, where
+  // an unenhanced brain's is darker (the cortex's partial volume with the
+  // CSF). Layers of at least a voxel.
+  Mask outside(brain.grid, 0);
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v) outside.voxels[v] = !brain.voxels[v];
+  const double layer_mm = std::max(params.inner_mm, brain.grid.spacing_mm().maxCoeff());
+  const ImageF depth_mm = distance_to_mask_mm(outside, 2 * layer_mm + brain.grid.spacing_mm().maxCoeff());
+  double outer_sum = 0, beneath_sum = 0;
+  std::size_t outer_n = 0, beneath_n = 0;
+  for (std::size_t v = 0; v < brain.voxels.size(); ++v) {
+    const float d = depth_mm.voxels[v];
+    if (!brain.voxels[v] || !(d > 0)) continue;
+    const double value = image.voxels[v] / bias.voxels[v];
+    if (d <= layer_mm) {
+      outer_sum += value;
+      ++outer_n;
+    } else if (d <= 2 * layer_mm) {
+      beneath_sum += value;
+      ++beneath_n;
+    }
+  }
   out.tested = true;
   out.bright_fraction = static_cast<double>(lit) / static_cast<double>(shell);
-  out.enhanced = out.bright_fraction > params.max_bright_fraction;
+  out.surface_ratio = outer_n && beneath_n ? (outer_sum / outer_n) / (beneath_sum / beneath_n) : 0.0;
+  out.enhanced = out.bright_fraction > params.max_bright_fraction || out.surface_ratio > params.max_surface_ratio;
   out.metrics = {{"tested", true},
                  {"bright_fraction", out.bright_fraction},
                  {"limit", params.max_bright_fraction},
                  {"shell_mm", {params.inner_mm, params.outer_mm}},
+                 {"surface_ratio", out.surface_ratio},
+                 {"surface_ratio_limit", params.max_surface_ratio},
+                 {"layer_mm", layer_mm},
                  {"enhanced", out.enhanced}};
   return out;
 }

@@ -25,11 +25,19 @@ struct EnhancedShellParameters {
   // enhanced: 2.5 x the most seen on an unenhanced scan of the suite, 0.6 x
   // the least on an enhanced one (docs/PERFORMANCE.md 12.36).
   double max_bright_fraction = 0.10;
+  // Or the outline's outer layer (a voxel, at least inner_mm) at least this
+  // bright against the layer beneath: the cortex's edge holds its partial
+  // volume with the CSF, 0.86-0.90 of the layer beneath on unenhanced scans
+  // of the suite, 0.91-1.06 on enhanced ones, and 0.956-1.024 on the two
+  // whose shell the segmentation took in (docs/PERFORMANCE.md 12.36):
+  // between the two.
+  double max_surface_ratio = 0.92;
 };
 
 struct EnhancedShell {
   bool tested = false;
   double bright_fraction = 0;  // of the shell's voxels in the image
+  double surface_ratio = 0;    // the outline's outer layer's mean over the layer beneath's
   bool enhanced = false;
   std::string why_not_tested;
   nlohmann::json metrics;

@@ -1,6 +1,8 @@
 // Is the image contrast-enhanced (segmentation/enhanced_shell.h)? A ball of
-// brain in dark CSF and bone, with and without a bright shell (an enhancing
-// dura) 1.5-3.5 mm outside it; noise at an SNR of 10, a smooth bias.
+// brain (white matter within grey matter, a voxel of partial volume with the
+// CSF at its edge) in dark CSF and bone, with and without a bright shell (an
+// enhancing dura) 1.5-3.5 mm outside it; noise at an SNR of 10, a smooth
+// bias. The segmentation either stops at the brain or takes the shell in.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -18,8 +20,9 @@ struct Scene {
   Mask brain;
 };
 
-// dura: the shell's intensity (0: no shell, the unenhanced scan).
-Scene ball_scene(float dura) {
+// dura: the shell's intensity (0: no shell, the unenhanced scan);
+// outline_mm: the segmentation's radius.
+Scene ball_scene(float dura, double outline_mm = 30.5) {
   Grid3 g;
   g.dims = {90, 90, 90};
   g.world_from_voxel = Eigen::Matrix4d::Identity();
@@ -33,12 +36,12 @@ Scene ball_scene(float dura) {
         const Eigen::Vector3d p = g.world_mm(i, j, k);
         const double r = p.norm();
         const float b = static_cast<float>(1.0 + 0.2 * p.x() / 45.0);  // the coil's bias, +-20 %
-        float value = r < 30 ? 100.f : r < 41 ? 25.f : 140.f;          // brain, CSF and bone, scalp
+        float value = r < 26 ? 110.f : r < 29.5 ? 80.f : r < 30.5 ? 52.f : r < 41 ? 25.f : 140.f;
         if (dura > 0 && r >= 31.5 && r < 33.5) value = dura;
         const std::size_t v = g.index(i, j, k);
         s.image.voxels[v] = b * value + noise(rng);
         s.bias.voxels[v] = b;
-        s.brain.voxels[v] = r < 30;
+        s.brain.voxels[v] = r < outline_mm;
       }
   return s;
 }
@@ -57,10 +60,22 @@ TEST(EnhancedShell, ABrightShellRoundTheBrainIsFoundAndItsAbsenceIsNot) {
   ASSERT_TRUE(e.tested) << e.why_not_tested;
   EXPECT_FALSE(p.enhanced) << p.metrics.dump();
   EXPECT_LT(p.bright_fraction, 0.02) << "dark CSF at an SNR of 10 is not bright";
+  EXPECT_LT(p.surface_ratio, 0.92) << "the cortex's edge is darker than the cortex beneath";
   EXPECT_TRUE(e.enhanced) << e.metrics.dump();
   EXPECT_GT(e.bright_fraction, 0.5) << "the shell fills most of 1.5-3 mm";
 }
 
+// A segmentation that took the enhancing dura in: nothing bright lies
+// beyond it (the bone), but its outer layer is brighter than the cortex
+// beneath.
+TEST(EnhancedShell, ADuraTakenIntoTheBrainIsFoundByTheOutlinesOuterLayer) {
+  const Scene taken = ball_scene(120, 33.5);
+  const EnhancedShell e = enhanced_shell(taken.image, taken.bias, taken.brain, t1_classes());
+  ASSERT_TRUE(e.tested) << e.why_not_tested;
+  EXPECT_LT(e.bright_fraction, 0.10) << e.metrics.dump();
+  EXPECT_GT(e.surface_ratio, 0.92) << e.metrics.dump();
+  EXPECT_TRUE(e.enhanced) << e.metrics.dump();
+}
 TEST(EnhancedShell, ABrightFluidImageIsNotTested) {
   const Scene s = ball_scene(120);
   std::vector<GaussianClass> t2 = t1_classes();
