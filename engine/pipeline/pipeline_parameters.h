@@ -178,7 +178,8 @@ struct AutoSegmentationParameters {
   double max_uncertain_surface_fraction = 0.2;
   // A scan given with labels and an image: the labels checked against the
   // image (segmentation/label_image_check.h); gross disagreement gives the
-  // marked affine-only result.
+  // marked affine-only result for labels used exactly, and the image's own
+  // answer with a caution for labels to be refined.
   bool check_given_labels = true;
   // Labels pushed with their image: how the stages use them (a push may say,
   // protocol labels_use). refine: the labels' pass carries the preop onto the
