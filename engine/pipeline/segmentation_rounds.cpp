@@ -258,6 +258,7 @@ ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, con
                 "the image looks contrast-enhanced (" + std::to_string(static_cast<int>(100 * shell.bright_fraction)) +
                     " % of the tissue 1.5-3 mm outside the brain as bright as brain: an enhancing dura); the "
                     "automatic segmentation may hold the dura, and the answer be millimetres off at the surface");
+  // (shell.surface_ratio is reported with it, not judged: enhanced_shell.h.)
   seg_metrics["classifier"] = r.seg.report;
   seg_metrics["gates"] = r.gates.metrics;
   seg_metrics["rounds"] = r.report;

@@ -38,7 +38,7 @@ EnhancedShell enhanced_shell(const ImageF& image, const ImageF& bias, const Mask
   // Where the segmentation took the shell in, it lies on the outline: the
   // outline's outer layer is then as bright as the layer beneath it, where
   // an unenhanced brain's is darker (the cortex's partial volume with the
-  // CSF). Layers of at least a voxel.
+  // CSF). Layers of at least a voxel. Reported only (enhanced_shell.h).
   Mask outside(brain.grid, 0);
   for (std::size_t v = 0; v < brain.voxels.size(); ++v) outside.voxels[v] = !brain.voxels[v];
   const double layer_mm = std::max(params.inner_mm, brain.grid.spacing_mm().maxCoeff());
@@ -60,13 +60,12 @@ EnhancedShell enhanced_shell(const ImageF& image, const ImageF& bias, const Mask
   out.tested = true;
   out.bright_fraction = static_cast<double>(lit) / static_cast<double>(shell);
   out.surface_ratio = outer_n && beneath_n ? (outer_sum / outer_n) / (beneath_sum / beneath_n) : 0.0;
-  out.enhanced = out.bright_fraction > params.max_bright_fraction || out.surface_ratio > params.max_surface_ratio;
+  out.enhanced = out.bright_fraction > params.max_bright_fraction;
   out.metrics = {{"tested", true},
                  {"bright_fraction", out.bright_fraction},
                  {"limit", params.max_bright_fraction},
                  {"shell_mm", {params.inner_mm, params.outer_mm}},
-                 {"surface_ratio", out.surface_ratio},
-                 {"surface_ratio_limit", params.max_surface_ratio},
+                 {"surface_ratio", out.surface_ratio},  // reported, not judged (enhanced_shell.h)
                  {"layer_mm", layer_mm},
                  {"enhanced", out.enhanced}};
   return out;
