@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
 #include <future>
 #include <optional>
 
@@ -99,12 +98,7 @@ nlohmann::json refinement_changes(const LabelImage& given, const ScanResult& ref
                       {"band_mm", p.band_mm},
                       {"limit_ml", limit_ml},
                       {"seconds", watch.seconds()}};
-  const auto where = [](const segmentation::Disagreement& d) {
-    char text[160];
-    std::snprintf(text, sizeof text, "%.0f ml, up to %.0f mm deep, centred at (%.0f, %.0f, %.0f) mm RAS", d.volume_ml,
-                  d.max_depth_mm, d.centroid_mm[0], d.centroid_mm[1], d.centroid_mm[2]);
-    return std::string(text);
-  };
+  const auto where = [&](const segmentation::Disagreement& d) { return segmentation::to_text(d, p.band_mm); };
   std::string caution;
   if (added.volume_ml > limit_ml) caution = "brain the given labels lack: " + where(added);
   if (removed.volume_ml > limit_ml)

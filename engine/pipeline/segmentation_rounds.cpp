@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "core/errors.h"
+#include "core/timer.h"
 #include "field/vector_sampling.h"
 #include "field/warp.h"
 #include "image/image_stats.h"
@@ -250,9 +251,11 @@ ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, con
   ScanResult result = std::move(r.result);
   // Plausibility of the image, not agreement with it: a bright shell round
   // the brain (an enhancing dura) is classified with it (enhanced_shell.h).
+  const Stopwatch shell_watch;
   const segmentation::EnhancedShell shell =
       segmentation::enhanced_shell(s.image, r.seg.bias, outline_mask(r.seg.labels), r.seg.classes);
   seg_metrics["enhanced_shell"] = shell.metrics;
+  seg_metrics["enhanced_shell"]["seconds"] = shell_watch.seconds();
   if (shell.enhanced)
     add_caution(result.metrics,
                 "the image looks contrast-enhanced (" + std::to_string(static_cast<int>(100 * shell.bright_fraction)) +

@@ -27,6 +27,13 @@ Disagreement disagreement_beyond_band(const Mask& a, const Mask& b, const ImageF
   return d;
 }
 
+std::string to_text(const Disagreement& d, double band_mm) {
+  char text[200];
+  std::snprintf(text, sizeof text, "%.1f ml beyond %.0f mm, up to %.0f mm deep, centred at (%.0f, %.0f, %.0f) mm RAS",
+                d.volume_ml, band_mm, d.max_depth_mm, d.centroid_mm[0], d.centroid_mm[1], d.centroid_mm[2]);
+  return text;
+}
+
 nlohmann::json to_json(const Disagreement& d) {
   return {{"volume_ml", d.volume_ml}, {"max_depth_mm", d.max_depth_mm}, {"centroid_mm", d.centroid_mm}};
 }
@@ -73,10 +80,7 @@ LabelImageCheck check_labels_against_image(const ImageF& full_image, const Label
   check.image_not_labels = disagreement_beyond_band(seen, given, seg.confidence, params.min_posterior, params.band_mm);
   const double limit_ml = params.max_disagreement_fraction * check.brain_ml;
   auto describe = [&](const Disagreement& d, const char* what) {
-    char text[200];
-    std::snprintf(text, sizeof text, "%.1f ml beyond %.0f mm, up to %.0f mm deep, centred at (%.0f, %.0f, %.0f) mm RAS",
-                  d.volume_ml, params.band_mm, d.max_depth_mm, d.centroid_mm[0], d.centroid_mm[1], d.centroid_mm[2]);
-    return std::string(what) + ": " + text;
+    return std::string(what) + ": " + to_text(d, params.band_mm);
   };
   if (check.labels_not_image.volume_ml > limit_ml)
     check.failure = describe(check.labels_not_image,

@@ -71,6 +71,8 @@ struct LabelImageCheck {
 Disagreement disagreement_beyond_band(const Mask& a, const Mask& b, const ImageF& confidence, double min_posterior,
                                       double band_mm);
 nlohmann::json to_json(const Disagreement& d);
+// "V ml beyond B mm, up to D mm deep, centred at (x, y, z) mm RAS".
+std::string to_text(const Disagreement& d, double band_mm);
 
 // labels in the table's values on the image's grid. The volumes, depths and
 // centroid are measured on the check's grid (grid_spacing_mm).
