@@ -28,6 +28,22 @@ struct Samples {
   std::vector<double> intensity;                 // normalised
   std::vector<std::array<double, kTissues>> log_prior;
   std::vector<char> band;  // in_surface_band
+  std::vector<double> inside;  // prior of brain (parenchyma + ventricles), for the bias step
+};
+
+// Responsibilities of every sample for every class, one row of `classes`
+// values per sample, contiguous: the E-step, M-step and bias step sweep it
+// in order.
+class Responsibilities {
+ public:
+  Responsibilities(std::size_t samples, std::size_t classes) : classes_(classes), gamma_(samples * classes, 0.0) {}
+  double* row(std::size_t n) { return gamma_.data() + n * classes_; }
+  const double* row(std::size_t n) const { return gamma_.data() + n * classes_; }
+  std::size_t classes() const { return classes_; }
+
+ private:
+  std::size_t classes_;
+  std::vector<double> gamma_;
 };
 
 double brain_prior_at(const TissuePrior& prior, std::size_t v) {
@@ -57,6 +73,7 @@ Samples draw_samples(const ImageF& image, const TissuePrior& prior, double scale
         for (int t = 0; t < kTissues; ++t) lp[t] = prior.p[t][v] > 0 ? std::log(prior.p[t][v]) : kLogTiny;
         s.log_prior.push_back(lp);
         s.band.push_back(in_surface_band(brain_prior_at(prior, v)));
+        s.inside.push_back(std::exp(lp[0]) + std::exp(lp[1]));
       }
   return s;
 }
@@ -220,17 +237,18 @@ ClassTerms class_terms(const std::vector<GaussianClass>& classes) {
 // log sum_c pi_c N(x; mu_c, sd_c) + log prior_t per tissue, and the class
 // responsibilities; returns log sum over everything.
 double responsibilities(double x, const std::array<double, kTissues>& log_prior, const ClassTerms& k, bool band,
-                        std::vector<double>& gamma) {
+                        double* gamma) {
+  const std::size_t C = k.mean.size();
   double top = -std::numeric_limits<double>::infinity();
   const std::vector<double>& log_scale = k.log_scale[band ? 1 : 0];
-  for (std::size_t c = 0; c < gamma.size(); ++c) {
+  for (std::size_t c = 0; c < C; ++c) {
     const double z = (x - k.mean[c]) * k.inv_sd[c];
     gamma[c] = log_prior[k.tissue[c]] + log_scale[c] - 0.5 * z * z;
     top = std::max(top, gamma[c]);
   }
   double sum = 0;
-  for (double& g : gamma) sum += (g = std::exp(g - top));
-  for (double& g : gamma) g /= sum;
+  for (std::size_t c = 0; c < C; ++c) sum += (gamma[c] = std::exp(gamma[c] - top));
+  for (std::size_t c = 0; c < C; ++c) gamma[c] /= sum;
   return top + std::log(sum);
 }
 
@@ -300,19 +318,23 @@ void hold_surface_fluid(const std::vector<double>& w, const std::vector<double>&
   held->band_weight = band_share;
 }
 
-void maximise(const Samples& s, const std::vector<std::vector<double>>& gamma, const std::vector<double>& corrected,
+void maximise(const Samples& s, const Responsibilities& gamma, const std::vector<double>& corrected,
               std::vector<GaussianClass>& classes, bool fixed_ventricle_class) {
   const std::size_t C = classes.size();
   std::vector<double> w(C, 0), m(C, 0), q(C, 0), w_band(C, 0);
-  for (std::size_t n = 0; n < s.intensity.size(); ++n)
+  for (std::size_t n = 0; n < s.intensity.size(); ++n) {
+    const double* g = gamma.row(n);
     for (std::size_t c = 0; c < C; ++c) {
-      w[c] += gamma[n][c];
-      m[c] += gamma[n][c] * corrected[n];
-      if (s.band[n]) w_band[c] += gamma[n][c];
+      w[c] += g[c];
+      m[c] += g[c] * corrected[n];
+      if (s.band[n]) w_band[c] += g[c];
     }
+  }
   for (std::size_t c = 0; c < C; ++c) m[c] = w[c] > 0 ? m[c] / w[c] : classes[c].mean;
-  for (std::size_t n = 0; n < s.intensity.size(); ++n)
-    for (std::size_t c = 0; c < C; ++c) q[c] += gamma[n][c] * (corrected[n] - m[c]) * (corrected[n] - m[c]);
+  for (std::size_t n = 0; n < s.intensity.size(); ++n) {
+    const double* g = gamma.row(n);
+    for (std::size_t c = 0; c < C; ++c) q[c] += g[c] * (corrected[n] - m[c]) * (corrected[n] - m[c]);
+  }
   std::array<double, kTissues> tissue_weight{};
   for (std::size_t c = 0; c < C; ++c) tissue_weight[index_of(classes[c].tissue)] += w[c];
   for (std::size_t c = 0; c < C; ++c) {
@@ -339,15 +361,14 @@ constexpr double kBiasCoreInside = 0.99;
 constexpr double kBiasInlierSd = 2.5;
 const double kMaxLogBias = std::log(4.0);
 
-void fit_bias(const Samples& s, const std::vector<std::vector<double>>& gamma, const std::vector<double>& corrected,
+void fit_bias(const Samples& s, const Responsibilities& gamma, const std::vector<double>& corrected,
               const std::vector<GaussianClass>& classes, LogBiasField& bias) {
   std::vector<double> ratio(s.intensity.size(), 0), weight(s.intensity.size(), 0);
   for (std::size_t n = 0; n < s.intensity.size(); ++n) {
-    const auto best = static_cast<std::size_t>(
-        std::max_element(gamma[n].begin(), gamma[n].end()) - gamma[n].begin());
+    const double* row = gamma.row(n);
+    const auto best = static_cast<std::size_t>(std::max_element(row, row + gamma.classes()) - row);
     const GaussianClass& g = classes[best];
-    const double inside = std::exp(s.log_prior[n][0]) + std::exp(s.log_prior[n][1]);
-    if (inside < kBiasCoreInside || gamma[n][best] < 0.9 || g.tissue == Tissue::outside || s.intensity[n] <= 0 ||
+    if (s.inside[n] < kBiasCoreInside || row[best] < 0.9 || g.tissue == Tissue::outside || s.intensity[n] <= 0 ||
         g.mean <= 0)
       continue;
     // A tissue no class describes (a tumour, blood) is not a bias.
@@ -368,9 +389,15 @@ void fit_bias(const Samples& s, const std::vector<std::vector<double>>& gamma, c
 }
 
 // log b at every sample (each on its own: both cores, the same result).
-void refresh_log_bias(const Samples& s, const LogBiasField& bias, std::vector<double>& log_b) {
+// The samples' log bias and the intensities it corrects, taken again only
+// when the bias moves.
+void refresh_log_bias(const Samples& s, const LogBiasField& bias, std::vector<double>& log_b,
+                      std::vector<double>& corrected) {
   parallel_halves(log_b.size(), 8192, [&](std::size_t begin, std::size_t end) {
-    for (std::size_t n = begin; n < end; ++n) log_b[n] = bias.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
+    for (std::size_t n = begin; n < end; ++n) {
+      log_b[n] = bias.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
+      corrected[n] = s.intensity[n] * std::exp(-log_b[n]);
+    }
   });
 }
 
@@ -441,7 +468,9 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
   const double scale = brain_intensity_scale(image, prior);
   const Samples s = draw_samples(image, prior, scale, params.fit_samples);
   const std::size_t N = s.intensity.size();
-  std::vector<double> corrected = s.intensity, log_b(N, 0);
+  // corrected: the intensities the last E-step saw (the next phase's classes
+  // start from them); bias_corrected: under the bias as it now stands.
+  std::vector<double> corrected = s.intensity, bias_corrected = s.intensity, log_b(N, 0);
   EmResult out;
   // Two phases. First a bias of degree 1 at most: a linear field cannot
   // mimic the grey rind around a brighter white core (a quadratic can: the
@@ -459,7 +488,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     }
     classes = initial_classes(s, corrected, params.classes, prior.ventricle_share);
     const int budget = phase == 0 ? std::min(params.max_iterations, 10) : params.max_iterations;
-    std::vector<std::vector<double>> gamma(N, std::vector<double>(classes.size(), 0));
+    Responsibilities gamma(N, classes.size());
     double previous = -std::numeric_limits<double>::infinity();
     // The bias step fits on the samples whose class is clear, so it need not
     // raise the likelihood as an EM step does: a step that lowers it is
@@ -477,8 +506,8 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
         // fast on two cores (the same sums in the same order).
         double sum = 0;
         for (std::size_t n = begin; n < end; ++n) {
-          corrected[n] = s.intensity[n] * std::exp(-log_b[n]);
-          sum += responsibilities(corrected[n], s.log_prior[n], terms, s.band[n], gamma[n]) - log_b[n];
+          corrected[n] = bias_corrected[n];
+          sum += responsibilities(corrected[n], s.log_prior[n], terms, s.band[n], gamma.row(n)) - log_b[n];
         }
         partial[half] = sum;
       });
@@ -488,7 +517,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
         bias = before_bias;
         bias_frozen = true;
         bias_moved = false;
-        refresh_log_bias(s, bias, log_b);
+        refresh_log_bias(s, bias, log_b, bias_corrected);
         continue;
       }
       out.mean_log_likelihood = ll;
@@ -501,7 +530,7 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
         before_bias = bias;
         fit_bias(s, gamma, corrected, classes, bias);
         bias_moved = true;
-        refresh_log_bias(s, bias, log_b);
+        refresh_log_bias(s, bias, log_b, bias_corrected);
       }
     }
   }
