@@ -444,7 +444,7 @@ nlohmann::json describe(const EmResult& em) {
                        {"band_weight", g.band_weight > 0 ? g.band_weight : g.weight},
                        {"surface_fluid", g.surface_fluid}});
   return {{"classes", classes}, {"iterations", em.iterations}, {"converged", em.converged},
-          {"mean_log_likelihood", em.mean_log_likelihood}};
+          {"mean_log_likelihood", em.mean_log_likelihood}, {"samples", em.samples}};
 }
 
 }  // namespace

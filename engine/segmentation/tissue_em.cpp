@@ -491,10 +491,11 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
   const double scale = brain_intensity_scale(image, prior);
   const Samples s = draw_samples(image, prior, scale, params.fit_samples);
   const std::size_t N = s.intensity.size();
+  EmResult out;
+  out.samples = N;
   // corrected: the intensities the last E-step saw (the next phase's classes
   // start from them); bias_corrected: under the bias as it now stands.
   std::vector<double> corrected = s.intensity, bias_corrected = s.intensity, log_b(N, 0);
-  EmResult out;
   // Two phases. First a bias of degree 1 at most: a linear field cannot
   // mimic the grey rind around a brighter white core (a quadratic can: the
   // classic local optimum of EM with a bias, where the field takes the

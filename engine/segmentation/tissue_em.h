@@ -90,6 +90,7 @@ struct EmResult {
   int iterations = 0;
   bool converged = false;
   double mean_log_likelihood = 0;
+  std::size_t samples = 0;  // the fit's subsample (at most EmParameters::fit_samples; 0 when given the classes)
 };
 
 // image and prior on the same grid. InputError when the prior has no brain or

@@ -601,6 +601,23 @@ TEST(TissueEm, TheFitSeesTheWholeImageWhateverTheGridDimensions) {
   EXPECT_GE(dice(seg.labels, head.truth, 2), 0.85) << seg.report.dump();
 }
 
+// The fit's time is in proportion to its samples: at most the budget on any
+// grid. On 2 x 2 x 2.5 mm (the first round's prior grid) strides rounded per
+// axis took a third more; on 1.45 mm they would take all voxels.
+TEST(TissueEm, TheFitTakesAtMostItsSampleBudgetOnAnyGrid) {
+  const Intensities in;
+  for (const Eigen::Vector3d spacing : {Eigen::Vector3d(2.0, 2.0, 2.5), Eigen::Vector3d(1.45, 1.45, 1.45)}) {
+    const Synthetic head = make_head(in, 5.0, 0.0, 0.0, spacing);
+    SegmentationParameters params = params_for_test();
+    params.em.fit_samples = 20000;
+    const IntraopSegmentation seg = segment_intraop(head.image, head.truth, 1, {2}, params);
+    ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+    const auto samples = seg.report.at("samples").get<std::size_t>();
+    EXPECT_LE(samples, params.em.fit_samples) << spacing.transpose();
+    EXPECT_GE(samples, params.em.fit_samples / 3) << spacing.transpose();
+  }
+}
+
 TEST(TissueEm, AnImageThatCannotShowTheVentriclesIsRefusedWithTheReason) {
   Intensities flat;
   flat.ventricle = flat.wm;  // no fluid/tissue contrast at all
