@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 
 #include "core/errors.h"
 #include "core/timer.h"
@@ -256,12 +257,16 @@ ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, con
       segmentation::enhanced_shell(s.image, r.seg.bias, outline_mask(r.seg.labels), r.seg.classes);
   seg_metrics["enhanced_shell"] = shell.metrics;
   seg_metrics["enhanced_shell"]["seconds"] = shell_watch.seconds();
-  if (shell.enhanced)
+  if (shell.enhanced) {
+    char ratio[16];
+    std::snprintf(ratio, sizeof ratio, "%.2f", shell.surface_ratio);
     add_caution(result.metrics,
                 "the image looks contrast-enhanced (" + std::to_string(static_cast<int>(100 * shell.bright_fraction)) +
-                    " % of the tissue 1.5-3 mm outside the brain as bright as brain: an enhancing dura); the "
-                    "automatic segmentation may hold the dura, and the answer be millimetres off at the surface");
-  // (shell.surface_ratio is reported with it, not judged: enhanced_shell.h.)
+                    " % of the tissue 1.5-3 mm outside the brain as bright as brain, the brain's outer layer " +
+                    ratio +
+                    " x as bright as the cortex beneath: an enhancing dura); the automatic segmentation may hold "
+                    "the dura, and the answer be millimetres off at the surface");
+  }
   seg_metrics["classifier"] = r.seg.report;
   seg_metrics["gates"] = r.gates.metrics;
   seg_metrics["rounds"] = r.report;

@@ -54,7 +54,7 @@ EnhancedShell enhanced_shell(const ImageF& image, const ImageF& bias, const Mask
   // Where the segmentation took the shell in, it lies on the outline: the
   // outline's outer layer is then as bright as the layer beneath it, where
   // an unenhanced brain's is darker (the cortex's partial volume with the
-  // CSF). Layers of at least a voxel. Reported only (enhanced_shell.h).
+  // CSF). Layers of at least a voxel.
   Mask outside(g, 0);
   for (std::size_t b = 0; b < brain_box.voxels.size(); ++b) outside.voxels[b] = !brain_box.voxels[b];
   const ImageF depth_mm = distance_to_mask_mm(outside, 2 * layer_mm + voxel_mm);
@@ -76,12 +76,16 @@ EnhancedShell enhanced_shell(const ImageF& image, const ImageF& bias, const Mask
   out.tested = true;
   out.bright_fraction = static_cast<double>(lit) / static_cast<double>(shell);
   out.surface_ratio = outer_n && beneath_n ? (outer_sum / outer_n) / (beneath_sum / beneath_n) : 0.0;
-  out.enhanced = out.bright_fraction > params.max_bright_fraction;
+  out.enhanced = out.bright_fraction > params.max_bright_fraction ||
+                 (out.bright_fraction > params.outline_bright_fraction &&
+                  out.surface_ratio > params.outline_surface_ratio);
   out.metrics = {{"tested", true},
                  {"bright_fraction", out.bright_fraction},
                  {"limit", params.max_bright_fraction},
                  {"shell_mm", {params.inner_mm, params.outer_mm}},
-                 {"surface_ratio", out.surface_ratio},  // reported, not judged (enhanced_shell.h)
+                 {"surface_ratio", out.surface_ratio},
+                 {"with_outline", {{"bright_fraction", params.outline_bright_fraction},
+                                   {"surface_ratio", params.outline_surface_ratio}}},
                  {"layer_mm", layer_mm},
                  {"enhanced", out.enhanced}};
   return out;

@@ -20,9 +20,9 @@ struct Scene {
   Mask brain;
 };
 
-// dura: the shell's intensity (0: no shell, the unenhanced scan);
-// outline_mm: the segmentation's radius.
-Scene ball_scene(float dura, double outline_mm = 30.5) {
+// dura: the shell's intensity (0: no shell, the unenhanced scan), from 31.5
+// mm to dura_outer_mm; outline_mm: the segmentation's radius.
+Scene ball_scene(float dura, double outline_mm = 30.5, double dura_outer_mm = 33.5) {
   Grid3 g;
   g.dims = {90, 90, 90};
   g.world_from_voxel = Eigen::Matrix4d::Identity();
@@ -37,7 +37,7 @@ Scene ball_scene(float dura, double outline_mm = 30.5) {
         const double r = p.norm();
         const float b = static_cast<float>(1.0 + 0.2 * p.x() / 45.0);  // the coil's bias, +-20 %
         float value = r < 26 ? 110.f : r < 29.5 ? 80.f : r < 30.5 ? 52.f : r < 41 ? 25.f : 140.f;
-        if (dura > 0 && r >= 31.5 && r < 33.5) value = dura;
+        if (dura > 0 && r >= 31.5 && r < dura_outer_mm) value = dura;
         const std::size_t v = g.index(i, j, k);
         s.image.voxels[v] = b * value + noise(rng);
         s.bias.voxels[v] = b;
@@ -65,15 +65,27 @@ TEST(EnhancedShell, ABrightShellRoundTheBrainIsFoundAndItsAbsenceIsNot) {
   EXPECT_GT(e.bright_fraction, 0.5) << "the shell fills most of 1.5-3 mm";
 }
 
-// A segmentation that took the enhancing dura in: nothing bright lies
-// beyond it (the bone), so the test does not see it (a known miss,
-// docs/PERFORMANCE.md 12.36); the outline's outer layer, reported, is then
-// brighter than the cortex beneath.
-TEST(EnhancedShell, ADuraTakenIntoTheBrainShowsInTheOutlinesOuterLayerOnly) {
+// A segmentation that took most of a thicker enhancing dura in: less than
+// the first test's share lies bright beyond it, but the outline's outer
+// layer is brighter than the cortex beneath, and both together caution.
+TEST(EnhancedShell, ADuraMostlyTakenIntoTheBrainIsFoundByItsOuterLayer) {
+  const Scene taken = ball_scene(120, 33.5, 34.9);
+  const EnhancedShell e = enhanced_shell(taken.image, taken.bias, taken.brain, t1_classes());
+  ASSERT_TRUE(e.tested) << e.why_not_tested;
+  EXPECT_GT(e.bright_fraction, 0.05) << e.metrics.dump();
+  EXPECT_LT(e.bright_fraction, 0.10) << e.metrics.dump();
+  EXPECT_GT(e.surface_ratio, 0.93) << e.metrics.dump();
+  EXPECT_TRUE(e.enhanced) << e.metrics.dump();
+}
+
+// All of the dura taken in: nothing bright lies beyond it (the bone), and
+// a bright outer layer alone is no proof (a smooth synthetic cortex has one
+// too): a known miss (docs/PERFORMANCE.md 12.37).
+TEST(EnhancedShell, ADuraWhollyTakenInShowsInTheOutlinesOuterLayerOnly) {
   const Scene taken = ball_scene(120, 33.5);
   const EnhancedShell e = enhanced_shell(taken.image, taken.bias, taken.brain, t1_classes());
   ASSERT_TRUE(e.tested) << e.why_not_tested;
-  EXPECT_LT(e.bright_fraction, 0.10) << e.metrics.dump();
+  EXPECT_LT(e.bright_fraction, 0.05) << e.metrics.dump();
   EXPECT_FALSE(e.enhanced) << e.metrics.dump();
   EXPECT_GT(e.surface_ratio, 1.0) << e.metrics.dump();
 }
