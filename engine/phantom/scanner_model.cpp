@@ -35,6 +35,40 @@ double t2_of_tissue(double t1, const IntraopScene& s, double reference) {
   return reference * (ys[seg] + f * (ys[seg + 1] - ys[seg]));
 }
 
+// FLAIR-like value of brain tissue from its T1, by its place r between the
+// subject's CSF (0) and white matter (1) on the T1: piecewise linear
+// through (0, 0.12), (0.7, 0.62), (1, 0.45), flat beyond; times the
+// reference (white matter's T1). Grey matter sits at about 0.7 of the way
+// on a T1 (0.8 of white matter with CSF at 0.3); the subject's 30th
+// percentile is not used: on a brain mostly white it is white matter.
+double flair_of_tissue(double t1, const IntraopScene& s, double reference) {
+  constexpr double kGreyPlace = 0.7;
+  const double r = std::clamp((t1 - s.csf_t1) / std::max(1e-9, s.wm_t1 - s.csf_t1), 0.0, 1.0);
+  const double y = r < kGreyPlace ? 0.12 + (0.62 - 0.12) * r / kGreyPlace
+                                  : 0.62 + (0.45 - 0.62) * (r - kGreyPlace) / (1 - kGreyPlace);
+  return reference * y;
+}
+
+ImageF flair_like(const IntraopScene& scene) {
+  ImageF out(scene.t1.grid, 0.f);
+  const double reference = scene.wm_t1;
+  for (std::size_t v = 0; v < out.voxels.size(); ++v) {
+    const double t1 = scene.t1.voxels[v];
+    double value = 0;
+    switch (static_cast<SceneClass>(scene.classes.voxels[v])) {
+      case SceneClass::tissue: value = flair_of_tissue(t1, scene, reference); break;
+      case SceneClass::cavity_fluid:
+      case SceneClass::gap_fluid:
+      case SceneClass::extracerebral_csf: value = 0.12 * reference; break;
+      case SceneClass::blood: value = 0.7 * reference; break;
+      case SceneClass::head: value = 0.6 * t1; break;
+      case SceneClass::air: value = 0; break;
+    }
+    out.voxels[v] = static_cast<float>(value);
+  }
+  return out;
+}
+
 // Gadolinium: the dura's and the resection margin's enhancement (see the
 // header). Thickness 1.5 mm: the dura is about 1 mm, and enhancement of the
 // margin a millimetre or two; the scene grid resolves it.
@@ -67,6 +101,7 @@ const char* contrast_name(Contrast c) {
     case Contrast::t1: return "t1";
     case Contrast::t2_like: return "t2_like";
     case Contrast::t1_contrast_enhanced: return "t1_contrast_enhanced";
+    case Contrast::flair_like: return "flair_like";
   }
   return "?";
 }
@@ -86,6 +121,7 @@ void apply_scanner_grid(const ScannerSpec& scanner, PhantomSpec& spec) {
 ImageF scene_contrast(const IntraopScene& scene, Contrast contrast) {
   if (contrast == Contrast::t1) return scene.t1;
   if (contrast == Contrast::t1_contrast_enhanced) return contrast_enhanced(scene);
+  if (contrast == Contrast::flair_like) return flair_like(scene);
   ImageF out(scene.t1.grid, 0.f);
   // The CSF signal sets the scale: as bright as white matter is on the T1.
   const double reference = scene.wm_t1;

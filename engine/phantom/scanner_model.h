@@ -16,7 +16,14 @@
 // and the cavity included, at 1.3 x white matter) and the resection margin
 // enhancing (tissue within dura_mm of the cavity's fluid or blood, at 1.2 x
 // white matter): a bright shell hugs the brain everywhere, and a bright rim
-// lines the cavity, where an outline drawn by intensity leaks. The grid is
+// lines the cavity, where an outline drawn by intensity leaks. Or
+// FLAIR-like (fluid-attenuated inversion recovery, as many intraop
+// protocols acquire): the fluid dark as on a T1 but the parenchyma ordered
+// as on a T2, by the tissue's place between the subject's CSF and white
+// matter on the T1 (CSF -> 0.12, grey matter at 0.7 of the way -> 0.62,
+// white matter -> 0.45 of the T1's white matter), fluid in the cavity, the gap and
+// subarachnoid CSF dark (0.12), blood bright (0.7), air 0, the rest of the
+// head at 0.6 of its T1 value (fat stays bright). The grid is
 // the phantom's (PhantomSpec dims, spacing, oblique_deg), so the truth field
 // and the image share it.
 #include <Eigen/Dense>
@@ -31,7 +38,7 @@
 
 namespace brainshift {
 
-enum class Contrast { t1, t2_like, t1_contrast_enhanced };
+enum class Contrast { t1, t2_like, t1_contrast_enhanced, flair_like };
 const char* contrast_name(Contrast c);
 
 struct ScannerSpec {

@@ -126,7 +126,7 @@ ThresholdSegmentation segment_by_threshold(const ImageF& image, const SegmenterP
   // Four classes: air | bone and CSF | grey | white matter and fat on a T1;
   // air and bone | white | grey | CSF on a T2-like image.
   const std::vector<double> t = otsu_thresholds(smooth.voxels, 4);
-  const bool t1 = spec.contrast != Contrast::t2_like;  // dark CSF, enhanced or not
+  const bool t1 = spec.contrast != Contrast::t2_like;  // dark CSF: enhanced or not, or FLAIR
   const double low = t1 ? t[1] : t[0], high = t1 ? t[2] : t[2];
 
   Mask candidate(g, 0), csf(g, 0);

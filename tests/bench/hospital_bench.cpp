@@ -186,6 +186,10 @@ int main(int argc, char** argv) {
   app.add_flag("--contrast-enhanced", contrast_enhanced,
                "every T1 case imaged contrast-enhanced (gadolinium: the dura and the resection margin enhance; "
                "cases named CASE_gd): the bright shell round the brain an intensity outline leaks into");
+  bool flair = false;
+  app.add_flag("--flair", flair,
+               "every T1 case imaged FLAIR-like (the fluid dark, grey matter brighter than white; cases named "
+               "CASE_flair): a contrast the engine was not made on");
   bool list_subjects = false;
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
@@ -201,6 +205,12 @@ int main(int argc, char** argv) {
       if (c.scanner.contrast == Contrast::t1) {
         c.scanner.contrast = Contrast::t1_contrast_enhanced;
         c.deformation.name += "_gd";
+      }
+  if (flair)
+    for (auto& c : suite)
+      if (c.scanner.contrast == Contrast::t1) {
+        c.scanner.contrast = Contrast::flair_like;
+        c.deformation.name += "_flair";
       }
   if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {

@@ -271,6 +271,43 @@ TEST(HospitalSuite, AContrastEnhancedT1BrightensAShellRoundTheBrainOnly) {
   EXPECT_GT(count(gd.phantom.intraop_labels, 2), 0u) << "the segmenter found no ventricles on the enhanced T1";
 }
 
+// FLAIR-like, on a scene of one voxel per tissue (scene_contrast, before
+// the scanner's blur, bias and noise): the fluid nulled as on a T1, grey
+// matter brighter than white as on a T2, blood bright, fat stays bright.
+TEST(HospitalSuite, AFlairLikeImageDarkensTheFluidAndPutsGreyOverWhite) {
+  Grid3 g;
+  g.dims = {7, 1, 1};
+  IntraopScene scene;
+  scene.t1 = ImageF(g, 0.f);
+  scene.classes = Image3<std::uint8_t>(g, 0);
+  scene.csf_t1 = 30, scene.gm_t1 = 80, scene.wm_t1 = 110, scene.brain_median_t1 = 100;
+  const std::pair<SceneClass, float> voxels[7] = {
+      {SceneClass::tissue, 30},  {SceneClass::tissue, 86},  {SceneClass::tissue, 110},
+      {SceneClass::extracerebral_csf, 30}, {SceneClass::cavity_fluid, 30}, {SceneClass::blood, 60},
+      {SceneClass::head, 160}};
+  for (int i = 0; i < 7; ++i) {
+    scene.classes.voxels[i] = static_cast<std::uint8_t>(voxels[i].first);
+    scene.t1.voxels[i] = voxels[i].second;
+  }
+  const ImageF t1 = scene_contrast(scene, Contrast::t1), flair = scene_contrast(scene, Contrast::flair_like);
+  const auto& f = flair.voxels;
+  EXPECT_LT(t1.voxels[1], t1.voxels[2]) << "T1: grey darker than white";
+  EXPECT_GT(f[1], f[2]) << "FLAIR: grey brighter than white";
+  EXPECT_LT(f[0], 0.3 * f[2]) << "FLAIR: fluid in the brain's tissue nulled";
+  EXPECT_LT(f[3], 0.3 * f[2]) << "FLAIR: the subarachnoid CSF nulled";
+  EXPECT_LT(f[4], 0.3 * f[2]) << "FLAIR: the cavity's fluid nulled";
+  EXPECT_GT(f[5], f[2]) << "FLAIR: blood bright";
+  EXPECT_GT(f[6], f[1]) << "FLAIR: the scalp's fat bright";
+}
+
+// The suite's FLAIR-like case names its contrast.
+TEST(HospitalSuite, AFlairLikeCaseSaysItsContrast) {
+  const HospitalCase flair =
+      make_hospital_case(synthetic_subject(), small_case(small_scanner({2, 2, 3}, Contrast::flair_like)));
+  EXPECT_EQ(flair.description["scanner"].value("contrast", ""), "flair_like") << flair.description.dump();
+  EXPECT_GT(count(flair.phantom.intraop_labels, 1), 0u) << "the threshold segmenter found no brain";
+}
+
 TEST(HospitalSuite, DeterministicFromTheSeed) {
   const HospitalCaseSpec spec = small_case(small_scanner({2, 2, 3}, Contrast::t1));
   const HospitalCase a = make_hospital_case(synthetic_subject(), spec);
