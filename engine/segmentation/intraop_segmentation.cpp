@@ -172,6 +172,51 @@ double raw_ratio_to_tissue_beside(const ImageF& image, const Image3<std::int32_t
   return tissue > 0 ? median_in_place(inside) / tissue : std::numeric_limits<double>::quiet_NaN();
 }
 
+// The gap a sinking left that the classification itself called outside:
+// fluid (bias-corrected intensity within 2 sd of the fluid class's mean and
+// nearer it than any parenchyma class's) inside the carried outline, outside
+// the classified brain (before the rules below move anything) and
+// ventricles, thicker than any sulcus (it survives an opening of radius
+// max_sulcus_half_width_mm), in bodies of at least min_gap_ml touching the
+// carried outline's surface. Where no parenchyma class spans the fluid (a
+// FLAIR-like image: tissue_em.h), the gap never enters the brain, so the
+// open-fluid rule below never moves it out nor counts it; the brain-volume
+// gate allows for it as for the fluid that rule moves (docs/PERFORMANCE.md
+// 12.37). Returns its volume, ml.
+double gap_left_outside_ml(const ImageF& image, const std::vector<float>& bias, const std::vector<GaussianClass>& classes,
+                           const Mask& brain, const Mask& ventricle, const Mask& carried_outline,
+                           double max_sulcus_half_width_mm, double min_gap_ml) {
+  const GaussianClass* fluid = heaviest_class(classes, Tissue::ventricle);
+  const GaussianClass* bulk = heaviest_class(classes, Tissue::parenchyma);
+  if (!fluid || !bulk || max_sulcus_half_width_mm <= 0) return 0.0;
+  const Grid3& g = brain.grid;
+  Mask left(g, 0);
+  for (std::size_t v = 0; v < left.voxels.size(); ++v) {
+    if (!carried_outline.voxels[v] || brain.voxels[v] || ventricle.voxels[v]) continue;
+    const double x = image.voxels[v] / bias[v];
+    bool fluid_like = std::abs(x - fluid->mean) < 2 * fluid->sd;
+    for (const auto& c : classes)
+      if (c.tissue == Tissue::parenchyma) fluid_like = fluid_like && std::abs(x - fluid->mean) < std::abs(x - c.mean);
+    left.voxels[v] = fluid_like;
+  }
+  left = open(left, max_sulcus_half_width_mm);
+  int count = 0;
+  const auto pieces = connected_components(left, 6, &count);
+  std::vector<std::size_t> voxels(static_cast<std::size_t>(count) + 1, 0);
+  std::vector<std::uint8_t> at_surface(static_cast<std::size_t>(count) + 1, 0);
+  const Mask surface = boundary_voxels(carried_outline);
+  for (std::size_t v = 0; v < left.voxels.size(); ++v) {
+    if (!left.voxels[v]) continue;
+    ++voxels[pieces.voxels[v]];
+    at_surface[pieces.voxels[v]] |= surface.voxels[v];
+  }
+  const double voxel_ml = g.spacing_mm().prod() / 1000.0;
+  double ml = 0;
+  for (int c = 1; c <= count; ++c)
+    if (at_surface[c] && voxels[c] * voxel_ml >= min_gap_ml) ml += voxels[c] * voxel_ml;
+  return ml;
+}
+
 // Fluid labelled parenchyma that is thicker than any sulcus (it survives an
 // opening of radius max_sulcus_half_width_mm) and lies open to what is
 // outside the brain (at most a cap, drop_beyond_open_fluid, between) is not
@@ -444,7 +489,8 @@ nlohmann::json describe(const EmResult& em) {
                        {"band_weight", g.band_weight > 0 ? g.band_weight : g.weight},
                        {"surface_fluid", g.surface_fluid}});
   return {{"classes", classes}, {"iterations", em.iterations}, {"converged", em.converged},
-          {"mean_log_likelihood", em.mean_log_likelihood}, {"samples", em.samples}};
+          {"mean_log_likelihood", em.mean_log_likelihood}, {"samples", em.samples},
+          {"parenchyma_classes_dropped", em.parenchyma_classes_dropped}};
 }
 
 }  // namespace
@@ -484,6 +530,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     }
   });
   keep_carried_ventricles(brain, ventricle, ventricle_box);
+  const double left_outside_ml = gap_left_outside_ml(image_box, em.bias, em.classes, brain, ventricle, outline_box,
+                                                     params.max_sulcus_half_width_mm, params.min_gap_ml);
   std::array<std::vector<float>, kTissues> posterior = em.posterior;
   Mask moved_out(g, 0), gap_fluid(g, 0);
   double open_fluid_ml = 0, ventricular_fluid_ml = 0, partial_fluid_ml = 0, fluid_before_ml = 0;
@@ -547,7 +595,9 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     result.confidence.voxels[w] = posterior[chosen][v];
     result.bias.voxels[w] = em.bias[v];
   });
-  result.open_fluid_ml = open_fluid_ml;
+  // What the brain-volume gate allows for: the fluid moved out, and the gap
+  // the classification itself left outside (gap_left_outside_ml).
+  result.open_fluid_ml = open_fluid_ml + left_outside_ml;
   if (params.max_sulcus_half_width_mm > 0) {
     result.open_fluid = Mask(image.grid, 0);
     for (int k = 0; k < g.dims[2]; ++k)
@@ -576,6 +626,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   result.report["prior_inward_width_mm"] = widths.inward_mm;
   result.report["brain_ml"] = volume_ml(brain);
   result.report["open_fluid_ml"] = open_fluid_ml;
+  result.report["gap_left_outside_ml"] = left_outside_ml;
   result.report["beyond_open_fluid_ml"] = volume_ml(moved_out) - open_fluid_ml;
   result.report["open_fluid_next_to_ventricles_ml"] = ventricular_fluid_ml;
   result.report["open_fluid_partial_volume_ml"] = partial_fluid_ml;

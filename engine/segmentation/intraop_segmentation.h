@@ -136,7 +136,9 @@ struct IntraopSegmentation {
   std::string refusal;  // why the image cannot be segmented; empty when it can
   nlohmann::json report;  // classes, iterations, volumes, contrast
   // Fluid moved out of the brain as thicker than a sulcus and open to the
-  // outside (SegmentationParameters::max_sulcus_half_width_mm), ml.
+  // outside (SegmentationParameters::max_sulcus_half_width_mm), and the gap
+  // of such fluid the classification itself left outside the brain inside
+  // the carried outline, ml: what the brain-volume gate allows for.
   double open_fluid_ml = 0;
   // Those voxels on the image grid (empty grid when the rule did not run):
   // a re-match keeps only gaps the round before found (segment_intraop).

@@ -484,7 +484,9 @@ EmResult classify_with_classes(const ImageF& image, const TissuePrior& prior, co
   return out;
 }
 
-EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const EmParameters& params) {
+namespace {
+
+EmResult fit_mixture_once(const ImageF& image, const TissuePrior& prior, const EmParameters& params) {
   if (!image.grid.same_geometry(prior.grid)) throw InputError("segmentation: image and prior on different grids");
   for (int K : params.classes)
     if (K < 1 || K > 6) throw InputError("segmentation: 1 to 6 classes per tissue");
@@ -566,6 +568,41 @@ EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const
     g.sd *= scale;
   }
   out.classes = std::move(classes);
+  return out;
+}
+
+}  // namespace
+
+// On an image whose fluid is dark, a parenchyma class within the spread of
+// the brain's fluid (less than one of the fluid class's sd above its mean,
+// or below it) is that fluid taken for tissue (sulcal CSF, the fluid of a
+// gap under a sunken cortex), not a tissue: no parenchyma is as dark as CSF
+// on a T1 or a FLAIR (oedema is not; on a T2 it is as bright as the fluid,
+// and bright-fluid images are left alone). It happens where grey and white matter lie close (a FLAIR-like
+// image: 0.62 and 0.45 of white matter's T1 signal), and the class then
+// holds the gap's fluid as brain (docs/PERFORMANCE.md 12.37).
+static bool parenchyma_class_is_fluid(const std::vector<GaussianClass>& classes) {
+  const GaussianClass* fluid = heaviest_class(classes, Tissue::ventricle);
+  const GaussianClass* bulk = heaviest_class(classes, Tissue::parenchyma);
+  // A bright-fluid (T2-like) image's oedema is tissue as bright as fluid.
+  if (!fluid || !bulk || fluid_is_bright(classes)) return false;
+  for (const auto& c : classes)
+    if (c.tissue == Tissue::parenchyma && &c != bulk && c.mean - fluid->mean < fluid->sd) return true;
+  return false;
+}
+
+EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const EmParameters& params) {
+  EmResult out = fit_mixture_once(image, prior, params);
+  // Fitted again with one parenchyma class fewer, at most until one is left.
+  const int par = index_of(Tissue::parenchyma);
+  EmParameters fewer = params;
+  while (fewer.classes[par] > 1 && parenchyma_class_is_fluid(out.classes)) {
+    fewer.classes[par] -= 1;
+    const int iterations = out.iterations;
+    out = fit_mixture_once(image, prior, fewer);
+    out.iterations += iterations;
+    out.parenchyma_classes_dropped += params.classes[par] - fewer.classes[par];
+  }
   return out;
 }
 

@@ -91,10 +91,16 @@ struct EmResult {
   bool converged = false;
   double mean_log_likelihood = 0;
   std::size_t samples = 0;  // the fit's subsample (at most EmParameters::fit_samples; 0 when given the classes)
+  // Parenchyma classes the fit gave up because one was the fluid taken for
+  // tissue (fit_tissue_mixture).
+  int parenchyma_classes_dropped = 0;
 };
 
 // image and prior on the same grid. InputError when the prior has no brain or
-// the image is constant.
+// the image is constant. On a dark-fluid image a parenchyma class within a
+// fluid sd above the fluid's mean (or below it) is the fluid taken for
+// tissue: the fit is made again with one parenchyma class fewer
+// (EmResult::parenchyma_classes_dropped).
 EmResult fit_tissue_mixture(const ImageF& image, const TissuePrior& prior, const EmParameters& params);
 
 // The posterior (evidence and Potts smoothing, as after a fit) of classes

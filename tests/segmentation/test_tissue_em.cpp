@@ -203,6 +203,58 @@ TEST(TissueEm, BrightFluidContrastIsFittedFromThePriorNotFromAnOrdering) {
   EXPECT_GE(dice(seg.labels, head.truth, 2), 0.85) << seg.report.dump();
 }
 
+// Where the brain's tissue is of one intensity (grey and white matter close,
+// as on a FLAIR-like image) and the prior's brain holds fluid (sulci, a
+// sinking's gap), a second parenchyma class fits that fluid and would hold
+// it as brain: the fit gives it up, and no parenchyma class sits on the
+// fluid. A slab image: brain tissue (55) with a fifth of fluid (12) where
+// the prior says brain, ventricular fluid where it says ventricle, bone and
+// air outside.
+TEST(TissueEm, AParenchymaClassOnTheFluidIsGivenUp) {
+  Grid3 g;
+  g.dims = {60, 60, 40};
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  ImageF image(g, 0.f);
+  TissuePrior prior;
+  prior.grid = g;
+  for (auto& p : prior.p) p.assign(g.voxel_count(), 0.f);
+  std::mt19937_64 rng(11);
+  std::normal_distribution<float> noise(0.f, 4.f);
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const std::size_t v = g.index(i, j, k);
+        float value;
+        int tissue;
+        if (i < 10) {
+          value = (j + k) % 2 ? 2.f : 10.f;  // air and bone
+          tissue = 2;
+        } else if (i < 16) {
+          value = 12.f;  // the ventricles' fluid
+          tissue = 1;
+        } else {
+          value = (i * 7 + j * 3 + k) % 5 == 0 ? 12.f : 55.f;  // tissue with a fifth of fluid
+          tissue = 0;
+        }
+        image.voxels[v] = std::max(0.f, value + noise(rng));
+        for (int t = 0; t < kTissues; ++t) prior.p[t][v] = t == tissue ? 0.98f : 0.01f;
+      }
+  prior.ventricle_share = 0.1;
+  EmParameters params;
+  params.fit_samples = 20000;
+  const EmResult em = fit_tissue_mixture(image, prior, params);
+  const GaussianClass* fluid = heaviest_class(em.classes, Tissue::ventricle);
+  ASSERT_TRUE(fluid);
+  int parenchyma = 0;
+  for (const auto& c : em.classes)
+    if (c.tissue == Tissue::parenchyma) {
+      ++parenchyma;
+      EXPECT_GT(c.mean - fluid->mean, fluid->sd) << "a parenchyma class on the fluid: " << c.mean << " +- " << c.sd;
+    }
+  EXPECT_EQ(em.parenchyma_classes_dropped, 1);
+  EXPECT_EQ(parenchyma, 1);
+}
+
 TEST(TissueEm, ACavityOfFluidWhereThePriorHasBrainBecomesBackground) {
   const Intensities in;
   const Synthetic head = make_head(in, 5.0, 0.2, 12.0);
@@ -606,7 +658,7 @@ TEST(TissueEm, TheFitSeesTheWholeImageWhateverTheGridDimensions) {
 // axis took a third more; on 1.45 mm they would take all voxels.
 TEST(TissueEm, TheFitTakesAtMostItsSampleBudgetOnAnyGrid) {
   const Intensities in;
-  for (const Eigen::Vector3d spacing : {Eigen::Vector3d(2.0, 2.0, 2.5), Eigen::Vector3d(1.45, 1.45, 1.45)}) {
+  for (const Eigen::Vector3d& spacing : {Eigen::Vector3d(2.0, 2.0, 2.5), Eigen::Vector3d(1.45, 1.45, 1.45)}) {
     const Synthetic head = make_head(in, 5.0, 0.0, 0.0, spacing);
     SegmentationParameters params = params_for_test();
     params.em.fit_samples = 20000;
