@@ -199,18 +199,24 @@ double gap_left_outside_ml(const ImageF& image, const std::vector<float>& bias, 
       if (c.tissue == Tissue::parenchyma) fluid_like = fluid_like && std::abs(x - fluid->mean) < std::abs(x - c.mean);
     left.voxels[v] = fluid_like;
   }
-  left = open(left, max_sulcus_half_width_mm);
+  // Less fluid than one gap holds: none (the usual scan, at no cost).
+  const double voxel_ml = g.spacing_mm().prod() / 1000.0;
+  if (static_cast<double>(count_nonzero(left)) * voxel_ml < min_gap_ml) return 0.0;
+  // The rest on the fluid's box, grown beyond the opening's reach and a
+  // voxel more, so that the box's faces (outside to boundary_voxels) lie
+  // where no opened fluid reaches.
+  const VoxelBox box = grow_box(bounding_box_voxels(left), g, max_sulcus_half_width_mm + 2 * g.spacing_mm().maxCoeff());
+  const Mask opened = open(crop_to_box(left, box), max_sulcus_half_width_mm);
+  const Mask surface = boundary_voxels(crop_to_box(carried_outline, box));
   int count = 0;
-  const auto pieces = connected_components(left, 6, &count);
+  const auto pieces = connected_components(opened, 6, &count);
   std::vector<std::size_t> voxels(static_cast<std::size_t>(count) + 1, 0);
   std::vector<std::uint8_t> at_surface(static_cast<std::size_t>(count) + 1, 0);
-  const Mask surface = boundary_voxels(carried_outline);
-  for (std::size_t v = 0; v < left.voxels.size(); ++v) {
-    if (!left.voxels[v]) continue;
+  for (std::size_t v = 0; v < opened.voxels.size(); ++v) {
+    if (!opened.voxels[v]) continue;
     ++voxels[pieces.voxels[v]];
     at_surface[pieces.voxels[v]] |= surface.voxels[v];
   }
-  const double voxel_ml = g.spacing_mm().prod() / 1000.0;
   double ml = 0;
   for (int c = 1; c <= count; ++c)
     if (at_surface[c] && voxels[c] * voxel_ml >= min_gap_ml) ml += voxels[c] * voxel_ml;
