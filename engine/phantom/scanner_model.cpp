@@ -49,19 +49,30 @@ double flair_of_tissue(double t1, const IntraopScene& s, double reference) {
   return reference * y;
 }
 
-ImageF flair_like(const IntraopScene& scene) {
+// Levels of the non-tissue scene classes, as fractions of the reference
+// (white matter's T1 signal), and the rest of the head as a fraction of its
+// own T1 value.
+struct ClassLevels {
+  double fluid, blood, head_of_t1;
+};
+
+// A contrast set by scene class: the brain's tissue through tissue_value
+// (from its T1), the fluid in the cavity, the gap and the subarachnoid space,
+// blood and the head at their levels, air 0.
+ImageF by_scene_class(const IntraopScene& scene, double (*tissue_value)(double, const IntraopScene&, double),
+                      const ClassLevels& levels) {
   ImageF out(scene.t1.grid, 0.f);
   const double reference = scene.wm_t1;
   for (std::size_t v = 0; v < out.voxels.size(); ++v) {
     const double t1 = scene.t1.voxels[v];
     double value = 0;
     switch (static_cast<SceneClass>(scene.classes.voxels[v])) {
-      case SceneClass::tissue: value = flair_of_tissue(t1, scene, reference); break;
+      case SceneClass::tissue: value = tissue_value(t1, scene, reference); break;
       case SceneClass::cavity_fluid:
       case SceneClass::gap_fluid:
-      case SceneClass::extracerebral_csf: value = 0.12 * reference; break;
-      case SceneClass::blood: value = 0.7 * reference; break;
-      case SceneClass::head: value = 0.6 * t1; break;
+      case SceneClass::extracerebral_csf: value = levels.fluid * reference; break;
+      case SceneClass::blood: value = levels.blood * reference; break;
+      case SceneClass::head: value = levels.head_of_t1 * t1; break;
       case SceneClass::air: value = 0; break;
     }
     out.voxels[v] = static_cast<float>(value);
@@ -121,25 +132,10 @@ void apply_scanner_grid(const ScannerSpec& scanner, PhantomSpec& spec) {
 ImageF scene_contrast(const IntraopScene& scene, Contrast contrast) {
   if (contrast == Contrast::t1) return scene.t1;
   if (contrast == Contrast::t1_contrast_enhanced) return contrast_enhanced(scene);
-  if (contrast == Contrast::flair_like) return flair_like(scene);
-  ImageF out(scene.t1.grid, 0.f);
-  // The CSF signal sets the scale: as bright as white matter is on the T1.
-  const double reference = scene.wm_t1;
-  for (std::size_t v = 0; v < out.voxels.size(); ++v) {
-    const double t1 = scene.t1.voxels[v];
-    double value = 0;
-    switch (static_cast<SceneClass>(scene.classes.voxels[v])) {
-      case SceneClass::tissue: value = t2_of_tissue(t1, scene, reference); break;
-      case SceneClass::cavity_fluid:
-      case SceneClass::gap_fluid:
-      case SceneClass::extracerebral_csf: value = reference; break;
-      case SceneClass::blood: value = 0.35 * reference; break;
-      case SceneClass::head: value = 0.5 * t1; break;
-      case SceneClass::air: value = 0; break;
-    }
-    out.voxels[v] = static_cast<float>(value);
-  }
-  return out;
+  if (contrast == Contrast::flair_like) return by_scene_class(scene, flair_of_tissue, {0.12, 0.7, 0.6});
+  // T2-like: the CSF signal sets the scale, as bright as white matter is on
+  // the T1; blood dark, the head at half its T1 value.
+  return by_scene_class(scene, t2_of_tissue, {1.0, 0.35, 0.5});
 }
 
 ImageF acquire(const IntraopScene& scene, const ScannerSpec& spec, const Grid3& grid, std::mt19937_64& rng) {
