@@ -199,7 +199,8 @@ double gap_left_outside_ml(const ImageF& image, const std::vector<float>& bias, 
       if (c.tissue == Tissue::parenchyma) fluid_like = fluid_like && std::abs(x - fluid->mean) < std::abs(x - c.mean);
     left.voxels[v] = fluid_like;
   }
-  // Less fluid than one gap holds: none (the usual scan, at no cost).
+  // Less fluid left outside than one gap holds: no gap, after one pass over
+  // the voxels (0.01-0.04 s a round on the daemon's phantom otherwise).
   const double voxel_ml = g.spacing_mm().prod() / 1000.0;
   if (static_cast<double>(count_nonzero(left)) * voxel_ml < min_gap_ml) return 0.0;
   // The rest on the fluid's box, grown beyond the opening's reach and a
