@@ -173,8 +173,9 @@ double raw_ratio_to_tissue_beside(const ImageF& image, const Image3<std::int32_t
 }
 
 // The gap a sinking left that the classification itself called outside:
-// fluid (bias-corrected intensity within 2 sd of the fluid class's mean and
-// nearer it than any parenchyma class's) inside the carried outline, outside
+// fluid (bias-corrected intensity within 2 sd of the fluid class's mean,
+// where 95 % of its voxels lie, and nearer it than any parenchyma class's,
+// which keeps the cortex's partial volume out) inside the carried outline, outside
 // the classified brain (before the rules below move anything) and
 // ventricles, thicker than any sulcus (it survives an opening of radius
 // max_sulcus_half_width_mm), in bodies of at least min_gap_ml touching the
