@@ -165,6 +165,7 @@ void read_auto_segmentation(TomlSection& root, AutoSegmentationParameters& p) {
   s.read("prior_width_affine_mm", p.prior_width_affine_mm, Interval::above(0));
   s.read("prior_width_nonrigid_mm", p.prior_width_nonrigid_mm, Interval::above(0));
   s.read("prior_inward_width_affine_mm", p.prior_inward_width_affine_mm, Interval::above(0));
+  s.read("prior_inward_width_nonrigid_mm", p.prior_inward_width_nonrigid_mm, Interval::above(0));
   s.read("ventricle_shift_affine_mm", p.ventricle_shift_affine_mm, Interval::closed(0, 30));
   s.read("ventricle_prior_width_mm", p.ventricle_prior_width_mm, Interval::above(0));
   s.read("bright_fluid_bias_degree_affine", p.bright_fluid_bias_degree_affine, 0, 4);

@@ -240,8 +240,9 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   // left (field/tissue_guard.h).
   if (!warm.preop_tissue_voxels) warm.preop_tissue_voxels = tissue_voxel_box(warm.preop.labels);
   // Given labels' outline is uncertain by a voxel of partial volume along the
-  // grid's coarsest axis and the segmenter's millimetre (the re-match prior's
-  // width, prior_width_nonrigid_mm, counts the same two). The engine's own
+  // grid's coarsest axis and the segmenter's millimetre (a hand or another
+  // tool's segmentation: its partial-volume voxels were decided by someone
+  // else's rule). The engine's own
   // segmentation is judged to its outline: measured on the hospital suite
   // and family 8, image only, the tolerance cost 0.003-0.004 mm of mean TRE
   // and left more of the gap drawn (docs/PERFORMANCE.md 12.32).

@@ -45,7 +45,7 @@ struct QualityGates {
 
 // The image-only path's passes of the stages (docs/DESIGN.md "Automatic
 // intraop segmentation", item 9). A pass a re-match follows only carries the
-// preop labels for the re-match's prior, which is 1.5 mm wide and which the
+// preop labels for the re-match's prior, which is 1 mm wide and which the
 // image overrules where tissue moved: shortcuts that change that prior by
 // much less than its width; the gates (folds, motion beyond the data) still
 // decide whether the pass is non-rigid, and a light pass they refuse is run
@@ -64,7 +64,7 @@ struct PassShortcuts {
   // segmentation differs by about a voxel at the outline (finest level only).
   bool warm_start_affine = true;
   // The first round (the head's placement, the first segmentation, its light
-  // pass) only makes the re-match's prior, 1.5 mm wide: with a spacing > 0
+  // pass) only makes the re-match's prior, 1 mm wide: with a spacing > 0
   // it is worked on a grid coarsened to it (as pipeline/working_grid.h
   // coarsens), the re-match and the answer on the scan's working grid; a
   // first round refused there is decided again on the scan's own grid
@@ -110,9 +110,19 @@ struct AutoSegmentationParameters {
   // its place; a logistic over 5 mm leaves the outside 1 % (-4.6 nats) at
   // that depth, so that fluid there is decided by the image.
   double prior_inward_width_affine_mm = 5.0;
-  // After a non-rigid estimate carries the labels: its error (about 1 mm at
-  // the landmarks) plus a voxel of partial volume.
-  double prior_width_nonrigid_mm = 1.5;
+  // Outside the outline a non-rigid estimate carries: its error, about 1 mm
+  // at the landmarks. Not a voxel more for partial volume: that is the
+  // image's to decide (its likelihood). Where the image cannot tell (a T2's
+  // fluid-bone mixture beyond the cortex looks like tissue), the
+  // classification follows the prior's tail, and 1.5 mm let it take brain
+  // 2-4 mm beyond the carried outline (docs/DESIGN.md "Automatic intraop
+  // segmentation", item 2; docs/PERFORMANCE.md 12.38).
+  double prior_width_nonrigid_mm = 1.0;
+  // Inside it: the same error. Wider (1.5 or 2 mm, so that a layer the
+  // first round took beyond the cortex is given back more easily) was
+  // measured: brain Dice lower, FLAIR-like images less accurate, and a pure
+  // translation of the test head recovered 0.57 mm off at 1.5 (0.46 at 1).
+  double prior_inward_width_nonrigid_mm = 1.0;
   // The ventricles after the head's alignment alone (tissue_prior.h): they
   // may have moved by up to ventricle_shift_affine_mm (deep structures shift
   // by several mm, up to about 10 under a large craniotomy, farther than the

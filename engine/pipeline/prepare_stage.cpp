@@ -31,7 +31,7 @@ Mask resample_mask(const Mask& m, const Grid3& target) {
 // segmentation and its light pass there; the preop labels that pass carries
 // are brought to the image's grid as the re-match's prior, and the re-match
 // rounds and the answer are worked on the image's grid as before. The first
-// round only makes that prior (1.5 mm wide; docs/DESIGN.md "Automatic intraop
+// round only makes that prior (1 mm wide; docs/DESIGN.md "Automatic intraop
 // segmentation", item 9). nullopt when the first round ends in a refusal (of
 // the classifier, a gate or the stages): a refusal is decided on the image's
 // own grid (the caller's one-grid path).

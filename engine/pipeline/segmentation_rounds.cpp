@@ -125,10 +125,13 @@ LabelImage preop_labels_on_grid(const WarmState& warm, const VectorImage3& pullb
   return warp_labels_nearest(warm.preop.labels, resample_vector_linear(pullback_field_mm, grid));
 }
 
-// A round's report: its prior's width and the bias fitted (and whether the
-// first fit was replaced, ScanOnGrid::segment).
+// A round's report: its prior's widths outside and inside the carried
+// outline and the bias fitted (and whether the first fit was replaced,
+// ScanOnGrid::segment).
 nlohmann::json round_report(const segmentation::IntraopSegmentation& s) {
-  nlohmann::json r = {{"prior_width_mm", s.report["prior_width_mm"]}, {"bias_degree", s.report["bias_degree"]}};
+  nlohmann::json r = {{"prior_width_mm", s.report["prior_width_mm"]},
+                      {"prior_inward_width_mm", s.report["prior_inward_width_mm"]},
+                      {"bias_degree", s.report["bias_degree"]}};
   if (s.report.contains("bias_refitted")) r["bias_refitted"] = s.report["bias_refitted"];
   return r;
 }

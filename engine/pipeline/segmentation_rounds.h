@@ -105,6 +105,7 @@ struct ScanOnGrid {
     sp.ventricle_prior_width_mm = ap.ventricle_prior_width_mm;
     sp.ventricle_shift_mm = placed ? ap.ventricle_shift_affine_mm : 0.0;
     if (placed && sp.ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
+    if (!placed) sp.prior_inward_width_mm = ap.prior_inward_width_nonrigid_mm;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
     const auto classify = [&](const segmentation::SegmentationParameters& with) {
       return segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),

@@ -234,6 +234,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_DOUBLE_EQ(file.prior_width_nonrigid_mm, code.prior_width_nonrigid_mm);
   EXPECT_DOUBLE_EQ(file.ventricle_shift_affine_mm, code.ventricle_shift_affine_mm);
   EXPECT_DOUBLE_EQ(file.prior_inward_width_affine_mm, code.prior_inward_width_affine_mm);
+  EXPECT_DOUBLE_EQ(file.prior_inward_width_nonrigid_mm, code.prior_inward_width_nonrigid_mm);
   EXPECT_EQ(file.bright_fluid_bias_degree_affine, code.bright_fluid_bias_degree_affine);
   EXPECT_DOUBLE_EQ(file.ventricle_prior_width_mm, code.ventricle_prior_width_mm);
   EXPECT_DOUBLE_EQ(file.working_spacing_mm, code.working_spacing_mm);
