@@ -123,8 +123,9 @@ TEST_F(ImageOnlyPasses, TheAnswerOfAnImageOnlyScanIsAFullPassWarmStartedFromTheL
   ASSERT_EQ(rounds.size(), 2u) << rounds.dump();
   for (const auto& round : rounds) EXPECT_FALSE(round.contains("kept")) << round.dump();
   // The first round's prior is the head placement's, wide and wider inside;
-  // the re-match's the non-rigid estimate's, narrower outside than inside.
-  const AutoSegmentationParameters& ap = test::coarse_parameters().auto_segmentation;
+  // the re-match's the non-rigid estimate's, narrow (each width its own
+  // parameter).
+  const AutoSegmentationParameters ap = test::coarse_parameters().auto_segmentation;
   EXPECT_DOUBLE_EQ(rounds[0]["prior_width_mm"].get<double>(), ap.prior_width_affine_mm);
   EXPECT_DOUBLE_EQ(rounds[0]["prior_inward_width_mm"].get<double>(), ap.prior_inward_width_affine_mm);
   EXPECT_DOUBLE_EQ(rounds[1]["prior_width_mm"].get<double>(), ap.prior_width_nonrigid_mm);
