@@ -27,8 +27,7 @@ IntraopInput with_preop_fluid_spaces(WarmState& warm, const IntraopInput& input,
   const std::uint16_t ventricle = cavities.empty() ? 0 : cavities.front();
   const auto& medians = preop_fluid_tissue_medians(warm, table);
   // The placement only needs to put a space of several mm on itself: the
-  // labels on a 2 mm grid and a lighter affine (a quarter of the outline
-  // points, two levels). On the three cases written to check it, it gave
+  // labels on a 2 mm grid and a placement's affine (placement_affine). On the three cases written to check it, it gave
   // back the spaces the full affine on the 1 mm labels did within 0.3 ml,
   // mean TRE within 0.016 mm (docs/PERFORMANCE.md 12.33), in about a
   // quarter of the time.
@@ -38,10 +37,7 @@ IntraopInput with_preop_fluid_spaces(WarmState& warm, const IntraopInput& input,
                                        ? input.labels
                                        : downsample_labels(input.labels, placement_grid);
   const IntraopDistanceMaps maps = prepare_intraop_maps(placed_labels, table.brain_label(), ventricle);
-  AffineRegistrationParameters light = params.affine;
-  light.fine_points = std::max(light.coarse_points, light.fine_points / 4);
-  light.levels = std::min(light.levels, 2);
-  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, light);
+  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, placement_affine(params.affine));
   if (!affine.converged) {
     report = {{"applied", false}, {"why", "the labels' affine did not converge"}};
     IntraopInput out = input;

@@ -67,7 +67,9 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
   const Mask head = segmentation::head_mask(image);
   if (count_nonzero(head) == 0) throw InputError("intraop image: no head found (the image is flat)");
   const IntraopDistanceMaps maps = prepare_intraop_maps(as_labels(head), 1, 2);
-  AffineRegistrationParameters p = affine;
+  // The placement only has to put the brain within the first round's prior
+  // (3 mm outward): a placement's affine.
+  AffineRegistrationParameters p = placement_affine(affine);
   p.ventricle_weight = 0;
   Eigen::Matrix4d placement = Eigen::Matrix4d::Identity();
   AffineRegistrationResult r;

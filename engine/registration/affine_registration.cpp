@@ -465,4 +465,11 @@ AffineRegistrationResult register_affine(const LabelImage& preop_labels,
   return register_affine(preop, intraop, params);
 }
 
+AffineRegistrationParameters placement_affine(const AffineRegistrationParameters& full) {
+  AffineRegistrationParameters light = full;
+  light.fine_points = std::max(light.coarse_points, light.fine_points / 4);
+  light.levels = std::min(light.levels, 2);
+  return light;
+}
+
 }  // namespace brainshift

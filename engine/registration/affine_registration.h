@@ -109,4 +109,12 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
                                          const AffineRegistrationParameters& params,
                                          const Eigen::Matrix4d* start = nullptr);
 
+// The parameters of a placement: an affine that only has to bring a
+// structure within a prior's or a search's width (millimetres: the first
+// round's tissue prior, a fluid space several mm across), not to the
+// outline's own accuracy. A quarter of the finest level's points, at most two
+// levels: the twelve parameters stay fixed by thousands of points, at about a
+// quarter of the time (docs/PERFORMANCE.md 12.33 and 12.39).
+AffineRegistrationParameters placement_affine(const AffineRegistrationParameters& full);
+
 }  // namespace brainshift
