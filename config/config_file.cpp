@@ -151,6 +151,8 @@ void read_classifier(TomlSection& s, segmentation::SegmentationParameters& c) {
   s.read("max_gap_median_toward_fluid_turn", c.max_gap_median_toward_fluid_turn, Interval::above(0));
   s.read("min_gap_preop_toward_tissue", c.min_gap_preop_toward_tissue, Interval::closed(0, 1));
   s.read("max_fluid_rim_mm", c.max_fluid_rim_mm, Interval::closed(0, 10));
+  s.read("max_rim_cap_mm", c.max_rim_cap_mm, Interval::closed(0, 10));
+  s.read("rim_cap_cavity_margin_mm", c.rim_cap_cavity_margin_mm, Interval::closed(0, 50));
   s.read("bias_degree", c.em.bias_degree, 0, 4);
   s.read("max_iterations", c.em.max_iterations, 1, 1000);
   s.read("tolerance", c.em.tolerance, Interval::above(0));

@@ -18,10 +18,20 @@ namespace brainshift::segmentation {
 // fluid is not brighter than the largest parenchyma class (not T2-like) or
 // max_depth_mm <= 0. All masks, and the bias, on one grid.
 // With it, the brain voxels beyond that fluid (caps_beyond_fluid, toward
-// centre_voxel, at most max_depth_mm thick): the fluid's partial volume with
-// the bone, darker than half fluid, which would otherwise hide the fluid
-// beneath it from the outside.
+// centre_voxel): the fluid's partial volume with the bone, darker than half
+// fluid, which would otherwise hide the fluid beneath it from the outside.
+// A cap is at most max_cap_mm thick (at least max_depth_mm), the fluid it
+// hides looked for down to max_depth_mm + max_cap_mm; within cavity_margin_mm
+// of `resectable` (empty: nowhere) at most max_depth_mm, and the fluid no
+// deeper than max_depth_mm, as beside a cavity the brain lies beyond fluid.
+// Below the caps, the rim's depth counts from the outline without them.
+struct FluidRimBounds {
+  double max_depth_mm = 0;
+  double max_cap_mm = 0;
+  double cavity_margin_mm = 0;
+};
 Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, const std::vector<float>& bias,
-               const std::vector<GaussianClass>& classes, double max_depth_mm, const Eigen::Vector3d& centre_voxel);
+               const std::vector<GaussianClass>& classes, const FluidRimBounds& bounds, const Mask& resectable,
+               const Eigen::Vector3d& centre_voxel);
 
 }  // namespace brainshift::segmentation

@@ -546,10 +546,10 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   nlohmann::json open_components = nlohmann::json::array();
   // The caps' rays (items 7 and 11) look toward the carried brain's centre.
   const Eigen::Vector3d centre_voxel = (g.voxel_from_world() * centroid_mm(outline_box).homogeneous()).head<3>();
+  const Mask resectable_box = preop_seen && preop_seen->resectable.grid.same_geometry(image.grid)
+                                  ? crop_to_box(preop_seen->resectable, box)
+                                  : Mask{};
   if (params.max_sulcus_half_width_mm > 0) {
-    const Mask resectable_box = preop_seen && preop_seen->resectable.grid.same_geometry(image.grid)
-                                    ? crop_to_box(preop_seen->resectable, box)
-                                    : Mask{};
     OpenFluid found = open_fluid(image_box, em.bias, em.classes, brain, ventricle, ventricle_box, outline_box,
                                  params.max_sulcus_half_width_mm, params.max_cap_mm, params.min_gap_ml,
                                  params.max_gap_median_toward_fluid_turn, preop_seen, resectable_box,
@@ -582,7 +582,9 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
     }
   }
   // The bright fluid rim around a T2-like brain (item 11); nothing in a T1.
-  const Mask rim = fluid_rim(brain, ventricle, image_box, em.bias, em.classes, params.max_fluid_rim_mm, centre_voxel);
+  const Mask rim = fluid_rim(brain, ventricle, image_box, em.bias, em.classes,
+                             {params.max_fluid_rim_mm, params.max_rim_cap_mm, params.rim_cap_cavity_margin_mm},
+                             resectable_box, centre_voxel);
   for (std::size_t v = 0; v < rim.voxels.size(); ++v) {
     if (!rim.voxels[v]) continue;
     brain.voxels[v] = 0;

@@ -99,6 +99,20 @@ struct SegmentationParameters {
   // open to the outside is the open-fluid rule's. 0: off. No effect on an
   // image whose fluid is dark (T1, FLAIR).
   double max_fluid_rim_mm = 3.0;
+  // A cap over the rim (fluid_rim.h) may be thicker than the rim itself, up
+  // to this (mm): the fluid-bone mixture beyond the vertex's fluid is 4-5 mm
+  // of tissue-dark voxels (docs/PERFORMANCE.md 12.38); thinner than a gyrus,
+  // two cortices of about 2.5 mm, so that no fold of brain over a sulcus's
+  // fluid is taken for one. The fluid such a cap hides is looked for as deep
+  // under the outline as the rim and the cap together. 0: the rim's own depth.
+  double max_rim_cap_mm = 5.0;
+  // Except within this (mm) of the preop's resectable tissue where the head
+  // placed it (PreopSeen::resectable): beside a resection cavity the brain
+  // does lie beyond fluid, the cavity's walls (12.38: a 5 mm cap everywhere
+  // cost the resection cases 0.001-0.004 of Dice). The tumour's own shift and
+  // the cavity's collapse are a few mm; deep structures move up to about
+  // 10 mm under a large craniotomy.
+  double rim_cap_cavity_margin_mm = 10.0;
   // The ventricular fluid class must stand this many pooled sd's from the
   // farthest major parenchyma class, or the image cannot show the ventricles
   // (a contrast with no fluid/tissue difference, or noise far beyond any

@@ -256,6 +256,8 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
     EXPECT_DOUBLE_EQ(c->max_gap_median_toward_fluid_turn, code.classifier.max_gap_median_toward_fluid_turn);
     EXPECT_DOUBLE_EQ(c->min_gap_preop_toward_tissue, code.classifier.min_gap_preop_toward_tissue);
     EXPECT_DOUBLE_EQ(c->max_fluid_rim_mm, code.classifier.max_fluid_rim_mm);
+    EXPECT_DOUBLE_EQ(c->max_rim_cap_mm, code.classifier.max_rim_cap_mm);
+    EXPECT_DOUBLE_EQ(c->rim_cap_cavity_margin_mm, code.classifier.rim_cap_cavity_margin_mm);
     EXPECT_EQ(c->em.bias_degree, code.classifier.em.bias_degree);
     EXPECT_EQ(c->em.max_iterations, code.classifier.em.max_iterations);
     EXPECT_DOUBLE_EQ(c->em.tolerance, code.classifier.em.tolerance);

@@ -7,6 +7,7 @@
 // brain's side of them, as it does in a T1-like image where the rim is dark.
 #include <gtest/gtest.h>
 
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <random>
@@ -15,6 +16,7 @@
 
 #include "image/image_stats.h"
 #include "segmentation/fluid_caps.h"
+#include "segmentation/fluid_rim.h"
 #include "segmentation/intraop_segmentation.h"
 #include "misregistered_prior.h"
 
@@ -276,4 +278,99 @@ TEST(FluidCaps, WhatLiesBeyondTheFluidIsACapWhatLiesBeneathIsBrain) {
   // Rays step half a voxel and round to voxels: a few graze the fluid's edge.
   EXPECT_GE(found, 0.95 * static_cast<double>(beyond));
   EXPECT_EQ(count_nonzero(caps_beyond_fluid(brain, ventricle, fluid, centre, 1.0)), 0u) << "a cap thicker than the limit";
+}
+
+// fluid_rim's caps over the convexity and beside a cavity (docs/PERFORMANCE.md
+// 12.38, 12.39): a ball of brain (1 mm voxels, radius 30) whose outer 4 mm are
+// tissue-dark (as the fluid-bone mixture over the vertex is) above two 2 mm
+// layers of bright fluid, one on top, one on the side next to what the preop
+// called resectable; the brain beneath them grey-matter bright. A 4 mm cap
+// is thicker than the rim (3 mm) and thinner
+// than the thick-cap bound (5 mm): over the convexity it and the fluid beneath
+// are peeled; beside the cavity its walls stay brain; as bright as grey
+// matter, it is a gyrus's crown and stays.
+namespace {
+struct CapScene {
+  Mask brain, ventricle, resectable;
+  ImageF image;
+  std::vector<float> bias;
+  Eigen::Vector3d centre{40, 40, 40};
+  // dir: +z for the top patch, +x for the side one.
+  bool in_patch(int i, int j, int k, int axis) const {
+    const Eigen::Vector3d q = Eigen::Vector3d(i, j, k) - centre;
+    Eigen::Vector3d u = Eigen::Vector3d::Zero();
+    u[axis] = 1;
+    return q.normalized().dot(u) > 0.9;
+  }
+};
+
+CapScene cap_scene() {
+  Grid3 g;
+  g.dims = {80, 80, 80};
+  CapScene s{Mask(g, 0), Mask(g, 0), Mask(g, 0), ImageF(g, 5.f), std::vector<float>(g.voxel_count(), 1.f)};
+  for (int k = 0; k < 80; ++k)
+    for (int j = 0; j < 80; ++j)
+      for (int i = 0; i < 80; ++i) {
+        const double r = (Eigen::Vector3d(i, j, k) - s.centre).norm();
+        if (r > 30) continue;
+        s.brain.at(i, j, k) = 1;
+        const bool patch = s.in_patch(i, j, k, 2) || s.in_patch(i, j, k, 0);
+        s.image.at(i, j, k) = patch && r > 24 && r <= 26 ? 100.f : r > 26 ? 40.f : 55.f;
+        // The preop's tumour, deep beneath the side patch.
+        s.resectable.at(i, j, k) = (Eigen::Vector3d(i, j, k) - (s.centre + Eigen::Vector3d(14, 0, 0))).norm() < 6;
+      }
+  return s;
+}
+
+// Voxels of the patch on `axis` beyond its fluid (the cap), and how many of
+// them `rim` takes; the same for the fluid.
+std::array<std::size_t, 4> patch_counts(const CapScene& s, const Mask& rim, int axis) {
+  std::array<std::size_t, 4> n{};
+  const Grid3& g = s.brain.grid;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const double r = (Eigen::Vector3d(i, j, k) - s.centre).norm();
+        if (r > 30 || !s.in_patch(i, j, k, axis)) continue;
+        const bool taken = rim.at(i, j, k) != 0;
+        if (r > 26.5) n[0] += 1, n[1] += taken;
+        else if (r > 24 && r <= 26) n[2] += 1, n[3] += taken;
+      }
+  return n;
+}
+}  // namespace
+
+TEST(FluidRim, AThickCapOverTheConvexityIsPeeledButNotBesideACavity) {
+  const CapScene s = cap_scene();
+  const std::vector<GaussianClass> classes = {{Tissue::parenchyma, 40, 6, 0.6}, {Tissue::parenchyma, 55, 8, 0.4},
+                                              {Tissue::ventricle, 100, 10, 1.0}, {Tissue::outside, 5, 3, 1.0}};
+  ASSERT_TRUE(fluid_is_bright(classes));
+  const SegmentationParameters p;
+  const FluidRimBounds thick{p.max_fluid_rim_mm, p.max_rim_cap_mm, p.rim_cap_cavity_margin_mm};
+  ASSERT_GT(thick.max_cap_mm, 4.0) << "the scene's cap must be thinner than the bound";
+  const Mask rim = fluid_rim(s.brain, s.ventricle, s.image, s.bias, classes, thick, s.resectable, s.centre);
+  const auto top = patch_counts(s, rim, 2), side = patch_counts(s, rim, 0);
+  std::printf("top: cap %zu/%zu, fluid %zu/%zu; side (cavity): cap %zu/%zu, fluid %zu/%zu\n", top[1], top[0], top[3],
+              top[2], side[1], side[0], side[3], side[2]);
+  ASSERT_GT(top[0], 500u);
+  EXPECT_GE(top[1], 0.9 * static_cast<double>(top[0])) << "the convexity's cap";
+  EXPECT_GE(top[3], 0.9 * static_cast<double>(top[2])) << "the fluid beneath it";
+  EXPECT_EQ(side[1], 0u) << "the cavity's wall beyond its fluid";
+  // Without the resectable tissue the side patch is a convexity too.
+  const Mask anywhere = fluid_rim(s.brain, s.ventricle, s.image, s.bias, classes, thick, Mask{}, s.centre);
+  const auto side_anywhere = patch_counts(s, anywhere, 0);
+  EXPECT_GE(side_anywhere[1], 0.9 * static_cast<double>(side_anywhere[0]));
+  // Caps no thicker than the rim (the bound at the rim's depth): 4 mm stays.
+  const FluidRimBounds thin{p.max_fluid_rim_mm, p.max_fluid_rim_mm, p.rim_cap_cavity_margin_mm};
+  const auto top_thin = patch_counts(s, fluid_rim(s.brain, s.ventricle, s.image, s.bias, classes, thin, Mask{}, s.centre), 2);
+  EXPECT_EQ(top_thin[1], 0u);
+  // A cap as bright as grey matter is a gyrus's crown over a sulcus's fluid:
+  // only its part within the rim's depth goes, and the fluid beneath stays.
+  CapScene crown = s;
+  for (std::size_t v = 0; v < crown.image.voxels.size(); ++v)
+    if (crown.image.voxels[v] == 40.f) crown.image.voxels[v] = 55.f;
+  const auto top_crown =
+      patch_counts(crown, fluid_rim(crown.brain, crown.ventricle, crown.image, crown.bias, classes, thick, Mask{},
+                                    crown.centre), 2);
+  EXPECT_EQ(top_crown[3], 0u);
 }
