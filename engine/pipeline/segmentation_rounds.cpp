@@ -67,9 +67,13 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
   const Mask head = segmentation::head_mask(image);
   if (count_nonzero(head) == 0) throw InputError("intraop image: no head found (the image is flat)");
   const IntraopDistanceMaps maps = prepare_intraop_maps(as_labels(head), 1, 2);
-  // The placement only has to put the brain within the first round's prior
-  // (3 mm outward): a placement's affine.
-  AffineRegistrationParameters p = placement_affine(affine);
+  // The full affine, not a placement's (placement_affine), though the
+  // placement only has to put the brain within the first round's 3 mm
+  // prior: with a quarter of the points (0.07 s less per scan) the test
+  // head's pure translation came back 0.59 mm off instead of 0.46
+  // (docs/PERFORMANCE.md 12.39); the first round's outline carries into
+  // the answer.
+  AffineRegistrationParameters p = affine;
   p.ventricle_weight = 0;
   Eigen::Matrix4d placement = Eigen::Matrix4d::Identity();
   AffineRegistrationResult r;

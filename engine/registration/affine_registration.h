@@ -110,8 +110,8 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
                                          const Eigen::Matrix4d* start = nullptr);
 
 // The parameters of a placement: an affine that only has to bring a
-// structure within a prior's or a search's width (millimetres: the first
-// round's tissue prior, a fluid space several mm across), not to the
+// structure within a search's width (millimetres: a fluid space several mm
+// across), not to the
 // outline's own accuracy. A quarter of the finest level's points, at most two
 // levels: the twelve parameters stay fixed by thousands of points, at about a
 // quarter of the time (docs/PERFORMANCE.md 12.33 and 12.39).

@@ -83,9 +83,9 @@ TEST_P(KnownAffine, RecoveredWithinHalfMillimetreAndHalfDegree) {
   EXPECT_LE(result.final_cost, result.initial_cost);
 }
 
-// A placement's affine (a quarter of the points, two levels) has to put the
-// brain well within the first round's 3 mm prior: a millimetre here, where
-// the full affine is held to half of one.
+// A placement's affine (a quarter of the points, two levels) has to put a
+// structure within a search's width of several mm (the preop's fluid
+// spaces): a millimetre here, where the full affine is held to half of one.
 TEST_P(KnownAffine, APlacementsAffineRecoversItWithinAMillimetre) {
   const Case& c = GetParam();
   const LabelImage preop = preop_phantom();
