@@ -106,6 +106,12 @@ struct ScanOnGrid {
     sp.ventricle_shift_mm = placed ? ap.ventricle_shift_affine_mm : 0.0;
     if (placed && sp.ventricle_shift_mm > 0) sp.prior_inward_width_mm = ap.prior_inward_width_affine_mm;
     if (!placed) sp.prior_inward_width_mm = ap.prior_inward_width_nonrigid_mm;
+    // The rim's thick caps in a re-match only, where the carried outline is
+    // the non-rigid estimate's (about 1 mm off): under the head placement's
+    // wide prior they peeled tissue the truth calls brain on a T2 resection
+    // (12 ml, family 6: 0.601 -> 0.675 mm) and moved the estimate the
+    // re-match starts from (docs/PERFORMANCE.md 12.39).
+    if (placed) sp.max_rim_cap_mm = 0;
     sp.max_filled_hole_ml = params.min_resection_cavity_ml;
     const auto classify = [&](const segmentation::SegmentationParameters& with) {
       return segmentation::segment_intraop(image, prior_labels, params.label_table.brain_label(),
