@@ -11,18 +11,6 @@
 
 namespace brainshift::segmentation {
 
-// Why: in a T2-like image the CSF between the cortex and the skull (1-3 mm
-// over the convexity) is the brightest tissue there, and the brain holds
-// bright tissue of its own (sulcal fluid, oedema), so a parenchyma class
-// spans the fluid's partial volume; where the carried outline lies on the
-// rim (a first round, or a placement, a voxel or two out) the prior keeps
-// the rim in the brain, and the round after inherits it. In a T1 the rim is
-// dark, as dark as bone, and falls outside by its intensity alone. A voxel
-// at least half fluid is not brain (the partial-volume rule: at the midpoint
-// of the two tissues' intensities half of each), and fluid reached from the
-// outside within the rim's thickness is the rim. Deeper fluid open to the
-// outside is the open-fluid rule's (a gap, a cavity: item 7), and sulci
-// deeper than the bound keep their fluid, as every outline counts them.
 namespace {
 
 Mask complement(const Mask& m) {
@@ -50,6 +38,18 @@ Mask fluid_bodies(const Mask& candidate, double max_depth_mm) {
 
 }  // namespace
 
+// Why: in a T2-like image the CSF between the cortex and the skull (1-3 mm
+// over the convexity) is the brightest tissue there, and the brain holds
+// bright tissue of its own (sulcal fluid, oedema), so a parenchyma class
+// spans the fluid's partial volume; where the carried outline lies on the
+// rim (a first round, or a placement, a voxel or two out) the prior keeps
+// the rim in the brain, and the round after inherits it. In a T1 the rim is
+// dark, as dark as bone, and falls outside by its intensity alone. A voxel
+// at least half fluid is not brain (the partial-volume rule: at the midpoint
+// of the two tissues' intensities half of each), and fluid reached from the
+// outside within the rim's thickness is the rim. Deeper fluid open to the
+// outside is the open-fluid rule's (a gap, a cavity: item 7), and sulci
+// deeper than the bound keep their fluid, as every outline counts them.
 Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, const std::vector<float>& bias,
                const std::vector<GaussianClass>& classes, const FluidRimBounds& bounds, const Mask& resectable,
                const Eigen::Vector3d& centre_voxel) {
