@@ -102,9 +102,12 @@ struct SegmentationParameters {
   // A cap over the rim (fluid_rim.h) may be thicker than the rim itself, up
   // to this (mm): the fluid-bone mixture beyond the vertex's fluid is 4-5 mm
   // of tissue-dark voxels (docs/PERFORMANCE.md 12.38); thinner than a gyrus,
-  // two cortices of about 2.5 mm, so that no fold of brain over a sulcus's
-  // fluid is taken for one. The fluid such a cap hides is looked for as deep
-  // under the outline as the rim and the cap together. 0: the rim's own depth.
+  // two cortices of about 2.5 mm; and only voxels darker than the cortex can
+  // be (a gyrus's crown over a sulcus's fluid is grey matter). The fluid such
+  // a cap hides is looked for as deep under the outline as the rim and the
+  // cap together. 0: the rim's own depth (the pipeline's first round, under
+  // the head placement's wide prior; docs/DESIGN.md "Automatic intraop
+  // segmentation", item 11).
   double max_rim_cap_mm = 5.0;
   // Except within this (mm) of the preop's resectable tissue where the head
   // placed it (PreopSeen::resectable): beside a resection cavity the brain
