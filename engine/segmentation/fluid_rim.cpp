@@ -82,7 +82,9 @@ Mask fluid_rim(const Mask& brain, const Mask& ventricle, const ImageF& image, co
   // (docs/PERFORMANCE.md 12.24); over the vertex 4-5 mm of 30-40 (12.38):
   // thicker caps there, with the fluid looked for as deep as rim and cap,
   // but not beside a cavity, whose walls lie beyond its fluid.
-  const bool thick = bounds.max_cap_mm > max_depth_mm;
+  const double pooled_sd = std::sqrt(0.5 * (fluid->sd * fluid->sd + cortex->sd * cortex->sd));
+  const bool thick = bounds.max_cap_mm > max_depth_mm &&
+                     fluid->mean - cortex->mean >= bounds.min_separation_sd * pooled_sd;
   const double cap_mm = thick ? bounds.max_cap_mm : max_depth_mm;
   const bool any_resectable = thick && resectable.grid.same_geometry(g) && count_nonzero(resectable) > 0;
   const Mask near_cavity = any_resectable ? dilate(resectable, bounds.cavity_margin_mm) : Mask(g, 0);

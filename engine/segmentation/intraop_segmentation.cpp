@@ -583,7 +583,8 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   }
   // The bright fluid rim around a T2-like brain (item 11); nothing in a T1.
   const Mask rim = fluid_rim(brain, ventricle, image_box, em.bias, em.classes,
-                             {params.max_fluid_rim_mm, params.max_rim_cap_mm, params.rim_cap_cavity_margin_mm},
+                             {params.max_fluid_rim_mm, params.max_rim_cap_mm, params.rim_cap_cavity_margin_mm,
+                              params.min_fluid_contrast_sd},
                              resectable_box, centre_voxel);
   for (std::size_t v = 0; v < rim.voxels.size(); ++v) {
     if (!rim.voxels[v]) continue;

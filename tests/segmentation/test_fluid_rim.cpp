@@ -346,7 +346,7 @@ TEST(FluidRim, AThickCapOverTheConvexityIsPeeledButNotBesideACavity) {
                                               {Tissue::ventricle, 100, 10, 1.0}, {Tissue::outside, 5, 3, 1.0}};
   ASSERT_TRUE(fluid_is_bright(classes));
   const SegmentationParameters p;
-  const FluidRimBounds thick{p.max_fluid_rim_mm, p.max_rim_cap_mm, p.rim_cap_cavity_margin_mm};
+  const FluidRimBounds thick{p.max_fluid_rim_mm, p.max_rim_cap_mm, p.rim_cap_cavity_margin_mm, p.min_fluid_contrast_sd};
   ASSERT_GT(thick.max_cap_mm, 4.0) << "the scene's cap must be thinner than the bound";
   const Mask rim = fluid_rim(s.brain, s.ventricle, s.image, s.bias, classes, thick, s.resectable, s.centre);
   const auto top = patch_counts(s, rim, 2), side = patch_counts(s, rim, 0);
@@ -361,9 +361,17 @@ TEST(FluidRim, AThickCapOverTheConvexityIsPeeledButNotBesideACavity) {
   const auto side_anywhere = patch_counts(s, anywhere, 0);
   EXPECT_GE(side_anywhere[1], 0.9 * static_cast<double>(side_anywhere[0]));
   // Caps no thicker than the rim (the bound at the rim's depth): 4 mm stays.
-  const FluidRimBounds thin{p.max_fluid_rim_mm, p.max_fluid_rim_mm, p.rim_cap_cavity_margin_mm};
+  const FluidRimBounds thin{p.max_fluid_rim_mm, p.max_fluid_rim_mm, p.rim_cap_cavity_margin_mm, p.min_fluid_contrast_sd};
   const auto top_thin = patch_counts(s, fluid_rim(s.brain, s.ventricle, s.image, s.bias, classes, thin, Mask{}, s.centre), 2);
   EXPECT_EQ(top_thin[1], 0u);
+  // Nor where the fit does not tell the fluid from the cortex (a fluid class
+  // less than min_fluid_contrast_sd pooled sd's above it): thick caps judge
+  // tissue by being darker than the cortex.
+  std::vector<GaussianClass> blurred = classes;
+  blurred[2].mean = 60;
+  const auto top_blurred =
+      patch_counts(s, fluid_rim(s.brain, s.ventricle, s.image, s.bias, blurred, thick, Mask{}, s.centre), 2);
+  EXPECT_EQ(top_blurred[1], 0u);
   // A cap as bright as grey matter is a gyrus's crown over a sulcus's fluid:
   // only its part within the rim's depth goes, and the fluid beneath stays.
   CapScene crown = s;
