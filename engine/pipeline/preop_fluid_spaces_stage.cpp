@@ -27,10 +27,10 @@ IntraopInput with_preop_fluid_spaces(WarmState& warm, const IntraopInput& input,
   const std::uint16_t ventricle = cavities.empty() ? 0 : cavities.front();
   const auto& medians = preop_fluid_tissue_medians(warm, table);
   // The placement only needs to put a space of several mm on itself: the
-  // labels on a 2 mm grid and a placement's affine (placement_affine). On the three cases written to check it, it gave
-  // back the spaces the full affine on the 1 mm labels did within 0.3 ml,
-  // mean TRE within 0.016 mm (docs/PERFORMANCE.md 12.33), in about a
-  // quarter of the time.
+  // labels on a 2 mm grid and a placement's affine (placement_affine). On
+  // the three cases written to check it, it gave back the spaces the full
+  // affine on the 1 mm labels did within 0.3 ml, mean TRE within 0.016 mm
+  // (docs/PERFORMANCE.md 12.33), in about a quarter of the time.
   // The labels' pass keeps its own full affine.
   const Grid3 placement_grid = working_grid(input.labels.grid, kPlacementSpacingMm);
   const LabelImage placed_labels = placement_grid.dims == input.labels.grid.dims

@@ -111,10 +111,10 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
 
 // The parameters of a placement: an affine that only has to bring a
 // structure within a search's width (millimetres: a fluid space several mm
-// across), not to the
-// outline's own accuracy. A quarter of the finest level's points, at most two
-// levels: the twelve parameters stay fixed by thousands of points, at about a
-// quarter of the time (docs/PERFORMANCE.md 12.33 and 12.39).
+// across), not to the outline's own accuracy. A quarter of the finest
+// level's points, at most two levels: the twelve parameters stay fixed by
+// thousands of points, at about a quarter of the time (docs/PERFORMANCE.md
+// 12.33 and 12.39).
 AffineRegistrationParameters placement_affine(const AffineRegistrationParameters& full);
 
 }  // namespace brainshift
