@@ -16,6 +16,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/image.h"
+#include "segmentation/open_fluid.h"
 #include "segmentation/tissue_em.h"
 
 namespace brainshift::segmentation {
@@ -53,7 +54,7 @@ struct SegmentationParameters {
   // min_resection_cavity_ml, so what is filled here would be ignored there).
   double max_filled_hole_ml = 0.1;
   // Fluid labelled brain that is thicker than twice this (mm) and open to the
-  // outside is moved out of the brain (intraop_segmentation.cpp open_fluid):
+  // outside is moved out of the brain (open_fluid.h):
   // sulci are 1-3 mm wide, up to about 4 with atrophy, while the gap under a
   // sunken cortex is as deep as the sinking (5-25 mm) and a cavity as wide as
   // what was resected. 0: off.
@@ -128,17 +129,6 @@ struct SegmentationParameters {
   // is placed by noise. Lower than the class figure: the tissue around the
   // wall mixes white matter, the caudate's grey matter and partial volume.
   double min_wall_contrast_sd = 1.0;
-};
-
-// The preop as it was before the operation, where the head's placement puts
-// it on the intraop grid: fluid the preop already held there (a cistern, a
-// fissure) is anatomy, not a gap a sinking opened (open_fluid).
-struct PreopSeen {
-  const ImageF* image = nullptr;  // the preop T1 (its own grid)
-  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();  // world mm
-  double fluid_median = 0;   // the preop's intensity in its ventricles
-  double tissue_median = 0;  // and in its parenchyma
-  Mask resectable;           // the carried preop's resectable labels, intraop grid (empty: none)
 };
 
 struct IntraopSegmentation {
