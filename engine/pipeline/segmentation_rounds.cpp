@@ -178,10 +178,12 @@ void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
   // image alone is tried once, and kept only if the stages accept it.
   if (r.result.kind == ResultKind::nonrigid || !r.gates.failure.empty() || r.seg.open_fluid_ml <= 0) return;
   watch.lap();
+  if (s.progress) s.progress(std::string(stages::kSegment), 0.0, 0.0);
   auto plain = s.segment(s.carried, ScanOnGrid::Prior::placed, false);
   SegmentationGates plain_gates = s.gates(plain, 0.0);
   const double plain_seconds = watch.lap();
   r.segment_seconds += plain_seconds;
+  if (s.progress) s.progress(std::string(stages::kSegment), 1.0, plain_seconds);
   nlohmann::json report = round_report(plain);
   report.update({{"gates", plain_gates.metrics}, {"open_fluid_rule", false}, {"refusal", plain.refusal},
                  {"seconds", plain_seconds}});
@@ -215,6 +217,8 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
   Stopwatch watch;
   for (int round = 1; round <= ap.rematch_rounds && r.result.kind == ResultKind::nonrigid; ++round) {
     watch.lap();
+    // Each round is a line of its own in the timing log (PROTOCOL.md 8.2).
+    if (s.progress) s.progress(std::string(stages::kSegment), 0.0, 0.0);
     auto next = s.segment(r.result.warped_labels, ScanOnGrid::Prior::carried, r.open_fluid_rule,
                           ap.rematch_reuses_fit ? &r.seg : nullptr,
                           ap.rematch_gaps_found_before ? &r.seg.open_fluid : nullptr);
@@ -222,6 +226,7 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
     SegmentationGates next_gates = s.gates(next, next.open_fluid_ml);
     const double round_seconds = watch.lap();
     r.segment_seconds += round_seconds;
+    if (s.progress) s.progress(std::string(stages::kSegment), 1.0, round_seconds);
     nlohmann::json report = round_report(next);
     report.update({{"gates", next_gates.metrics}, {"seconds", round_seconds}});
     ScanResult pass;

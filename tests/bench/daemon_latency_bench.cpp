@@ -9,7 +9,8 @@
 //     same start, this benchmark's own receipt of event.scan.done
 //     (client_start_to_done_event_s); without it, scan.push sent by this
 //     process -> event.scan.done received (push_to_result_ready_s);
-//   * the daemon's own stage timings (p50 per stage, from event.stage);
+//   * the daemon's own stage timings (from event.stage): p50 per line
+//     (stage_p50_s) and p50 over scans of each stage's sum (stage_per_scan);
 //   * resident memory (VmRSS, and the peak VmHWM) of the given daemon
 //     processes after the scans;
 //   * with --restarted-at: a daemon restarted (after kill -9) at that time
@@ -161,11 +162,22 @@ class Bench {
   void record(const Message& e) {
     if (e.type() != MessageType::kEventStage) return;
     const StageTiming t = parse_stage_event(e).timing;
-    if (t.scope == StageScope::kIntraop) stages_[t.stage].push_back(t.seconds);
-    else preop_stages_[t.stage] = t.seconds;
+    if (t.scope == StageScope::kIntraop) {
+      stages_[t.stage].push_back(t.seconds);
+      auto& per_scan = scan_stages_[t.scan_id][t.stage];
+      per_scan.first += t.seconds;
+      ++per_scan.second;
+    } else {
+      preop_stages_[t.stage] = t.seconds;
+    }
   }
 
   std::map<std::string, std::vector<double>> stages_;
+  // Per scan and stage: the seconds of all its lines, and how many. A stage
+  // runs once per pass (an image-only scan makes three: the light pass for
+  // the re-match's prior, the answer's pass; the segmentation once per
+  // round), so a line's p50 is not what the stage costs a scan.
+  std::map<std::string, std::map<std::string, std::pair<double, int>>> scan_stages_;
   std::map<std::string, double> preop_stages_;
 
  private:
@@ -261,6 +273,7 @@ int main(int argc, char** argv) {
 
     std::vector<double> latency, ack, server_total, client_wait, client_to_event;
     b.stages_.clear();
+    b.scan_stages_.clear();
     if (client.empty()) {
       ScanPushRequest push;
       if (!labels_path.empty()) push.labels = media::nifti_frame("labels", read_file(labels_path));
@@ -326,6 +339,16 @@ int main(int argc, char** argv) {
     nlohmann::json stages;
     for (const auto& [name, v] : b.stages_) stages[name] = percentile(v, 50);
     out["stage_p50_s"] = stages;
+    std::map<std::string, std::vector<double>> per_scan, lines;
+    for (const auto& [scan, by_stage] : b.scan_stages_)
+      for (const auto& [name, sum_count] : by_stage) {
+        per_scan[name].push_back(sum_count.first);
+        lines[name].push_back(sum_count.second);
+      }
+    nlohmann::json scan_stages;
+    for (const auto& [name, v] : per_scan)
+      scan_stages[name] = {{"p50_s", percentile(v, 50)}, {"lines_p50", percentile(lines[name], 50)}};
+    out["stage_per_scan"] = scan_stages;
     nlohmann::json rss = nlohmann::json::array();
     for (int pid : pids)
       rss.push_back({{"pid", pid}, {"vm_rss_kib", status_kib(pid, "VmRSS")}, {"vm_hwm_kib", status_kib(pid, "VmHWM")}});

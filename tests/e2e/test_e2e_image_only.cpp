@@ -13,6 +13,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 
 #include <nlohmann/json.hpp>
 
@@ -23,6 +24,7 @@
 #include "image/resample.h"
 #include "process.h"
 #include "protocol/result_outputs.h"
+#include "protocol/timing_log.h"
 #include "synthetic_case.h"
 #include "synthetic_head.h"
 #include "temp_dir.h"
@@ -234,6 +236,22 @@ TEST_F(ImageOnlyE2E, AnImageAloneIsSegmentedRegisteredAndServedThenCorrectedLabe
   EXPECT_EQ(cli(again, {"shutdown", "--reason", "test"}).code, 0);
   again.process().wait(60);
   const auto timings = nlohmann::json::parse(read_file(dir / "pulled" / "timings.json"))["intraop"];
+  // The timing log has a segment line per round of the segmentation (the
+  // first with the head's placement), and they add up to the scan's own
+  // segmentation time: a monitor sees the re-match too.
+  const auto rounds = nlohmann::json::parse(read_file(dir / "pulled" / "metrics.json"))["segmentation"]["rounds"];
+  std::istringstream log_lines(read_file(dir / "store" / "timing.jsonl"));
+  std::size_t segment_lines = 0;
+  double segment_s = 0;
+  for (std::string line; std::getline(log_lines, line);) {
+    const auto t = protocol::parse_stage_log_line(line);
+    if (t.scan_id != scan_id || t.stage != "segment") continue;
+    ++segment_lines;
+    segment_s += t.seconds;
+  }
+  ASSERT_GE(rounds.size(), 2u) << "the first round and a re-match";
+  EXPECT_EQ(segment_lines, rounds.size());
+  EXPECT_NEAR(segment_s, timings.value("segment", -1.0), 1e-3);
   std::printf("%s\n", nlohmann::json{{"test", "image_only_push"},
                                      {"push_to_result_s_client", push_to_result_s},
                                      {"daemon_intraop_total_s", timings.value("total", -1.0)},
