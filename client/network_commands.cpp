@@ -5,10 +5,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <cmath>
-#include <csignal>
 #include <cstdio>
-#include <filesystem>
-#include <fstream>
 #include <iostream>
 #include <sstream>
 #include <thread>
@@ -16,50 +13,21 @@
 #include <nlohmann/json.hpp>
 
 #include "core/errors.h"
-#include "core/file_bytes.h"
+#include "command_support.h"
 #include "connection.h"
 #include "offline_forwarding.h"
-#include "pulled_files.h"
-#include "slicer_scene.h"
+#include "pull_command.h"
 #include "protocol/events.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
 #include "protocol/result_outputs.h"
 
 namespace brainshift::cli {
-namespace fs = std::filesystem;
 using namespace protocol;
 using namespace std::chrono_literals;
 namespace curve = protocol::curve;
 
 namespace {
-
-std::atomic<bool> g_interrupted{false};
-extern "C" void on_interrupt(int) { g_interrupted = true; }
-
-std::chrono::milliseconds as_ms(double seconds) {
-  return std::chrono::milliseconds(static_cast<long long>(std::max(0.05, seconds) * 1000.0));
-}
-
-std::string read_file(const std::string& path) {
-  try {
-    return read_whole_file(path);
-  } catch (const InputError& e) {
-    throw CommandError(kExitUsage, e.what());
-  }
-}
-
-// Atomic per file: a reader never sees half a field.
-void write_file(const fs::path& path, const std::string& bytes) {
-  fs::create_directories(path.parent_path());
-  const fs::path tmp = path.string() + ".partial";
-  {
-    std::ofstream out(tmp, std::ios::binary);
-    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-    if (!out) throw CommandError(kExitUsage, tmp.string() + ": cannot write");
-  }
-  fs::rename(tmp, path);
-}
 
 Frame nifti_file_frame(const std::string& name, const std::string& path) {
   Frame f = media::nifti_frame(name, read_file(path));
@@ -180,7 +148,7 @@ int cmd_status(const NetworkOptions& o, bool json) {
 int wait_preop_ready(Connection& c, const std::string& preop_id, double wait_s) {
   const auto deadline = std::chrono::steady_clock::now() + as_ms(wait_s);
   std::string last;
-  while (std::chrono::steady_clock::now() < deadline && !g_interrupted) {
+  while (std::chrono::steady_clock::now() < deadline && !interrupted()) {
     const StatusReply s = parse_status_reply(c.call(make_status_request(c.next_request_id())));
     if (s.state == ServerState::kLoadingPreop) {
       std::ostringstream line;
@@ -278,7 +246,7 @@ int wait_scan(Connection& c, EventStream& events, const std::string& scan_id, do
   const auto deadline = std::chrono::steady_clock::now() + as_ms(wait_s);
   auto next_poll = std::chrono::steady_clock::now();
   bool announced = false;
-  while (std::chrono::steady_clock::now() < deadline && !g_interrupted) {
+  while (std::chrono::steady_clock::now() < deadline && !interrupted()) {
     // Events give live progress and end the wait: this scan's scan.done or
     // scan.failed is followed by a pull at once. The poll every 200 ms only
     // covers an event that was missed (a PUB drops what a slow SUB misses).
@@ -351,132 +319,6 @@ int cmd_push(const NetworkOptions& o, const PushArgs& a) {
   return a.wait ? wait_scan(c, *events, reply.scan_id, a.wait_s) : kExitOk;
 }
 
-// ---- pull ------------------------------------------------------------------
-
-struct PullArgs {
-  std::string scan, out;
-  std::vector<std::string> parts;
-  bool scene = false;
-  std::string preop_image, intraop_image;
-  std::string format = "nifti";  // "nrrd": also NRRD copies, and the scene uses them
-};
-
-// What scene.mrml shows that the daemon sends (the preop and intraop images
-// are the user's own files; intraop_labels when the engine segmented the
-// image: pushed alone, or labels refined by it).
-constexpr ResultPart kScenePartsFromTheDaemon[] = {ResultPart::kDisplacementItk, ResultPart::kWarpedImage,
-                                                   ResultPart::kWarpedLabels, ResultPart::kModels,
-                                                   ResultPart::kUncertainty, ResultPart::kIntraopLabels};
-
-std::string cli_part_names() {
-  std::string out;
-  for (const auto& o : kResultOutputs) out += (out.empty() ? "" : ",") + std::string(o.cli);
-  return out;
-}
-
-// Writes the frames as register's files; returns the parts still pending.
-std::vector<ResultPart> write_pulled(const ScanResultReply& r, const fs::path& out) {
-  for (const Frame& f : r.frames) {
-    const PulledFile file = pulled_file_for(f);
-    if (file.name.empty()) {
-      std::cerr << "note: ignoring unknown frame " << f.name << '\n';
-      continue;
-    }
-    write_file(out / file.name, file.bytes);
-    std::cout << (out / file.name).string() << '\n';
-  }
-  std::vector<ResultPart> pending;
-  for (const auto& u : r.unavailable) {
-    const auto part = result_part_from_string(u.part);
-    if (u.pending && part) pending.push_back(*part);
-    else std::cerr << "note: " << u.part << " not available: " << u.reason << '\n';
-  }
-  return pending;
-}
-
-// The daemon's label table, which names and colours the scene (labels.get):
-// asked before anything is pulled, so a daemon that cannot say fails first.
-std::vector<SceneLabel> daemon_scene_labels(Connection& c) {
-  const Message reply = c.call_raw(make_labels_request(c.next_request_id()));
-  if (reply.type() == MessageType::kError && parse_error_reply(reply).code == ErrorCode::kUnknownType)
-    throw CommandError(kExitError, "pull --scene: this daemon does not serve its label table (labels.get, "
-                                   "protocol revision 3; PROTOCOL.md 10); pull without --scene");
-  std::vector<SceneLabel> out;
-  for (const LabelInfo& l : parse_labels_reply(reply).labels)
-    out.push_back({l.value, l.name, l.colour, l.role == kLabelRoleNames[0]});
-  return out;
-}
-
-// A local image copied into the result folder (the scene refers to it there,
-// so the folder stays self-contained): <stem> plus the file's extension.
-std::string copy_into(const fs::path& out, const std::string& file, const std::string& stem) {
-  if (!fs::is_regular_file(file)) throw CommandError(kExitUsage, file + ": no such file");
-  const std::string name = file.size() > 7 && file.compare(file.size() - 7, 7, ".nii.gz") == 0
-                               ? stem + ".nii.gz"
-                               : stem + fs::path(file).extension().string();
-  fs::copy_file(file, out / name, fs::copy_options::overwrite_existing);
-  std::cout << (out / name).string() << '\n';
-  return name;
-}
-
-void write_scene(const PullArgs& a, std::vector<SceneLabel> labels) {
-  const fs::path out = a.out;
-  SceneContents contents;
-  contents.labels = std::move(labels);
-  if (!a.preop_image.empty()) contents.preop_image = copy_into(out, a.preop_image, "preop_image");
-  if (!a.intraop_image.empty()) contents.intraop_image = copy_into(out, a.intraop_image, "intraop_image");
-  contents.nrrd = a.format == "nrrd";
-  try {
-    write_slicer_scene(out, contents);
-  } catch (const std::runtime_error& e) {
-    throw CommandError(kExitUsage, e.what());
-  }
-  std::cout << (out / kSceneFile).string() << '\n';
-}
-
-int cmd_pull(const NetworkOptions& o, const PullArgs& a) {
-  ScanResultRequest req;
-  req.scan_id = a.scan;
-  std::vector<std::string> parts = a.parts;
-  // What the scene shows must be in the folder.
-  if (a.scene)
-    for (ResultPart p : kScenePartsFromTheDaemon) parts.emplace_back(result_output(p).cli);
-  else if (!a.preop_image.empty() || !a.intraop_image.empty())
-    throw CommandError(kExitUsage, "--preop-image and --intraop-image go with --scene");
-  if (a.scene && a.format == "nrrd") parts.emplace_back(result_output(ResultPart::kDisplacement).cli);
-  if (a.format == "nrrd" && !o.nrrd_outputs)
-    throw CommandError(kExitUsage, "--format nrrd needs brainshift-offline (NRRD is written there)");
-  for (const auto& name : parts) {
-    const auto p = result_part_from_cli(name);
-    if (!p) throw CommandError(kExitUsage, "unknown part \"" + name + "\"");
-    if (std::find(req.parts.begin(), req.parts.end(), *p) == req.parts.end()) req.parts.push_back(*p);
-  }
-  if (req.parts.empty()) return kExitOk;
-  const double timeout_s = std::max(o.timeout_s, 30.0);  // a field is tens of MB
-  Connection c(o.server, as_ms(timeout_s), curve_keys(o));
-  const std::vector<SceneLabel> labels = a.scene ? daemon_scene_labels(c) : std::vector<SceneLabel>{};
-  req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
-  // report.png follows event.scan.done by a moment: ask again for what is
-  // pending (only that) until it comes or the timeout ends.
-  const auto deadline = std::chrono::steady_clock::now() + as_ms(timeout_s);
-  while (!req.parts.empty()) {
-    if (std::chrono::steady_clock::now() > deadline || g_interrupted)
-      throw CommandError(kExitUnreachable, a.scan + ": " + std::string(to_string(req.parts.front())) +
-                                               " still being produced after " + std::to_string(int(timeout_s)) + " s");
-    std::this_thread::sleep_for(200ms);
-    req.parts = write_pulled(parse_scan_result_reply(c.call(make_scan_result_request(c.next_request_id(), req))), a.out);
-  }
-  if (a.format == "nrrd") {
-    try {
-      o.nrrd_outputs(a.out);
-    } catch (const std::exception& e) {
-      throw CommandError(kExitError, std::string("writing NRRD: ") + e.what());
-    }
-  }
-  if (a.scene) write_scene(a, labels);
-  return kExitOk;
-}
-
 // ---- list, watch, shutdown -------------------------------------------------
 
 int cmd_list(const NetworkOptions& o, std::uint64_t limit) {
@@ -499,11 +341,10 @@ int cmd_list(const NetworkOptions& o, std::uint64_t limit) {
 
 int cmd_watch(const NetworkOptions& o, bool json, long count, double duration_s) {
   EventStream events(o.events, "", curve_keys(o));
-  std::signal(SIGINT, on_interrupt);
-  std::signal(SIGTERM, on_interrupt);
+  stop_on_interrupt();
   const auto until = std::chrono::steady_clock::now() + as_ms(duration_s > 0 ? duration_s : 1e9);
   long seen = 0;
-  while (!g_interrupted && std::chrono::steady_clock::now() < until && (count <= 0 || seen < count)) {
+  while (!interrupted() && std::chrono::steady_clock::now() < until && (count <= 0 || seen < count)) {
     std::optional<Message> e;
     try {
       e = events.next(200ms);
