@@ -174,9 +174,9 @@ class Bench {
 
   std::map<std::string, std::vector<double>> stages_;
   // Per scan and stage: the seconds of all its lines, and how many. A stage
-  // runs once per pass (an image-only scan makes three: the light pass for
-  // the re-match's prior, the answer's pass; the segmentation once per
-  // round), so a line's p50 is not what the stage costs a scan.
+  // runs once per pass (an image-only scan makes two: the light pass for the
+  // re-match's prior and the answer's; the segmentation a line per round),
+  // so a line's p50 is not what the stage costs a scan.
   std::map<std::string, std::map<std::string, std::pair<double, int>>> scan_stages_;
   std::map<std::string, double> preop_stages_;
 
