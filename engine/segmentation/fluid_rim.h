@@ -25,10 +25,10 @@ namespace brainshift::segmentation {
 // of `resectable` (empty: nowhere) at most max_depth_mm, and the fluid no
 // deeper than max_depth_mm, as beside a cavity the brain lies beyond fluid.
 // Below the caps, the rim's depth counts from the outline without them.
-// Thick caps also need the fluid class min_separation_sd pooled sd's above
-// the cortex's: they judge tissue by being darker than the cortex, which
-// presumes the two are told apart (a fit that put the fluid class on the
-// white matter is not).
+// Thick caps also need the fluid class min_separation_sd sd's above the
+// cortex's (the sd: the root mean square of the two classes' sd's): they
+// judge tissue by being darker than the cortex, which presumes the two are
+// told apart (a fit that put the fluid class on the white matter is not).
 struct FluidRimBounds {
   double max_depth_mm = 0;
   double max_cap_mm = 0;

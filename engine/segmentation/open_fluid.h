@@ -44,8 +44,8 @@ double gap_left_outside_ml(const ImageF& image, const std::vector<float>& bias, 
 // Fluid labelled parenchyma that is thicker than any sulcus (it survives an
 // opening of radius max_sulcus_half_width_mm) and lies open to what is
 // outside the brain (at most a cap, drop_beyond_open_fluid, between) is not
-// in the brain: the gap
-// a sunken cortex leaves under the craniotomy, a cavity open to the surface.
+// in the brain: the gap a sunken cortex leaves under the craniotomy, a cavity
+// open to the surface.
 // The prior, carried from where the brain was, holds brain there, and a
 // parenchyma class stretched over the sulci's fluid and partial volume
 // explains the fluid as well as the fluid class does: the image alone does
@@ -77,7 +77,7 @@ OpenFluid open_fluid(const ImageF& image, const std::vector<float>& bias, const 
 // grid (an empty grid: no gap was found before).
 void keep_gaps_found_before(Mask& moved, const Mask& found_before, const VoxelBox& box, double max_sulcus_half_width_mm);
 
-// Tissue on the far side of that fluid, between it and the skull (the dura,
+// Tissue on the far side of open fluid, between it and the skull (the dura,
 // the inner table and their partial volume, cut obliquely by thick slices),
 // is not brain either: the brain lies beneath the gap a sinking leaves, never
 // beyond it. Along the ray through a brain voxel toward the carried brain's
