@@ -8,6 +8,8 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "segmentation/bias_field.h"
+#include "segmentation/em_initial_classes.h"
+#include "segmentation/em_samples.h"
 #include "segmentation/potts.h"
 
 namespace brainshift::segmentation {
@@ -20,16 +22,6 @@ const GaussianClass* heaviest_class(const std::vector<GaussianClass>& classes, T
 }
 
 namespace {
-
-constexpr double kLogTiny = -1e30;
-
-struct Samples {
-  std::vector<std::array<int, 3>> voxel;
-  std::vector<double> intensity;                 // normalised
-  std::vector<std::array<double, kTissues>> log_prior;
-  std::vector<char> band;  // in_surface_band
-  std::vector<double> inside;  // prior of brain (parenchyma + ventricles), for the bias step
-};
 
 // Responsibilities of every sample for every class, one row of `classes`
 // values per sample, contiguous: the E-step, M-step and bias step sweep it
@@ -45,195 +37,6 @@ class Responsibilities {
   std::size_t classes_;
   std::vector<double> gamma_;
 };
-
-double brain_prior_at(const TissuePrior& prior, std::size_t v) {
-  return static_cast<double>(prior.p[index_of(Tissue::parenchyma)][v]) + prior.p[index_of(Tissue::ventricle)][v];
-}
-
-// Lattice points along an axis of n voxels at this stride, started half a
-// stride in.
-std::size_t lattice_points(int n, int stride) { return n > stride / 2 ? (n - stride / 2 - 1) / stride + 1 : 0; }
-
-// A regular subsample of at most `budget` voxels: a lattice of about the same
-// spacing in mm along every axis (strides per axis from the voxel spacing),
-// started half a stride in. Rounding the strides alone could take up to 3x
-// the budget (a stride of 1.49 voxels rounds to 1) and the fit's time with
-// it: the finest axis in mm is coarsened until the lattice fits, at most
-// every axis's voxels (a bounded loop). A stride through the voxels in grid
-// order aliases whenever it shares a factor with a row's length (a stride of
-// 55 on rows of 220 voxels sees 4 sagittal planes and nothing between them).
-std::array<int, 3> sample_strides(const Grid3& g, std::size_t budget) {
-  const Eigen::Vector3d spacing = g.spacing_mm();
-  const double volume_mm3 = static_cast<double>(g.voxel_count()) * spacing.prod();
-  const double h_mm = std::cbrt(volume_mm3 / static_cast<double>(std::max<std::size_t>(budget, 1)));
-  std::array<int, 3> stride{};
-  for (int a = 0; a < 3; ++a) stride[a] = std::max(1, static_cast<int>(std::lround(h_mm / spacing[a])));
-  const auto count = [&] {
-    return lattice_points(g.dims[0], stride[0]) * lattice_points(g.dims[1], stride[1]) *
-           lattice_points(g.dims[2], stride[2]);
-  };
-  while (count() > budget) {
-    int finest = -1;
-    for (int a = 0; a < 3; ++a)
-      if (stride[a] < g.dims[a] && (finest < 0 || stride[a] * spacing[a] < stride[finest] * spacing[finest])) finest = a;
-    if (finest < 0) break;
-    stride[finest] += 1;
-  }
-  return stride;
-}
-
-Samples draw_samples(const ImageF& image, const TissuePrior& prior, double scale, std::size_t budget) {
-  const auto& g = image.grid;
-  const std::array<int, 3> stride = sample_strides(g, budget);
-  Samples s;
-  for (int k = stride[2] / 2; k < g.dims[2]; k += stride[2])
-    for (int j = stride[1] / 2; j < g.dims[1]; j += stride[1])
-      for (int i = stride[0] / 2; i < g.dims[0]; i += stride[0]) {
-        const std::size_t v = g.index(i, j, k);
-        s.voxel.push_back({i, j, k});
-        s.intensity.push_back(image.voxels[v] / scale);
-        std::array<double, kTissues> lp{};
-        for (int t = 0; t < kTissues; ++t) lp[t] = prior.p[t][v] > 0 ? std::log(prior.p[t][v]) : kLogTiny;
-        s.log_prior.push_back(lp);
-        s.band.push_back(in_surface_band(brain_prior_at(prior, v)));
-        s.inside.push_back(std::exp(lp[0]) + std::exp(lp[1]));
-      }
-  return s;
-}
-
-// Intensity scale: the 99th percentile inside the prior's brain, so the
-// numbers the fit works with are of order 1 for any scanner's units.
-double brain_intensity_scale(const ImageF& image, const TissuePrior& prior) {
-  std::vector<float> inside;
-  for (std::size_t v = 0; v < image.voxels.size(); ++v)
-    if (prior.p[0][v] + prior.p[1][v] > 0.5f) inside.push_back(image.voxels[v]);
-  if (inside.empty()) throw InputError("segmentation: the prior places no brain in the image");
-  const std::size_t at = static_cast<std::size_t>(0.99 * (inside.size() - 1));
-  std::nth_element(inside.begin(), inside.begin() + static_cast<std::ptrdiff_t>(at), inside.end());
-  const double scale = inside[at];
-  if (!(scale > 0)) throw InputError("segmentation: the image is empty or not positive inside the brain");
-  return scale;
-}
-
-// Weighted quantile of sorted (value, weight) pairs.
-double quantile(const std::vector<std::pair<double, double>>& sorted, double total, double q) {
-  double acc = 0;
-  for (const auto& [v, w] : sorted) {
-    acc += w;
-    if (acc >= q * total) return v;
-  }
-  return sorted.back().first;
-}
-
-// The intensities the prior is sure of for tissue t ("sure" relative to the
-// most the prior says of it anywhere: a small structure never reaches 0.9),
-// as (intensity, weight) pairs.
-std::vector<std::pair<double, double>> sure_intensities(const Samples& s, const std::vector<double>& intensity, int t) {
-  std::vector<std::pair<double, double>> vw;
-  double top = 0;
-  for (const auto& lp : s.log_prior) top = std::max(top, std::exp(lp[t]));
-  for (double sure : {0.9 * top, 0.5 * top, 0.0}) {
-    vw.clear();
-    for (std::size_t n = 0; n < s.intensity.size(); ++n) {
-      const double w = std::exp(s.log_prior[n][t]);
-      if (w >= sure) vw.emplace_back(intensity[n], sure > 0 ? w : 1.0);
-    }
-    if (vw.size() >= 50) break;
-  }
-  return vw;
-}
-
-// The ventricles' fluid, found without trusting where their prior is sure:
-// brain shift moves them by several mm (docs/DESIGN.md "Automatic intraop
-// segmentation"), farther than their bodies are thick, so where the carried
-// ventricles were the image may show white matter. Their neighbourhood (the
-// ventricles' prior at least a quarter: where they may have gone) holds
-// them, deep grey and white matter. In every MR contrast that shows the
-// ventricles at all their fluid lies at one end of these intensities (darkest
-// in T1 and FLAIR, brightest in T2; grey matter lies between), and stands
-// apart from the bulk of the tissue: of the two tails holding as many samples
-// as the ventricles' volume, the fluid's is the one farther from the
-// neighbourhood's median. Returns {median, sd} of that tail; {0, 0} when there
-// are too few samples.
-std::pair<double, double> fluid_class(const Samples& s, const std::vector<double>& intensity, double share) {
-  constexpr double kNeighbourhood = 0.25;
-  const int vent = index_of(Tissue::ventricle), par = index_of(Tissue::parenchyma);
-  std::vector<std::pair<double, double>> near;  // intensity, weight 1
-  std::size_t brain = 0;
-  for (std::size_t n = 0; n < s.intensity.size(); ++n) {
-    const double p_vent = std::exp(s.log_prior[n][vent]);
-    brain += std::exp(s.log_prior[n][par]) + p_vent >= 0.5;
-    if (p_vent >= kNeighbourhood) near.emplace_back(intensity[n], 1.0);
-  }
-  const auto tail = std::min(static_cast<std::size_t>(std::max(share, 0.0) * static_cast<double>(brain)), near.size() / 2);
-  if (tail < 20) return {0, 0};
-  std::sort(near.begin(), near.end());
-  const double median = near[near.size() / 2].first;
-  const std::vector<std::pair<double, double>> low(near.begin(), near.begin() + static_cast<std::ptrdiff_t>(tail));
-  const std::vector<std::pair<double, double>> high(near.end() - static_cast<std::ptrdiff_t>(tail), near.end());
-  const double t = static_cast<double>(tail);
-  const bool dark = median - quantile(low, t, 0.5) >= quantile(high, t, 0.5) - median;
-  const auto& fluid = dark ? low : high;
-  const double sd = (quantile(fluid, t, 0.75) - quantile(fluid, t, 0.25)) / 1.349;
-  return {quantile(fluid, t, 0.5), std::max(sd, 0.01)};
-}
-
-// Each tissue's classes start from its intensities (no ordering of tissues is
-// assumed): one class at their median, several spread evenly over their
-// 2-98 % range, so that a rare bright tissue (fat, a T2's fluid) gets a class
-// even where a dark one (air) fills most voxels. The ventricles start from
-// the brain's fluid (fluid_class), the other tissues, large enough that a shift leaves most of them in place,
-// from where their prior is sure.
-std::vector<GaussianClass> initial_classes(const Samples& s, const std::vector<double>& intensity,
-                                           const std::array<int, kTissues>& classes_per_tissue,
-                                           double ventricle_share) {
-  std::vector<GaussianClass> classes;
-  const auto [fluid_mean, fluid_sd] = fluid_class(s, intensity, ventricle_share);
-  for (int t = 0; t < kTissues; ++t) {
-    const int K = classes_per_tissue[t];
-    if (t == index_of(Tissue::ventricle) && K == 1 && fluid_sd > 0) {
-      classes.push_back({Tissue::ventricle, fluid_mean, fluid_sd, 1.0});
-      continue;
-    }
-    std::vector<std::pair<double, double>> vw = sure_intensities(s, intensity, t);
-    std::sort(vw.begin(), vw.end());
-    double total = 0;
-    for (const auto& p : vw) total += p.second;
-    const double lo = quantile(vw, total, 0.02), hi = quantile(vw, total, 0.98);
-    const double median = quantile(vw, total, 0.5);
-    for (int c = 0; c < K; ++c) {
-      GaussianClass g;
-      g.tissue = static_cast<Tissue>(t);
-      if (K == 1) {
-        g.mean = median;
-        g.sd = std::max(1.4826 * (quantile(vw, total, 0.75) - quantile(vw, total, 0.25)) / 1.349, 0.01);
-      } else {
-        g.mean = lo + (c + 0.5) / K * (hi - lo);
-        g.sd = std::max((hi - lo) / (2.0 * K), 0.01);
-      }
-      g.weight = 1.0 / K;
-      classes.push_back(g);
-    }
-    // The fluid around the brain (subarachnoid, under the craniotomy, in a
-    // cavity) is the ventricles' fluid: the outside's class nearest to it
-    // starts there, so that no parenchyma class has to take it.
-    if (t == index_of(Tissue::outside) && K > 1 && fluid_sd > 0) {
-      auto nearest = classes.end() - K;
-      for (auto c = classes.end() - K; c != classes.end(); ++c)
-        if (std::abs(c->mean - fluid_mean) < std::abs(nearest->mean - fluid_mean)) nearest = c;
-      nearest->mean = fluid_mean;
-      nearest->sd = fluid_sd;
-      // And one more outside class, the fluid around the brain held to the
-      // ventricles' fluid (hold_surface_fluid): without a share (weight 0,
-      // no part in the fit) until the fit finds the fluid the brightest
-      // tissue.
-      GaussianClass held{Tissue::outside, fluid_mean, fluid_sd, 0.0};
-      held.surface_fluid = true;
-      classes.push_back(held);
-    }
-  }
-  return classes;
-}
 
 // What the likelihood needs of each class, taken once per EM iteration
 // rather than per sample and class: the logarithms dominated the fit's time.
