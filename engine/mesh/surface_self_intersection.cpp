@@ -9,11 +9,14 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <iterator>
+#include <limits>
 #include <utility>
 #include <vector>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 
 namespace brainshift {
 namespace {
@@ -53,20 +56,86 @@ bool share_a_vertex(const std::array<int, 3>& a, const std::array<int, 3>& b) {
   return false;
 }
 
+// The faces in two halves at the median of their centroids along the
+// surface's longest axis, and the faces whose extent along that axis reaches
+// within the longest face's extent of the median (the slab). Two triangles
+// that cross share a point, so their extents overlap: a crossing pair with
+// one face in each half has both faces in the slab (each centroid lies
+// within a face's extent of that shared point). The pairs within each half
+// and within the slab are therefore every pair.
+struct FaceSplit {
+  std::vector<Mesh::Face_index> lower, upper, slab;
+};
+
+FaceSplit split_at_median(const TriSurface& surface) {
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+  Eigen::Vector3d hi = -lo;
+  for (const auto& p : surface.vertices_mm) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  int axis = 0;
+  (hi - lo).maxCoeff(&axis);
+  const std::size_t n = surface.triangles.size();
+  std::vector<double> centroid(n), low(n), high(n);
+  double longest = 0;
+  for (std::size_t f = 0; f < n; ++f) {
+    const auto& t = surface.triangles[f];
+    const double a = surface.vertices_mm[t[0]][axis], b = surface.vertices_mm[t[1]][axis],
+                 c = surface.vertices_mm[t[2]][axis];
+    centroid[f] = (a + b + c) / 3;
+    low[f] = std::min({a, b, c});
+    high[f] = std::max({a, b, c});
+    longest = std::max(longest, high[f] - low[f]);
+  }
+  std::vector<double> sorted = centroid;
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2), sorted.end());
+  const double median = sorted[n / 2];
+  // A rounding's margin: a centroid may come out an ulp beyond its face.
+  const double reach = longest + 1e-9 * (1 + std::abs(median) + longest);
+  FaceSplit split;
+  for (std::size_t f = 0; f < n; ++f) {
+    const Mesh::Face_index face(static_cast<Mesh::size_type>(f));
+    (centroid[f] < median ? split.lower : split.upper).push_back(face);
+    if (high[f] >= median - reach && low[f] <= median + reach) split.slab.push_back(face);
+  }
+  return split;
+}
+
 }  // namespace
 
-std::vector<std::pair<int, int>> self_intersecting_triangle_pairs(const TriSurface& surface) {
+std::vector<std::pair<int, int>> self_intersecting_triangle_pairs(const TriSurface& surface,
+                                                                  std::size_t min_faces_to_split) {
   const Mesh mesh = to_surface_mesh(surface);
-  std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
-  CGAL::Polygon_mesh_processing::self_intersections(mesh, std::back_inserter(pairs));
+  using FacePairs = std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>>;
+  std::array<FacePairs, 2> found;
+  namespace PMP = CGAL::Polygon_mesh_processing;
+  if (surface.triangles.size() < std::max<std::size_t>(min_faces_to_split, 2)) {
+    PMP::self_intersections(mesh, std::back_inserter(found[0]));
+  } else {
+    // The box intersection is the check's whole cost and serial: the two
+    // halves side by side (the slab with the upper half), the same pairs.
+    const FaceSplit split = split_at_median(surface);
+    parallel_halves(2, 1, [&](std::size_t begin, std::size_t end) {
+      for (std::size_t h = begin; h < end; ++h) {
+        auto out = std::back_inserter(found[h]);
+        if (h == 0) {
+          PMP::self_intersections(split.lower, mesh, out);
+        } else {
+          PMP::self_intersections(split.upper, mesh, out);
+          PMP::self_intersections(split.slab, mesh, out);
+        }
+      }
+    });
+  }
   // Faces split apart at a non-manifold vertex or edge still touch there: not
   // a crossing.
   std::vector<std::pair<int, int>> crossings;
-  for (const auto& [f, g] : pairs) {
-    const int a = static_cast<int>(f.idx()), b = static_cast<int>(g.idx());
-    if (!share_a_vertex(surface.triangles[static_cast<std::size_t>(a)], surface.triangles[static_cast<std::size_t>(b)]))
-      crossings.emplace_back(std::min(a, b), std::max(a, b));
-  }
+  for (const auto& pairs : found)
+    for (const auto& [f, g] : pairs) {
+      const int a = static_cast<int>(f.idx()), b = static_cast<int>(g.idx());
+      if (!share_a_vertex(surface.triangles[static_cast<std::size_t>(a)], surface.triangles[static_cast<std::size_t>(b)]))
+        crossings.emplace_back(std::min(a, b), std::max(a, b));
+    }
+  std::sort(crossings.begin(), crossings.end());
+  crossings.erase(std::unique(crossings.begin(), crossings.end()), crossings.end());
   return crossings;
 }
 

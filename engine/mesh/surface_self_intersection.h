@@ -18,7 +18,12 @@ namespace brainshift {
 // triangle (one vertex used twice).
 std::size_t count_self_intersections(const TriSurface& surface);
 
-// The crossing pairs themselves (triangle indices, first < second), same rules.
-std::vector<std::pair<int, int>> self_intersecting_triangle_pairs(const TriSurface& surface);
+// The crossing pairs themselves (triangle indices, first < second, sorted),
+// same rules. A surface of at least min_faces_to_split triangles is checked
+// in two halves side by side (surface_self_intersection.cpp): the same pairs.
+// Below it (a ventricle wall) the second thread would cost more than it saves.
+inline constexpr std::size_t kMinFacesToSplitCheck = 4096;
+std::vector<std::pair<int, int>> self_intersecting_triangle_pairs(const TriSurface& surface,
+                                                                  std::size_t min_faces_to_split = kMinFacesToSplitCheck);
 
 }  // namespace brainshift

@@ -1,6 +1,9 @@
 // The self-intersection check behind the surface-match quality gate.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
+#include <limits>
 #include <map>
 
 #include "core/errors.h"
@@ -79,4 +82,29 @@ TEST(SurfaceSelfIntersection, InvalidTrianglesAreAnInputError) {
   EXPECT_THROW(count_self_intersections(s), InputError);
   s.triangles.back() = {0, 0, 1};
   EXPECT_THROW(count_self_intersections(s), InputError);
+}
+
+// The check of a large surface runs in two halves split at a median plane
+// (and the faces near it): it must find exactly the pairs the whole check
+// finds, crossings on either side of the plane and across it alike.
+TEST(SurfaceSelfIntersection, TheCheckInTwoHalvesFindsTheSamePairs) {
+  TriSurface s = sphere(50, {3, -2, 1}, 5);
+  ASSERT_EQ(s.triangles.size(), 8192u);
+  // Three crossings: a pole pulled through the far side along the split axis
+  // (x is the longest only by the dents below, so take it from the data),
+  // a patch pushed through the equator's far side, and one near the median.
+  for (auto& v : s.vertices_mm) {
+    const Eigen::Vector3d d = v - Eigen::Vector3d(3, -2, 1);
+    if (d.x() > 49.5) v.x() -= 130;                          // through the -x side
+    if (d.z() > 49.0 && d.y() > 0) v.z() -= 95;              // through the -z side, upper half in y
+    if (std::abs(d.x()) < 4 && d.y() < -48.5) v.y() += 99;   // at the median, through the +y side
+  }
+  const auto whole = self_intersecting_triangle_pairs(s, std::numeric_limits<std::size_t>::max());
+  const auto halves = self_intersecting_triangle_pairs(s, 0);
+  ASSERT_GT(whole.size(), 30u);
+  EXPECT_EQ(halves, whole);
+  EXPECT_TRUE(std::is_sorted(whole.begin(), whole.end()));
+  // And an embedded surface has none either way.
+  const TriSurface ball = sphere(50, {0, 0, 0}, 5);
+  EXPECT_TRUE(self_intersecting_triangle_pairs(ball, 0).empty());
 }
