@@ -90,14 +90,15 @@ TEST(SurfaceSelfIntersection, InvalidTrianglesAreAnInputError) {
 TEST(SurfaceSelfIntersection, TheCheckInTwoHalvesFindsTheSamePairs) {
   TriSurface s = sphere(50, {3, -2, 1}, 5);
   ASSERT_EQ(s.triangles.size(), 8192u);
-  // Three crossings: a pole pulled through the far side along the split axis
-  // (x is the longest only by the dents below, so take it from the data),
-  // a patch pushed through the equator's far side, and one near the median.
+  // Three crossings: the +x pole pulled through the -x side (which also makes
+  // x the longest axis, the one split at its median), and two patches near
+  // that median pushed through the opposite side (from +z and from -y):
+  // their crossing pairs have a face on each side of the split.
   for (auto& v : s.vertices_mm) {
     const Eigen::Vector3d d = v - Eigen::Vector3d(3, -2, 1);
-    if (d.x() > 49.5) v.x() -= 130;                          // through the -x side
-    if (d.z() > 49.0 && d.y() > 0) v.z() -= 95;              // through the -z side, upper half in y
-    if (std::abs(d.x()) < 4 && d.y() < -48.5) v.y() += 99;   // at the median, through the +y side
+    if (d.x() > 49.5) v.x() -= 130;
+    if (d.z() > 49.0 && d.y() > 0) v.z() -= 95;
+    if (std::abs(d.x()) < 4 && d.y() < -48.5) v.y() += 99;
   }
   const auto whole = self_intersecting_triangle_pairs(s, std::numeric_limits<std::size_t>::max());
   const auto halves = self_intersecting_triangle_pairs(s, 0);
