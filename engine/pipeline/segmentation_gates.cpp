@@ -47,10 +47,12 @@ SegmentationGates check_segmentation(const LabelImage& segmentation, const Image
                                {"open_fluid_ml", open_fluid_ml},
                                {"allowed", {lowest, params.max_brain_volume_change}}};
   if (preop.lower_allowance_ml > 0) g.metrics["brain_volume"]["lower_allowance_ml"] = preop.lower_allowance_ml;
-  if (change < lowest || change > params.max_brain_volume_change)
+  if (change < lowest || change > params.max_brain_volume_change) {
+    g.geometry_refused = true;
     g.failure = "automatic segmentation: the brain's volume differs from the preop's by " +
                 std::to_string(100 * change) + " % (allowed " + std::to_string(100 * lowest) + " to +" +
                 std::to_string(100 * params.max_brain_volume_change) + " %)";
+  }
 
   const auto vent = table.cavity_labels();
   const double seg_vent = volume_ml(mask_of_labels(segmentation, vent));

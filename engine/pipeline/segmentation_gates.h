@@ -18,6 +18,12 @@ namespace brainshift {
 struct SegmentationGates {
   nlohmann::json metrics;
   std::string failure;
+  // The brain-volume gate refused: the segmentation's outline is wrong as a
+  // whole (a leak into the dura, a lost lobe), and an affine fitted to it
+  // carries that error as a head that shrinks or swells. Its fallback
+  // delivers the affine's rigid part, as for labels whose geometry the
+  // stages' gates refuse (docs/DESIGN.md "Quality gates").
+  bool geometry_refused = false;
 };
 SegmentationGates check_segmentation(const LabelImage& segmentation, const ImageF& confidence,
                                      const LabelImage& carried_preop, const LabelTable& table,

@@ -170,7 +170,7 @@ void first_pass(const ScanOnGrid& s, Rounds& r, bool rematch_follows) {
   // already splits its work over both cores (the affine in every iteration),
   // and a third thread slowed them by more than the check costs.
   r.result = r.gates.failure.empty() ? s.run_pass(r.seg, rematch_follows, r.result_prior_only)
-                                     : s.refused(r.seg, r.gates.failure);
+                                     : s.refused(r.seg, r.gates);
   // The open-fluid rule reshapes the outline by shape, not by intensity
   // (docs/DESIGN.md "Automatic intraop segmentation", item 7); where the
   // stages refuse the field its outline gives (a fold: the cortex over a

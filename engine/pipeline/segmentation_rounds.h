@@ -167,8 +167,10 @@ struct ScanOnGrid {
     }
     return stages(s, "", PassOptions{false, affine_start});
   }
-  ScanResult refused(const segmentation::IntraopSegmentation& s, const std::string& reason) const {
-    return stages(s, reason, PassOptions{});
+  ScanResult refused(const segmentation::IntraopSegmentation& s, const SegmentationGates& gates) const {
+    PassOptions pass;
+    pass.forced_fallback_rigid = gates.geometry_refused;
+    return stages(s, gates.failure, pass);
   }
   // One pass of the stages on a segmentation. A full pass works on the stage
   // grid when that is coarser, its answer carried back to the image's grid

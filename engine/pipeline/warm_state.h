@@ -134,6 +134,10 @@ struct PassOptions {
   // (pipeline/labels_with_image.cpp). Unset: the affine, or its rigid part
   // after the gates refused the labels' geometry.
   std::optional<FallbackTransform> forced_fallback_transform = std::nullopt;
+  // The forced fallback's reason judged the geometry of the labels the affine
+  // is fitted to (SegmentationGates::geometry_refused): the affine's rigid
+  // part is delivered, as after the stages' own gates refused it.
+  bool forced_fallback_rigid = false;
 };
 
 // The intraop stages on rank 0. Without quality metrics, result.metrics holds

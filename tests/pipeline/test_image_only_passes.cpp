@@ -236,6 +236,17 @@ TEST_F(ImageOnlyPasses, TheFirstRoundIsWorkedOnTheCoarserPriorGridTheAnswerOnThe
   EXPECT_NE(refused.fallback_reason.find("the brain's volume"), std::string::npos) << refused.fallback_reason;
   ASSERT_TRUE(refused.intraop_labels);
   EXPECT_TRUE(refused.intraop_labels->grid.same_geometry(moved.labels.grid));
+  // That gate judged the segmentation's outline, which the affine was fitted
+  // to: the fallback delivers the affine's rigid part (a head does not shrink
+  // or swell; docs/DESIGN.md "Quality gates"), the refused affine reported.
+  EXPECT_EQ(refused.metrics["affine"].value("fallback_transform", ""),
+            "rigid part of the affine (the automatic segmentation's brain volume was refused)")
+      << refused.metrics["affine"].dump();
+  EXPECT_TRUE(refused.metrics["affine"].contains("refused_intraop_from_preop"));
+  const Eigen::Matrix3d rotation = refused.intraop_from_preop.topLeftCorner<3, 3>();
+  EXPECT_LT((rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).norm(), 1e-9);
+  EXPECT_NEAR(rotation.determinant(), 1.0, 1e-9);
+  EXPECT_LT(mean_translation_error(refused, moved.labels, shift), 0.5) << "the head's shift is kept";
 }
 
 // The answer's stages on the coarser stage grid
