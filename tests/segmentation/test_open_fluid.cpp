@@ -13,11 +13,15 @@
 #include "image/morphology.h"
 #include "misregistered_prior.h"
 #include "segmentation/intraop_segmentation.h"
+#include "classifier_head.h"
 #include "synthetic_head.h"
 
 using namespace brainshift;
 using namespace brainshift::segmentation;
 using namespace brainshift::segmentation::test_support;
+// Brain Dice counts the ventricles as brain (the outline), as the
+// pipeline's outer surface does.
+using brainshift::test::outline_dice;
 
 // A cortex sunk 15 mm under a craniotomy (the prior: the brain before it
 // sank, a few mm off): the gap is fluid, with dura and inner-table partial

@@ -1,5 +1,5 @@
 #pragma once
-// The classifier tests' synthetic head (test_tissue_em.cpp, test_open_fluid.cpp):
+// The head the classifier tests share (test_tissue_em.cpp, test_open_fluid.cpp):
 // grey and white matter, ventricles, fluid around the brain, skull, scalp and
 // air, a known smooth bias and Gaussian noise; optionally a fluid cavity or a
 // cortex sunk under a craniotomy. And the measures the tests compare with.
@@ -92,19 +92,6 @@ inline double dice(const LabelImage& a, const LabelImage& b, std::uint16_t label
   std::size_t both = 0, na = 0, nb = 0;
   for (std::size_t v = 0; v < a.voxels.size(); ++v) {
     const bool x = a.voxels[v] == label, y = b.voxels[v] == label;
-    both += x && y;
-    na += x;
-    nb += y;
-  }
-  return 2.0 * both / std::max<std::size_t>(na + nb, 1);
-}
-
-// Brain Dice counts the ventricles as brain (the outline), as the pipeline's
-// outer surface does.
-inline double outline_dice(const LabelImage& a, const LabelImage& b) {
-  std::size_t both = 0, na = 0, nb = 0;
-  for (std::size_t v = 0; v < a.voxels.size(); ++v) {
-    const bool x = a.voxels[v] != 0, y = b.voxels[v] != 0;
     both += x && y;
     na += x;
     nb += y;
