@@ -11,6 +11,7 @@
 #include <Eigen/Dense>
 
 #include "core/image.h"
+#include "field/metrics.h"
 #include "segmentation/intraop_segmentation.h"
 #include "segmentation/tissue_em.h"
 
@@ -88,15 +89,9 @@ inline Synthetic make_head(const Intensities& in, double noise_sd, double bias_a
   return s;
 }
 
+// Dice of one label of the two label maps (field/metrics.h).
 inline double dice(const LabelImage& a, const LabelImage& b, std::uint16_t label) {
-  std::size_t both = 0, na = 0, nb = 0;
-  for (std::size_t v = 0; v < a.voxels.size(); ++v) {
-    const bool x = a.voxels[v] == label, y = b.voxels[v] == label;
-    both += x && y;
-    na += x;
-    nb += y;
-  }
-  return 2.0 * both / std::max<std::size_t>(na + nb, 1);
+  return dice_per_label(a, b, {label}).front().dice;
 }
 
 inline const GaussianClass* nearest_class(const IntraopSegmentation& s, Tissue t, double value) {
