@@ -186,21 +186,20 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   // The labels refused for their own geometry: the affine fitted to them
   // carries their error (a head does not shrink or swell), so the fallback
   // is its rigid part about the preop brain's centre (quality/
-  // plausibility_gates.h). A caller that refused labels with their image
+  // plausibility_gates.h); so too when the automatic segmentation's own
+  // volume gate refused it before the stages (PassOptions::
+  // forced_fallback_rigid). A caller that refused labels with their image
   // hands in the transform to deliver (PassOptions::forced_fallback_transform).
-  // The same when the automatic segmentation's own volume gate refused it
-  // before the stages (PassOptions::forced_fallback_rigid).
+  const bool forced = !forced_fallback.empty();
   const bool geometry_refused = failure.empty() && !implausible.empty() && refuses_labels_geometry(plausibility);
   std::optional<FallbackTransform> fallback_transform;
-  if (!forced_fallback.empty() && pass.forced_fallback_transform)
+  if (forced && pass.forced_fallback_transform)
     fallback_transform = pass.forced_fallback_transform;
-  else if (!forced_fallback.empty() && pass.forced_fallback_rigid)
-    fallback_transform =
-        FallbackTransform{rigid_part(A, warm.affine_samples.outer_moments.centroid_mm),
-                          "rigid part of the affine (the automatic segmentation's brain volume was refused)"};
-  else if (geometry_refused)
-    fallback_transform = FallbackTransform{rigid_part(A, warm.affine_samples.outer_moments.centroid_mm),
-                                           "rigid part of the affine (the labels' geometry was refused)"};
+  else if ((forced && pass.forced_fallback_rigid) || geometry_refused)
+    fallback_transform = FallbackTransform{
+        rigid_part(A, warm.affine_samples.outer_moments.centroid_mm),
+        forced ? "rigid part of the affine (the automatic segmentation's brain volume was refused)"
+               : "rigid part of the affine (the labels' geometry was refused)"};
   if (failure.empty()) failure = implausible;
   const Eigen::Matrix4d delivered_A = fallback_transform ? fallback_transform->intraop_from_preop : A;
   if (fallback_transform) {
