@@ -59,7 +59,8 @@ std::string check_input_plausibility(const WarmState& warm, const IntraopInput& 
   if (!cavities.empty())
     gates.push_back(ventricle_volume_gate(label_volume_ml(input.labels, cavities.front()), preop.ventricle_volume_ml,
                                           A, limits));
-  for (auto& g : affine_gates(A, limits, [&view](const Eigen::Vector3d& v) { return view.extent_mm(v); }))
+  for (auto& g : affine_gates(A, limits, [&view](const Eigen::Vector3d& v) { return view.extent_mm(v); },
+                              input.open_fluid_ml))
     gates.push_back(std::move(g));
   LeftRightInput lr{warm.preop.labels, input.labels, A, asymmetric_structures(table)};
   lr.preop_side = &preop.left_right;

@@ -138,6 +138,11 @@ double affine_stretch_limit(double extent_mm, const PlausibilityLimits& limits) 
          limits.affine_sink_share * limits.max_sink_depth_mm / std::max(extent_mm, kLeastExtentMm);
 }
 
+double affine_sink_limit(double extent_mm, const PlausibilityLimits& limits) {
+  constexpr double kLeastExtentMm = 50.0;  // as affine_stretch_limit
+  return limits.affine_stretch_base + limits.max_sink_depth_mm / std::max(extent_mm, kLeastExtentMm);
+}
+
 namespace {
 
 // Rotation part of the polar decomposition L = R S, from L's SVD.
@@ -165,7 +170,7 @@ bool refuses_labels_geometry(const PlausibilityReport& report) {
 }
 
 std::vector<GateResult> affine_gates(const Eigen::Matrix4d& A, const PlausibilityLimits& limits,
-                                     const ExtentAlong& visible_extent_mm) {
+                                     const ExtentAlong& visible_extent_mm, double sink_gap_ml) {
   const Eigen::Matrix3d L = A.topLeftCorner<3, 3>();
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(L, Eigen::ComputeFullU | Eigen::ComputeFullV);
   const Eigen::Vector3d s = svd.singularValues();
@@ -178,10 +183,13 @@ std::vector<GateResult> affine_gates(const Eigen::Matrix4d& A, const Plausibilit
   for (int i = 0; i < 3; ++i) {
     const Eigen::Vector3d v = svd.matrixV().col(i);
     const double extent = visible_extent_mm(v);
-    const double limit = affine_stretch_limit(extent, limits);
+    // The singular values come largest first: s[2] is the most compressed
+    // direction, the one a sinking the image shows may take in full.
+    const bool sink = i == 2 && s[i] < 1.0 && sink_gap_ml > 0;
+    const double limit = sink ? affine_sink_limit(extent, limits) : affine_stretch_limit(extent, limits);
     const double deviation = std::max(s[i] - 1.0, 1.0 / s[i] - 1.0);
     directions.push_back({{"stretch", s[i]}, {"direction_preop", {v[0], v[1], v[2]}}, {"brain_extent_in_view_mm", extent},
-                          {"limit", limit}});
+                          {"limit", limit}, {"sink_shown", sink}});
     if (deviation / limit > worst_ratio) {
       worst_ratio = deviation / limit;
       worst = deviation;

@@ -104,8 +104,12 @@ GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen
 // principal direction v (PreopInView::extent_mm), which sets that
 // direction's limit.
 using ExtentAlong = std::function<double(const Eigen::Vector3d& direction_preop)>;
+// sink_gap_ml: the gap a sinking left under the dura that the automatic
+// segmentation found in the image (IntraopInput::open_fluid_ml; 0 for given
+// labels). With one, the most compressed principal direction is held to
+// affine_sink_limit instead: the sink is seen, not inferred.
 std::vector<GateResult> affine_gates(const Eigen::Matrix4d& intraop_from_preop, const PlausibilityLimits& limits,
-                                     const ExtentAlong& visible_extent_mm);
+                                     const ExtentAlong& visible_extent_mm, double sink_gap_ml = 0.0);
 // The rigid part of an affine: the rotation of its polar decomposition
 // L = R S, and the translation that puts centre_mm (preop frame) where the
 // affine puts it. What a head can do between two scans.
@@ -120,6 +124,11 @@ bool refuses_labels_geometry(const PlausibilityReport& report);
 
 // The stretch limit along a direction whose brain extent in view is extent_mm.
 double affine_stretch_limit(double extent_mm, const PlausibilityLimits& limits);
+// The same along the one direction a sinking the image shows compresses:
+// the deepest sink the gates allow taken in full (share 1), the most an
+// affine absorbs of a sink whose displacement falls linearly to zero across
+// the brain seen (docs/DESIGN.md, affine_stretch).
+double affine_sink_limit(double extent_mm, const PlausibilityLimits& limits);
 
 // The solved non-rigid displacement at the mesh nodes: largest displacement
 // and RMS small strain over the mesh volume.

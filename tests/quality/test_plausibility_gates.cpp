@@ -162,6 +162,36 @@ TEST(AffineGates, AShortViewAllowsASinkItsShareOnlyAlongTheShortDirection) {
   EXPECT_LT(affine_stretch_limit(1e6, limits), limits.affine_stretch_base + 1e-3);
 }
 
+TEST(AffineGates, ASinkTheImageShowsMayTakeTheDeepestSinkInFullAlongOneDirectionOnly) {
+  const PlausibilityLimits limits;
+  const auto short_coil = [](const Eigen::Vector3d& v) { return std::abs(v.z()) > 0.9 ? 105.0 : 140.0; };
+  // A 22 mm vertex sinking through a 120 mm head-foot view, contrast-enhanced:
+  // the label affine compressed the brain by 17 % along gravity (stretch
+  // 0.833, deviation 0.20), over the 0.186 a 105 mm view allows a sink
+  // inferred from the labels alone.
+  const Eigen::Matrix4d sink = linear(Eigen::Vector3d(1.015, 1.01, 0.833).asDiagonal());
+  const auto inferred = affine_gates(sink, limits, short_coil);
+  EXPECT_FALSE(inferred[0].passed) << inferred[0].value << " " << inferred[0].limit;
+  // With the gap under the dura found in the image, the compressed direction
+  // is held to the deepest sink in full: 0.03 + 25 / 105 = 0.268.
+  const auto shown = affine_gates(sink, limits, short_coil, 139.0);
+  EXPECT_TRUE(shown[0].passed) << shown[0].value << " " << shown[0].limit;
+  EXPECT_NEAR(shown[0].extra["directions"][2]["limit"].get<double>(), affine_sink_limit(105.0, limits), 1e-12);
+  EXPECT_NEAR(affine_sink_limit(105.0, limits), 0.03 + 25.0 / 105.0, 1e-12);
+  EXPECT_TRUE(shown[0].extra["directions"][2]["sink_shown"].get<bool>());
+  EXPECT_FALSE(shown[0].extra["directions"][0]["sink_shown"].get<bool>());
+  // Deeper than any sink: refused even when shown.
+  const Eigen::Matrix4d beyond = linear(Eigen::Vector3d(1.0, 1.0, 0.75).asDiagonal());
+  EXPECT_FALSE(affine_gates(beyond, limits, short_coil, 139.0)[0].passed);
+  // Only the most compressed direction: a head 17 % smaller in two
+  // directions (another head) is refused along the second.
+  const Eigen::Matrix4d two = linear(Eigen::Vector3d(1.0, 0.85, 0.833).asDiagonal());
+  EXPECT_FALSE(affine_gates(two, limits, short_coil, 139.0)[0].passed);
+  // A leak inflates: a stretch above 1 never takes the sink's limit.
+  const Eigen::Matrix4d leak = linear(Eigen::Vector3d(1.0, 1.0, 1.2).asDiagonal());
+  EXPECT_FALSE(affine_gates(leak, limits, short_coil, 139.0)[0].passed);
+}
+
 TEST(VolumeGate, TheBrainsExtentInViewIsMeasuredAlongAnyDirection) {
   LabelImage preop(cube_grid(64, 1.5));
   for (int k = 8; k < 56; ++k)
