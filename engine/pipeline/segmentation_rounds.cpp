@@ -221,7 +221,7 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
     if (s.progress) s.progress(std::string(stages::kSegment), 0.0, 0.0);
     auto next = s.segment(r.result.warped_labels, ScanOnGrid::Prior::carried, r.open_fluid_rule,
                           ap.rematch_reuses_fit ? &r.seg : nullptr,
-                          ap.rematch_gaps_found_before ? &r.seg.open_fluid : nullptr);
+                          ap.rematch_gaps_found_before ? &r.seg.open_fluid : nullptr, &r.result.intraop_from_preop);
     next.open_fluid_ml = std::max(r.seg.open_fluid_ml, next.open_fluid_ml);
     SegmentationGates next_gates = s.gates(next, next.open_fluid_ml);
     const double round_seconds = watch.lap();

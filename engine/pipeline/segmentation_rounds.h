@@ -21,6 +21,7 @@
 #include "pipeline/working_grid.h"
 #include "registration/affine_registration.h"
 #include "segmentation/intraop_segmentation.h"
+#include "segmentation/preop_fluid_spaces.h"
 #include "segmentation/tissue_prior.h"
 
 namespace brainshift {
@@ -92,7 +93,8 @@ struct ScanOnGrid {
   enum class Prior { placed, carried };
   segmentation::IntraopSegmentation segment(const LabelImage& prior_labels, Prior prior, bool open_fluid_rule = true,
                                             const segmentation::IntraopSegmentation* fitted = nullptr,
-                                            const Mask* gap_found_before = nullptr) const {
+                                            const Mask* gap_found_before = nullptr,
+                                            const Eigen::Matrix4d* labels_affine = nullptr) const {
     const AutoSegmentationParameters& ap = params.auto_segmentation;
     segmentation::SegmentationParameters sp = ap.classifier;
     if (!open_fluid_rule) sp.max_sulcus_half_width_mm = 0;
@@ -133,7 +135,35 @@ struct ScanOnGrid {
         seg.report["bias_refitted"] = "bright fluid under the placed prior";
       }
     }
+    if (seg.refusal.empty())
+      adopt_fluid_spaces(seg, labels_affine ? *labels_affine : Eigen::Matrix4d(seen.preop_from_intraop.inverse()));
     return seg;
+  }
+
+  // The preop's own fluid spaces (basal cisterns, the third ventricle, a
+  // wide fissure) that the classification left outside: given back to the
+  // brain as for given labels (segmentation/preop_fluid_spaces.h), placed
+  // by intraop_from_preop: the head's placement in the first round, the
+  // pass's label affine in a re-match.
+  void adopt_fluid_spaces(segmentation::IntraopSegmentation& seg, const Eigen::Matrix4d& intraop_from_preop) const {
+    const auto& table = params.label_table;
+    const auto cavities = table.cavity_labels();
+    const auto& medians = preop_fluid_tissue_medians(warm, table);
+    if (medians[0] == medians[1]) return;
+    const segmentation::PreopFluidSpacesInput in{seg.labels,        &image,
+                                                 warm.preop.labels, warm.preop.t1,
+                                                 intraop_from_preop, table.brain_label(),
+                                                 cavities.empty() ? std::uint16_t{0} : cavities.front(),
+                                                 medians[0],        medians[1]};
+    const Stopwatch watch;
+    segmentation::PreopFluidSpaces spaces = segmentation::adopt_preop_fluid_spaces(in, {});
+    spaces.report["seconds"] = watch.seconds();
+    if (spaces.added_ml > 0) {
+      for (std::size_t v = 0; v < seg.labels.voxels.size(); ++v)
+        if (spaces.labels.voxels[v] != seg.labels.voxels[v]) seg.confidence.voxels[v] = 1.f - seg.confidence.voxels[v];
+      seg.labels = std::move(spaces.labels);
+    }
+    seg.report["preop_fluid_spaces"] = std::move(spaces.report);
   }
 
   SegmentationGates gates(const segmentation::IntraopSegmentation& s, double open_fluid_ml) const {

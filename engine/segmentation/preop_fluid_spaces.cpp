@@ -55,16 +55,27 @@ PreopFluidSpaces adopt_preop_fluid_spaces(const PreopFluidSpacesInput& in, const
       candidate.voxels[v] = in.given.voxels[v] == 0 && preop_here.voxels[v] == in.brain_label &&
                             (!image_test || nearer_fluid(in.intraop_image->voxels[v], intraop_fluid, intraop_tissue));
   });
-  const Mask wide = open(candidate, p.min_half_width_mm);
+  // The opening and the components on the candidates' box, grown by more
+  // than the opening reaches (a voxel beyond its radius): the same spaces as
+  // on the whole grid, at the cost of the brain's rim instead of the scan.
+  const VoxelBox found = bounding_box_voxels(candidate);
+  if (found.empty) {
+    out.report = {{"applied", true}, {"added_ml", 0.0}, {"not_fluid_before_ml", 0.0},
+                  {"intraop_image_test", image_test}, {"spaces_of_half_a_ml_or_more", nlohmann::json::array()}};
+    return out;
+  }
+  const VoxelBox box = grow_box(found, g, p.min_half_width_mm + g.spacing_mm().maxCoeff());
+  const Mask wide = open(crop_to_box(candidate, box), p.min_half_width_mm);
+  const Grid3& gb = wide.grid;
   int count = 0;
   const auto components = connected_components(wide, 6, &count);
   std::vector<std::size_t> size(static_cast<std::size_t>(count) + 1, 0), fluid(size.size(), 0);
   const GridSampler preop_t1(in.preop_t1.grid);
-  const Eigen::Matrix4d preop_from_voxel = preop_from_intraop * g.world_from_voxel;
-  for (int k = 0; k < g.dims[2]; ++k)
-    for (int j = 0; j < g.dims[1]; ++j)
-      for (int i = 0; i < g.dims[0]; ++i) {
-        const std::size_t v = g.index(i, j, k);
+  const Eigen::Matrix4d preop_from_voxel = preop_from_intraop * gb.world_from_voxel;
+  for (int k = 0; k < gb.dims[2]; ++k)
+    for (int j = 0; j < gb.dims[1]; ++j)
+      for (int i = 0; i < gb.dims[0]; ++i) {
+        const std::size_t v = gb.index(i, j, k);
         const auto c = static_cast<std::size_t>(components.voxels[v]);
         if (c == 0) continue;
         ++size[c];
@@ -85,9 +96,12 @@ PreopFluidSpaces adopt_preop_fluid_spaces(const PreopFluidSpacesInput& in, const
     else refused_ml += ml;
     if (ml >= 0.5) spaces.push_back({{"ml", ml}, {"preop_fluid_fraction", fluid_fraction}, {"adopted", adopt[c] != 0}});
   }
-  for (std::size_t v = 0; v < out.labels.voxels.size(); ++v)
-    if (adopt[static_cast<std::size_t>(components.voxels[v])] && components.voxels[v] != 0)
-      out.labels.voxels[v] = in.brain_label;
+  for (int k = 0; k < gb.dims[2]; ++k)
+    for (int j = 0; j < gb.dims[1]; ++j)
+      for (int i = 0; i < gb.dims[0]; ++i) {
+        const auto c = static_cast<std::size_t>(components.voxels[gb.index(i, j, k)]);
+        if (c != 0 && adopt[c]) out.labels.at(i + box.lo[0], j + box.lo[1], k + box.lo[2]) = in.brain_label;
+      }
   out.report = {{"applied", true}, {"added_ml", out.added_ml}, {"not_fluid_before_ml", refused_ml},
                 {"intraop_image_test", image_test}, {"spaces_of_half_a_ml_or_more", spaces}};
   return out;

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 #include <mpi.h>
 
+#include <cmath>
 #include <cstring>
 #include <optional>
 
@@ -357,3 +358,57 @@ TEST_F(ImageOnlyPasses, AFineScanIsWorkedOnTheWorkingGridAndAnsweredOnItsOwn) {
 }
 
 }  // namespace
+
+namespace {
+
+// The synthetic head with a cistern: a fluid space at the base of the brain,
+// open to the CSF below it, that the preop labels count as brain (as atlas
+// labels count the basal cisterns) though its T1 is the ventricles' fluid.
+PreopInput head_with_cistern(const Eigen::Vector3d& centre_mm, double radius_mm) {
+  test::SyntheticHead h = test::synthetic_head();
+  const Grid3& g = h.labels.grid;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        if (h.labels.at(i, j, k) == 1 && (g.world_mm(i, j, k) - centre_mm).norm() < radius_mm) h.t1.at(i, j, k) = 30;
+  return PreopInput{std::move(h.t1), std::move(h.labels)};
+}
+
+}  // namespace
+
+// A fluid space the preop labels call brain, which the classification of the
+// intraop image leaves outside (dark, at the outline), is given back to the
+// brain as for given labels (segmentation/preop_fluid_spaces.h): the outline
+// is the preop's, so the field does not pull the preop's tissue into it.
+TEST(ImageOnlyFluidSpaces, ACisternThePreopLabelsCallBrainIsGivenBackToTheSegmentation) {
+  const Eigen::Vector3d cistern_mm(0, 15, -44);  // the ellipsoid's floor is at z = -48
+  const double radius_mm = 9.0;
+  const PreopInput preop = head_with_cistern(cistern_mm, radius_mm);
+  EngineSession session(MPI_COMM_WORLD, test::coarse_parameters());
+  session.load_preop(preop, nullptr);
+  const Eigen::Vector3d shift(1.0, -1.0, 1.0);
+  const IntraopInput truth = moved_scan(preop, shift, 0.0);
+  ScanInput scan;
+  scan.image = test::scanner_image(*truth.t1);
+  const ScanResult r = session.register_scan(scan, nullptr);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason << "\n" << r.metrics["segmentation"].dump();
+  // The cistern, moved with the head (dark and labelled brain in the
+  // truth), is brain in the answer's labels.
+  ASSERT_TRUE(r.intraop_labels);
+  std::size_t cistern = 0, kept = 0;
+  const Grid3& g = truth.labels.grid;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i)
+        if (truth.labels.at(i, j, k) == 1 && (g.world_mm(i, j, k) - cistern_mm - shift).norm() < radius_mm - 1.5) {
+          ++cistern;
+          kept += r.intraop_labels->at(i, j, k) != 0;
+        }
+  ASSERT_GT(cistern, 100u);
+  EXPECT_GT(static_cast<double>(kept) / static_cast<double>(cistern), 0.9) << kept << " of " << cistern;
+  const auto& classifier = r.metrics["segmentation"]["classifier"];
+  ASSERT_TRUE(classifier.contains("preop_fluid_spaces")) << classifier.dump();
+  EXPECT_GT(classifier["preop_fluid_spaces"].value("added_ml", 0.0), 0.5) << classifier["preop_fluid_spaces"].dump();
+  EXPECT_GT(test::outline_dice(*r.intraop_labels, truth.labels), 0.95);
+  EXPECT_LT(mean_translation_error(r, truth.labels, shift), 0.5);
+}
