@@ -12,6 +12,7 @@
 #include "protocol/stage_names.h"
 #include "segmentation/enhanced_shell.h"
 #include "segmentation/head_mask.h"
+#include "segmentation/preop_fluid_spaces.h"
 
 namespace brainshift {
 namespace stages = protocol::stages;
@@ -129,6 +130,30 @@ segmentation::PreopSeen preop_as_seen(WarmState& warm, const LabelTable& table, 
 
 LabelImage preop_labels_on_grid(const WarmState& warm, const VectorImage3& pullback_field_mm, const Grid3& grid) {
   return warp_labels_nearest(warm.preop.labels, resample_vector_linear(pullback_field_mm, grid));
+}
+
+// The preop's fluid spaces given back (segmentation_rounds.h): the same
+// test as for given labels.
+void ScanOnGrid::adopt_fluid_spaces(segmentation::IntraopSegmentation& seg,
+                                  const Eigen::Matrix4d& intraop_from_preop) const {
+  const auto& table = params.label_table;
+  const auto cavities = table.cavity_labels();
+  const auto& medians = preop_fluid_tissue_medians(warm, table);
+  if (medians[0] == medians[1]) return;
+  const segmentation::PreopFluidSpacesInput in{seg.labels,        &image,
+                                               warm.preop.labels, warm.preop.t1,
+                                               intraop_from_preop, table.brain_label(),
+                                               cavities.empty() ? std::uint16_t{0} : cavities.front(),
+                                               medians[0],        medians[1]};
+  const Stopwatch watch;
+  segmentation::PreopFluidSpaces spaces = segmentation::adopt_preop_fluid_spaces(in, {});
+  spaces.report["seconds"] = watch.seconds();
+  if (spaces.added_ml > 0) {
+    for (std::size_t v = 0; v < seg.labels.voxels.size(); ++v)
+      if (spaces.labels.voxels[v] != seg.labels.voxels[v]) seg.confidence.voxels[v] = 1.f - seg.confidence.voxels[v];
+    seg.labels = std::move(spaces.labels);
+  }
+  seg.report["preop_fluid_spaces"] = std::move(spaces.report);
 }
 
 // A round's report: its prior's widths outside and inside the carried

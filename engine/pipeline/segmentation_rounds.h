@@ -21,7 +21,6 @@
 #include "pipeline/working_grid.h"
 #include "registration/affine_registration.h"
 #include "segmentation/intraop_segmentation.h"
-#include "segmentation/preop_fluid_spaces.h"
 #include "segmentation/tissue_prior.h"
 
 namespace brainshift {
@@ -145,26 +144,7 @@ struct ScanOnGrid {
   // brain as for given labels (segmentation/preop_fluid_spaces.h), placed
   // by intraop_from_preop: the head's placement in the first round, the
   // pass's label affine in a re-match.
-  void adopt_fluid_spaces(segmentation::IntraopSegmentation& seg, const Eigen::Matrix4d& intraop_from_preop) const {
-    const auto& table = params.label_table;
-    const auto cavities = table.cavity_labels();
-    const auto& medians = preop_fluid_tissue_medians(warm, table);
-    if (medians[0] == medians[1]) return;
-    const segmentation::PreopFluidSpacesInput in{seg.labels,        &image,
-                                                 warm.preop.labels, warm.preop.t1,
-                                                 intraop_from_preop, table.brain_label(),
-                                                 cavities.empty() ? std::uint16_t{0} : cavities.front(),
-                                                 medians[0],        medians[1]};
-    const Stopwatch watch;
-    segmentation::PreopFluidSpaces spaces = segmentation::adopt_preop_fluid_spaces(in, {});
-    spaces.report["seconds"] = watch.seconds();
-    if (spaces.added_ml > 0) {
-      for (std::size_t v = 0; v < seg.labels.voxels.size(); ++v)
-        if (spaces.labels.voxels[v] != seg.labels.voxels[v]) seg.confidence.voxels[v] = 1.f - seg.confidence.voxels[v];
-      seg.labels = std::move(spaces.labels);
-    }
-    seg.report["preop_fluid_spaces"] = std::move(spaces.report);
-  }
+  void adopt_fluid_spaces(segmentation::IntraopSegmentation& seg, const Eigen::Matrix4d& intraop_from_preop) const;
 
   SegmentationGates gates(const segmentation::IntraopSegmentation& s, double open_fluid_ml) const {
     return check_segmentation(s.labels, s.confidence, carried_volumes, params.label_table, params.auto_segmentation,
