@@ -127,19 +127,19 @@ GateResult ventricle_volume_gate(double intraop_ml, double preop_ml, const Eigen
   return g;
 }
 
+// A scan passes the field-of-view check only with at least half the brain in
+// view (min_intraop_brain_fraction), which is at least ~60 mm of a 120-170 mm
+// brain along any direction: an extent below 50 mm (an affine that maps the
+// preop away from the scan it was fitted to) is not read as a licence for any
+// stretch.
+constexpr double kLeastExtentMm = 50.0;
+
 double affine_stretch_limit(double extent_mm, const PlausibilityLimits& limits) {
-  // A scan passes the field-of-view check only with at least half the brain
-  // in view (min_intraop_brain_fraction), which is at least ~60 mm of a
-  // 120-170 mm brain along any direction: an extent below 50 mm (an affine
-  // that maps the preop away from the scan it was fitted to) is not read as
-  // a licence for any stretch.
-  constexpr double kLeastExtentMm = 50.0;
   return limits.affine_stretch_base +
          limits.affine_sink_share * limits.max_sink_depth_mm / std::max(extent_mm, kLeastExtentMm);
 }
 
 double affine_sink_limit(double extent_mm, const PlausibilityLimits& limits) {
-  constexpr double kLeastExtentMm = 50.0;  // as affine_stretch_limit
   return limits.affine_stretch_base + limits.max_sink_depth_mm / std::max(extent_mm, kLeastExtentMm);
 }
 
