@@ -67,6 +67,43 @@ std::vector<float> bias_field(const Grid3& g, double amplitude, std::mt19937_64&
   return out;
 }
 
+std::vector<float> coil_array_bias(const Grid3& g, const Eigen::Vector3d& centre_mm, int loops,
+                                   double array_radius_mm, double loop_radius_mm, double reference_radius_mm,
+                                   double shading, std::mt19937_64& rng) {
+  std::vector<float> out(g.voxel_count(), 1.f);
+  if (loops <= 0 || shading <= 0) return out;
+  // Fibonacci points on the sphere above z = -0.3 (the neck is open), the
+  // whole arrangement turned about S-I by a random angle.
+  std::uniform_real_distribution<double> turn(0, 2 * M_PI);
+  const double phi0 = turn(rng), golden = M_PI * (3 - std::sqrt(5.0));
+  std::vector<Eigen::Vector3d> coils;
+  for (int n = 0; n < loops; ++n) {
+    const double z = 1 - 1.3 * (n + 0.5) / loops, rho = std::sqrt(std::max(0.0, 1 - z * z)), phi = phi0 + golden * n;
+    coils.push_back(centre_mm + array_radius_mm * Eigen::Vector3d(rho * std::cos(phi), rho * std::sin(phi), z));
+  }
+  const double a2 = loop_radius_mm * loop_radius_mm, a3 = a2 * loop_radius_mm;
+  std::vector<double> rss(out.size());
+  std::vector<double> reference;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        double sum = 0;
+        for (const auto& c : coils) {
+          const double s = a3 / std::pow(a2 + (p - c).squaredNorm(), 1.5);
+          sum += s * s;
+        }
+        const std::size_t v = g.index(i, j, k);
+        rss[v] = std::sqrt(sum);
+        if ((p - centre_mm).norm() <= reference_radius_mm) reference.push_back(rss[v]);
+      }
+  if (reference.empty()) return out;
+  std::nth_element(reference.begin(), reference.begin() + reference.size() / 2, reference.end());
+  const double median = reference[reference.size() / 2];
+  for (std::size_t v = 0; v < out.size(); ++v) out[v] = static_cast<float>(std::pow(rss[v] / median, shading));
+  return out;
+}
+
 void add_rician_noise(std::vector<float>& voxels, double sigma, std::mt19937_64& rng) {
   std::normal_distribution<double> normal(0, sigma);
   for (auto& v : voxels) {

@@ -21,6 +21,21 @@ std::vector<float> smooth_noise(const Grid3& grid, double correlation_mm, double
 // max |g| = 1 (ones for amplitude 0).
 std::vector<float> bias_field(const Grid3& grid, double amplitude, std::mt19937_64& rng);
 
+// The receive sensitivity of an array of `loops` circular surface coils
+// (radius loop_radius_mm) on a sphere of radius array_radius_mm round
+// centre_mm, the upper part of a head coil (none below 30 % of the radius
+// under the centre), turned at random about S-I: each loop's sensitivity
+// falls off as a loop's on-axis field, a^3 / (a^2 + r^2)^(3/2) at distance r
+// from its centre, and the loops are combined root-sum-of-squares, as an
+// array's magnitude image is. Normalised to median 1 over the voxels within
+// reference_radius_mm of the centre, then raised to `shading` (0: flat, 1:
+// the array's own shading, no intensity normalisation). Not a polynomial:
+// bright near the coils, darker in the middle, unlike bias_field, whose
+// form the engine's own bias model shares.
+std::vector<float> coil_array_bias(const Grid3& grid, const Eigen::Vector3d& centre_mm, int loops,
+                                   double array_radius_mm, double loop_radius_mm, double reference_radius_mm,
+                                   double shading, std::mt19937_64& rng);
+
 // Magnitude of the value plus complex Gaussian noise of sigma (> 0) per
 // component, voxel by voxel in order (one random stream): an MR magnitude
 // image's noise, biased upward where the signal is dark.

@@ -19,9 +19,11 @@ void check(const ScannerSpec& s) {
   if (!(s.spacing_mm.minCoeff() >= 0.3 && s.spacing_mm.maxCoeff() <= 8 && s.fov_mm.minCoeff() >= 10 &&
         s.fov_mm.maxCoeff() <= 400 && s.slice_profile_fwhm >= 0.3 && s.slice_profile_fwhm <= 3 && s.snr > 0 &&
         s.bias_amplitude >= 0 && s.bias_amplitude < 1 && s.fov_centre_offset_mm.allFinite() &&
-        s.fov_centre_offset_mm.norm() <= 200))
+        s.fov_centre_offset_mm.norm() <= 200 && s.coil_loops >= 0 && s.coil_loops <= 64 && s.coil_shading >= 0 &&
+        s.coil_shading <= 2))
     throw InputError("scanner '" + s.name + "': spacing in [0.3, 8] mm, FOV in [10, 400] mm, its centre within "
-                     "200 mm of the brain's, slice profile in [0.3, 3] slices, SNR > 0 and bias in [0, 1) are required");
+                     "200 mm of the brain's, slice profile in [0.3, 3] slices, SNR > 0, bias in [0, 1), 0-64 coil "
+                     "loops and a coil shading in [0, 2] are required");
 }
 
 // T2-like value of brain tissue from its T1: piecewise linear through
@@ -173,7 +175,14 @@ ImageF acquire(const IntraopScene& scene, const ScannerSpec& spec, const Grid3& 
         out.at(i, j, k) = static_cast<float>(acc);
       }
   });
-  const auto bias = bias_field(grid, std::log1p(spec.bias_amplitude), rng);
+  // The array's centre: the brain's, where the field of view was centred
+  // before its offset (a head coil holds the head, not the field of view).
+  const Eigen::Vector3d grid_centre_mm =
+      grid.world_mm(0.5 * (grid.dims[0] - 1), 0.5 * (grid.dims[1] - 1), 0.5 * (grid.dims[2] - 1));
+  const auto bias = spec.coil_loops > 0
+                        ? coil_array_bias(grid, grid_centre_mm - spec.fov_centre_offset_mm, spec.coil_loops, 120, 45,
+                                          60, spec.coil_shading, rng)
+                        : bias_field(grid, std::log1p(spec.bias_amplitude), rng);
   for (std::size_t v = 0; v < out.voxels.size(); ++v) out.voxels[v] *= bias[v];
   std::vector<float> parenchyma;
   for (std::size_t v = 0; v < contrast.voxels.size(); ++v)
@@ -188,6 +197,7 @@ nlohmann::json to_json(const ScannerSpec& s) {
   return {{"name", s.name}, {"spacing_mm", vec(s.spacing_mm)}, {"fov_mm", vec(s.fov_mm)}, {"fov_centre_offset_mm", vec(s.fov_centre_offset_mm)},
           {"orientation_deg", vec(s.orientation_deg)}, {"slice_profile_fwhm", s.slice_profile_fwhm},
           {"snr", s.snr}, {"bias_amplitude", s.bias_amplitude},
+          {"coil_loops", s.coil_loops}, {"coil_shading", s.coil_shading},
           {"contrast", contrast_name(s.contrast)}};
 }
 

@@ -50,6 +50,11 @@ struct ScannerSpec {
   double slice_profile_fwhm = 1.0;          // in slice thicknesses
   double snr = 25;
   double bias_amplitude = 0.1;              // multiplicative, within about 1 +- this
+  // A receive array instead of the polynomial bias (phantom_artefacts.h,
+  // coil_array_bias): this many loops 120 mm round the brain's centre, its
+  // shading raised to coil_shading. 0: the polynomial bias above.
+  int coil_loops = 0;
+  double coil_shading = 1.0;
   Contrast contrast = Contrast::t1;
 };
 

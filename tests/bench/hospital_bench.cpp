@@ -190,6 +190,26 @@ int main(int argc, char** argv) {
   app.add_flag("--flair", flair,
                "every T1 case imaged FLAIR-like (the fluid dark, grey matter brighter than white; cases named "
                "CASE_flair): a contrast the engine was not made on");
+  double slice_mm = 0;
+  app.add_option("--slice-mm", slice_mm,
+                 "every case's slices this thick (the scanner's through-plane spacing replaced, its slice profile "
+                 "kept; cases named CASE_sliceXmm): the 2D multi-slice acquisitions some sites use intraop")
+      ->check(CLI::Range(0.5, 8.0));
+  double bias_amplitude = -1;
+  app.add_option("--bias", bias_amplitude,
+                 "every case's coil bias this strong (the scanner's amplitude replaced; cases named CASE_biasX): "
+                 "a surface coil close to the craniotomy, a 3 T head's B1 shading")
+      ->check(CLI::Range(0.0, 0.8));
+  int coil_loops = 0;
+  app.add_option("--coil-array", coil_loops,
+                 "every case received by an array of this many surface loops round the head instead of the "
+                 "polynomial bias (cases named CASE_coilsN): bright near the coils, darker in the middle, a shading "
+                 "the engine's polynomial bias model does not share")
+      ->check(CLI::Range(1, 64));
+  double coil_shading = 1.0;
+  app.add_option("--coil-shading", coil_shading, "with --coil-array: the array's shading raised to this power "
+                                                 "(1: no intensity normalisation; default 1)")
+      ->check(CLI::Range(0.0, 2.0));
   bool list_subjects = false;
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
@@ -212,6 +232,29 @@ int main(int argc, char** argv) {
         c.scanner.contrast = Contrast::flair_like;
         c.deformation.name += "_flair";
       }
+  if (slice_mm > 0)
+    for (auto& c : suite) {
+      c.scanner.spacing_mm[2] = slice_mm;
+      char suffix[32];
+      std::snprintf(suffix, sizeof suffix, "_slice%gmm", slice_mm);
+      c.deformation.name += suffix;
+    }
+  if (bias_amplitude >= 0)
+    for (auto& c : suite) {
+      c.scanner.bias_amplitude = bias_amplitude;
+      char suffix[32];
+      std::snprintf(suffix, sizeof suffix, "_bias%g", bias_amplitude);
+      c.deformation.name += suffix;
+    }
+  if (coil_loops > 0)
+    for (auto& c : suite) {
+      c.scanner.coil_loops = coil_loops;
+      c.scanner.coil_shading = coil_shading;
+      char suffix[48];
+      std::snprintf(suffix, sizeof suffix, "_coils%d", coil_loops);
+      c.deformation.name += suffix;
+      if (coil_shading != 1.0) c.deformation.name += "_shading" + std::to_string(coil_shading).substr(0, 4);
+    }
   if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {
     std::set<std::string> seen;

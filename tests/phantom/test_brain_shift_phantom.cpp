@@ -8,6 +8,7 @@
 #include "core/errors.h"
 #include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
+#include "phantom/phantom_artefacts.h"
 
 namespace brainshift {
 namespace {
@@ -339,6 +340,71 @@ TEST(TumorImplant, BadSpecsAreClearErrors) {
   spec = TumorImplantSpec{};
   spec.depth_mm = 500;  // deeper than the brain
   EXPECT_THROW(implant_tumor(p.t1, p.labels, spec), InputError);
+}
+
+}  // namespace
+}  // namespace brainshift
+
+namespace brainshift {
+namespace {
+
+// The receive array's shading: median 1 about the centre, bright by the
+// coils and dark in the middle, scaled by its exponent, and not the
+// quadratic the engine's bias model fits (the point of having it).
+TEST(PhantomArtefacts, ACoilArrayShadesBrightByTheCoilsDarkInTheMiddleAndIsNoQuadratic) {
+  Grid3 g;
+  g.dims = {61, 61, 61};
+  g.world_from_voxel = Eigen::Matrix4d::Identity();
+  g.world_from_voxel.topLeftCorner<3, 3>() *= 3.0;
+  g.world_from_voxel.topRightCorner<3, 1>() = Eigen::Vector3d(-90, -90, -90);
+  const Eigen::Vector3d centre(0, 0, 0);
+  std::mt19937_64 rng(5);
+  const auto full = coil_array_bias(g, centre, 8, 120, 45, 60, 1.0, rng);
+  rng.seed(5);
+  const auto squared = coil_array_bias(g, centre, 8, 120, 45, 60, 2.0, rng);
+  rng.seed(5);
+  const auto flat = coil_array_bias(g, centre, 8, 120, 45, 60, 0.0, rng);
+  std::vector<float> reference;
+  float top_edge = 0;
+  for (int k = 0; k < 61; ++k)
+    for (int j = 0; j < 61; ++j)
+      for (int i = 0; i < 61; ++i) {
+        const std::size_t v = g.index(i, j, k);
+        const Eigen::Vector3d p = g.world_mm(i, j, k);
+        if (p.norm() <= 60) reference.push_back(full[v]);
+        if (std::abs(p.norm() - 85) < 2 && p.z() > 60) top_edge = std::max(top_edge, full[v]);
+        EXPECT_FLOAT_EQ(flat[v], 1.f);
+        EXPECT_NEAR(squared[v], full[v] * full[v], 1e-4f * squared[v]);
+      }
+  std::nth_element(reference.begin(), reference.begin() + reference.size() / 2, reference.end());
+  EXPECT_NEAR(reference[reference.size() / 2], 1.0, 0.02);
+  const float middle = full[g.index(30, 30, 30)];
+  EXPECT_LT(middle, 0.9f) << "the middle of an array is darker than its median";
+  EXPECT_GT(top_edge, 1.5f * middle) << "the brain's top, near the coils, is brighter than its middle";
+  // The log shading's least-squares quadratic leaves a residual the
+  // polynomial bias would not: over the sphere of 85 mm, rms > 0.05.
+  Eigen::MatrixXd a;
+  std::vector<double> y;
+  std::vector<Eigen::Matrix<double, 10, 1>> rows;
+  for (int k = 0; k < 61; k += 2)
+    for (int j = 0; j < 61; j += 2)
+      for (int i = 0; i < 61; i += 2) {
+        const Eigen::Vector3d p = g.world_mm(i, j, k) / 85.0;
+        if (p.norm() > 1) continue;
+        Eigen::Matrix<double, 10, 1> r;
+        r << 1, p.x(), p.y(), p.z(), p.x() * p.y(), p.x() * p.z(), p.y() * p.z(), p.x() * p.x(), p.y() * p.y(), p.z() * p.z();
+        rows.push_back(r);
+        y.push_back(std::log(full[g.index(i, j, k)]));
+      }
+  a.resize(static_cast<Eigen::Index>(rows.size()), 10);
+  Eigen::VectorXd b(static_cast<Eigen::Index>(rows.size()));
+  for (std::size_t n = 0; n < rows.size(); ++n) {
+    a.row(static_cast<Eigen::Index>(n)) = rows[n].transpose();
+    b[static_cast<Eigen::Index>(n)] = y[n];
+  }
+  const Eigen::VectorXd fit = a.colPivHouseholderQr().solve(b);
+  const double rms = std::sqrt((a * fit - b).squaredNorm() / static_cast<double>(rows.size()));
+  EXPECT_GT(rms, 0.05) << "the array's shading is close to a quadratic in its log";
 }
 
 }  // namespace
