@@ -169,7 +169,7 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine, pass.affine_start);
   const Eigen::Matrix4d A = affine.intraop_from_preop;
   result.intraop_from_preop = A;
-  metrics["affine"] = {{"converged", affine.converged}, {"iterations", affine.iterations},
+  metrics["affine"] = {{"converged", affine.converged}, {"plausible", affine.plausible}, {"iterations", affine.iterations},
                        {"rms_surface_distance_mm", affine.rms_surface_distance_mm},
                        {"inlier_fraction", affine.inlier_fraction}, {"tolerance_met", affine.tolerance_met}, {"affine_kept", affine.affine_kept},
                        {"residual_sigma_mm", affine.residual_sigma_mm}, {"robust_scale_mm", affine.robust_scale_mm},
@@ -190,16 +190,24 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
   // volume gate refused it before the stages (PassOptions::
   // forced_fallback_rigid). A caller that refused labels with their image
   // hands in the transform to deliver (PassOptions::forced_fallback_transform).
+  // An affine that did not converge (an implausible determinant, or a fit
+  // that explains too little of the labels) is never delivered itself: a
+  // brain segmented in part gave one that shrank the preop five-fold, 40 mm
+  // off at the landmarks (docs/PERFORMANCE.md 12.43). A head does not change
+  // size: its rigid part, as for a refused geometry.
   const bool forced = !forced_fallback.empty();
-  const bool geometry_refused = failure.empty() && !implausible.empty() && refuses_labels_geometry(plausibility);
+  const bool affine_failed = !forced && !affine.converged;
+  const bool geometry_refused =
+      affine_failed || (failure.empty() && !implausible.empty() && refuses_labels_geometry(plausibility));
   std::optional<FallbackTransform> fallback_transform;
   if (forced && pass.forced_fallback_transform)
     fallback_transform = pass.forced_fallback_transform;
   else if ((forced && pass.forced_fallback_rigid) || geometry_refused)
     fallback_transform = FallbackTransform{
         rigid_part(A, warm.affine_samples.outer_moments.centroid_mm),
-        forced ? "rigid part of the affine (the automatic segmentation's brain volume was refused)"
-               : "rigid part of the affine (the labels' geometry was refused)"};
+        forced          ? "rigid part of the affine (the automatic segmentation's brain volume was refused)"
+        : affine_failed ? "rigid part of the affine (the affine did not converge)"
+                        : "rigid part of the affine (the labels' geometry was refused)"};
   if (failure.empty()) failure = implausible;
   const Eigen::Matrix4d delivered_A = fallback_transform ? fallback_transform->intraop_from_preop : A;
   if (fallback_transform) {

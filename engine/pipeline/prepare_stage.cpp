@@ -140,6 +140,15 @@ ScanResult register_given_labels(WarmState& warm, const IntraopInput& input, con
   const IntraopInput& used = with_spaces ? *with_spaces : input;
   const bool spaces_added = fluid_spaces.value("added_ml", 0.0) > 0;
   ScanResult result = run_intraop_on_working_grid(warm, used, params, progress);
+  // Labels no plausible affine maps the preop brain onto leave nothing to
+  // deliver: the rigid part of that affine was 13-66 mm off on the suite's
+  // segmenter's labels of a shaded image (docs/PERFORMANCE.md 12.43), and
+  // without an image there is nothing else to place the preop by.
+  if (!result.metrics["affine"].value("plausible", true))
+    throw InputError("intraop labels: no plausible affine maps the preop brain onto them (" +
+                     result.metrics["affine"].value("message", std::string()) +
+                     "): they are not the brain the preop shows (segmented in part, or another scan's); "
+                     "nothing was registered. Push the scan's image with them, or check the segmentation");
   result.metrics["given_labels"] = {{"use", "as given"}, {"preop_fluid_spaces", std::move(fluid_spaces)}};
   if (spaces_added) result.given_labels_used = used.labels;
   if (with_quality_metrics) add_quality_metrics(warm, used, params, result, progress);

@@ -382,6 +382,7 @@ AffineRegistrationResult finish_affine(const std::vector<Term>& fine_terms, cons
   msg.precision(3);
   const bool plausible = det > 0.5 && det < 2.0 && result.intraop_from_preop.allFinite();
   const bool good_fit = result.inlier_fraction >= p.min_inlier_fraction && in_view >= 0.3;
+  result.plausible = plausible;
   result.converged = plausible && good_fit;
   if (result.converged) {
     msg << (tolerance_met ? "converged" : "converged (good fit; last step above tolerance)");

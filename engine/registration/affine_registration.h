@@ -78,6 +78,10 @@ struct AffineRegistrationResult {
   // (inlier_fraction >= min_inlier_fraction, 30 % of the points in view).
   // An LM stopped by its iteration cap at such a fit is converged.
   bool converged = false;
+  // The determinant alone in (0.5, 2): a head's volume, whatever the fit. An
+  // affine outside it is not a head moving but labels that are not the
+  // preop's brain (a brain segmented in part, another scan's).
+  bool plausible = false;
   bool tolerance_met = false;     // the last LM step was below tolerance_mm (reported only)
   double initial_cost = 0;        // at the moment-based initialisation, finest-level cost
   double final_cost = 0;          // same cost at the result

@@ -17,6 +17,7 @@
 #include "core/errors.h"
 #include "field/metrics.h"
 #include "image/morphology.h"
+#include "image/resample.h"
 #include "phantom/brain_shift_phantom.h"
 #include "mesh/vtk_io.h"
 #include "pipeline/engine_session.h"
@@ -126,6 +127,30 @@ TEST_F(PipelineTest, BadIntraopInputIsAClearErrorAndTheSessionKeepsServing) {
       for (int i = 0; i < partial.labels.grid.dims[0]; ++i)
         if (k > 12) partial.labels.at(i, j, k) = 0;
   EXPECT_THROW(session_->register_scan(partial, nullptr), InputError);
+  EXPECT_EQ(session_->register_scan(scan, nullptr).kind, ResultKind::nonrigid);
+}
+
+// Labels alone that no plausible affine maps the preop brain onto (here the
+// preop's own, swollen 1.35-fold in every direction: no head does that)
+// leave nothing to deliver: the scan is a clear error, not a fallback whose
+// transform is that affine or its rigid part (on the suite's segmenter's
+// labels of a shaded image those were 13-122 mm off). The session serves on.
+TEST_F(PipelineTest, LabelsNoPlausibleAffineFitsAreAClearErrorNotAFallback) {
+  const Grid3 big = grid({110, 120, 100}, 2.0, {-110, -120, -100});
+  const Eigen::Vector3d c = centroid_mm(nonzero_mask(preop_->labels));
+  Eigen::Matrix4d preop_from_intraop = Eigen::Matrix4d::Identity();
+  preop_from_intraop.topLeftCorner<3, 3>() /= 1.35;
+  preop_from_intraop.topRightCorner<3, 1>() = c - c / 1.35;
+  ScanInput swollen;
+  swollen.labels = resample_nearest(preop_->labels, big, preop_from_intraop);
+  try {
+    session_->register_scan(swollen, nullptr);
+    ADD_FAILURE() << "labels 2.5 times the preop's brain were registered";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("no plausible affine"), std::string::npos) << e.what();
+  }
+  ScanInput scan;
+  scan.labels = translated_scan(*preop_, Eigen::Vector3d::Zero()).labels;
   EXPECT_EQ(session_->register_scan(scan, nullptr).kind, ResultKind::nonrigid);
 }
 
@@ -302,6 +327,14 @@ TEST_F(PipelineTest, AnAffineThatDoesNotConvergeIsReportedAndFallsBack) {
   });
   EXPECT_EQ(r.metrics["affine"]["converged"], false);
   expect_marked_affine_only(r, scan, "affine registration did not converge");
+  // The affine that did not converge is not delivered: its rigid part is
+  // (a partly segmented brain once gave one shrinking the preop five-fold).
+  const Eigen::Matrix3d delivered = r.intraop_from_preop.topLeftCorner<3, 3>();
+  EXPECT_LT((delivered.transpose() * delivered - Eigen::Matrix3d::Identity()).norm(), 1e-9);
+  EXPECT_NEAR(delivered.determinant(), 1.0, 1e-9);
+  EXPECT_EQ(r.metrics["affine"].value("fallback_transform", ""), "rigid part of the affine (the affine did not converge)")
+      << r.metrics["affine"].dump();
+  ASSERT_TRUE(r.metrics["affine"].contains("refused_intraop_from_preop"));
 }
 
 TEST_F(PipelineTest, ASurfaceMatchThatDivergesIsReportedAndFallsBack) {
