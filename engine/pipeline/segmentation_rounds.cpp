@@ -258,7 +258,7 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
     bool pass_prior_only = false;
     bool refused = !next.refusal.empty() || !next_gates.failure.empty();
     if (refused) {
-      report["refusal"] = next.refusal;
+      report["refusal"] = next.refusal.empty() ? next_gates.failure : next.refusal;
     } else {
       pass = s.run_pass(next, round < ap.rematch_rounds, pass_prior_only, &r.result.intraop_from_preop);
       refused = pass.kind != ResultKind::nonrigid;  // a fold
@@ -275,6 +275,15 @@ void rematch(const ScanOnGrid& s, Rounds& r) {
     r.result_prior_only = pass_prior_only;
     r.report.push_back(report);
   }
+}
+
+std::string refused_rematch_caution(const nlohmann::json& rounds) {
+  if (!rounds.is_array() || rounds.size() < 2 || rounds.back().value("kept", true)) return {};
+  std::string why = rounds.back().value("refusal", std::string());
+  if (why.empty()) why = rounds.back().value("fallback_reason", std::string());
+  return "the re-match's segmentation was refused (" + why +
+         "); the answer rests on the first round's, drawn under the head placement's wide prior on the coarser "
+         "grid and not looked at again: it may be millimetres off at the surface";
 }
 
 // The answer from the rounds: the outputs a light pass skipped, the
@@ -306,6 +315,9 @@ ScanResult answer(const ScanOnGrid& s, Rounds r, nlohmann::json seg_metrics, con
                     " x as bright as the cortex beneath: an enhancing dura); the automatic segmentation may hold "
                     "the dura, and the answer be millimetres off at the surface");
   }
+  if (result.kind == ResultKind::nonrigid)
+    if (const std::string caution = refused_rematch_caution(r.report); !caution.empty())
+      add_caution(result.metrics, caution);
   seg_metrics["classifier"] = r.seg.report;
   seg_metrics["gates"] = r.gates.metrics;
   seg_metrics["rounds"] = r.report;

@@ -213,6 +213,16 @@ struct ScanOnGrid {
 // re-match's prior there.
 LabelImage preop_labels_on_grid(const WarmState& warm, const VectorImage3& pullback_field_mm, const Grid3& grid);
 
+// The caution a non-rigid answer carries when the last re-match round was
+// refused (`rounds`: metrics.segmentation.rounds; by the classifier, a gate
+// or the stages): the answer then rests on the first round's segmentation,
+// made under the head placement's wide prior (3 mm out, 5 mm in) on the
+// coarser grid. In the suites that happened only on images the engine
+// handles worst (a contrast-enhanced 0.15 T scan 2.6-3.9 mm off, a receive
+// array's unnormalised shading 5.7 mm; docs/PERFORMANCE.md 12.43), on no
+// plain T1, T2-like or FLAIR-like scan. Empty when the last round stands.
+std::string refused_rematch_caution(const nlohmann::json& rounds);
+
 // A round's report: its prior's width and the bias fitted (and whether the
 // first fit was replaced, ScanOnGrid::segment).
 nlohmann::json round_report(const segmentation::IntraopSegmentation& s);

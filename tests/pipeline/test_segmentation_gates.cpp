@@ -7,6 +7,7 @@
 #include "config_file.h"
 #include "core/errors.h"
 #include "pipeline/prepare_stage.h"
+#include "pipeline/segmentation_rounds.h"
 
 using namespace brainshift;
 
@@ -115,4 +116,22 @@ TEST(SegmentationGates, ThePlacementsScaleIsNotReadAsBrainLostOrGained) {
   EXPECT_NEAR(own.metrics["brain_volume"]["change"].get<double>(), -0.08, 0.01);
 
   EXPECT_THROW(carried_preop_volumes(carried, table(), 0.0), ComputeError);
+}
+
+// A re-match refused leaves the first round's answer: a caution says so and
+// why (the classifier's or a gate's refusal, or the stages' fallback); a
+// re-match that stands, or a first round alone, gives none.
+TEST(SegmentationRounds, ARefusedReMatchCautionsTheAnswerWithItsReason) {
+  const nlohmann::json first = {{"seconds", 0.5}};
+  const nlohmann::json kept = {{"seconds", 0.9}};
+  const nlohmann::json by_gate = {{"kept", false}, {"refusal", "automatic segmentation: the brain's volume differs"}};
+  const nlohmann::json by_stages = {{"kept", false}, {"refusal", ""}, {"fallback_reason", "the non-rigid field folds"}};
+  EXPECT_EQ(refused_rematch_caution(nlohmann::json::array({first, kept})), "");
+  EXPECT_EQ(refused_rematch_caution(nlohmann::json::array({first})), "");
+  EXPECT_EQ(refused_rematch_caution(nlohmann::json::array()), "");
+  const std::string gate = refused_rematch_caution(nlohmann::json::array({first, by_gate}));
+  EXPECT_NE(gate.find("re-match's segmentation was refused (automatic segmentation: the brain's volume"),
+            std::string::npos) << gate;
+  const std::string stages = refused_rematch_caution(nlohmann::json::array({first, kept, by_stages}));
+  EXPECT_NE(stages.find("(the non-rigid field folds)"), std::string::npos) << stages;
 }
