@@ -281,9 +281,10 @@ std::string refused_rematch_caution(const nlohmann::json& rounds) {
   if (!rounds.is_array() || rounds.size() < 2 || rounds.back().value("kept", true)) return {};
   std::string why = rounds.back().value("refusal", std::string());
   if (why.empty()) why = rounds.back().value("fallback_reason", std::string());
-  return "the re-match's segmentation was refused (" + why +
-         "); the answer rests on the first round's, drawn under the head placement's wide prior on the coarser "
-         "grid and not looked at again: it may be millimetres off at the surface";
+  const std::string before = rounds.size() == 2 ? "the first round's, drawn under the head placement's wide prior"
+                                                : "the round's before it";
+  return "the re-match's segmentation was refused (" + why + "); the answer rests on " + before +
+         ", not looked at again: it may be millimetres off at the surface";
 }
 
 // The answer from the rounds: the outputs a light pass skipped, the

@@ -134,4 +134,6 @@ TEST(SegmentationRounds, ARefusedReMatchCautionsTheAnswerWithItsReason) {
             std::string::npos) << gate;
   const std::string stages = refused_rematch_caution(nlohmann::json::array({first, kept, by_stages}));
   EXPECT_NE(stages.find("(the non-rigid field folds)"), std::string::npos) << stages;
+  EXPECT_NE(gate.find("rests on the first round's"), std::string::npos) << gate;
+  EXPECT_NE(stages.find("rests on the round's before it"), std::string::npos) << stages;
 }
