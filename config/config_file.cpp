@@ -154,6 +154,9 @@ void read_classifier(TomlSection& s, segmentation::SegmentationParameters& c) {
   s.read("max_rim_cap_mm", c.max_rim_cap_mm, Interval::closed(0, 10));
   s.read("rim_cap_cavity_margin_mm", c.rim_cap_cavity_margin_mm, Interval::closed(0, 50));
   s.read("bias_degree", c.em.bias_degree, 0, 4);
+  s.read("sharpening_bias", c.sharpening_bias);
+  s.read("sharpening_smoothing_mm", c.sharpening.smoothing_mm, Interval::closed(5, 200));
+  s.read("sharpening_max_iterations", c.sharpening.max_iterations, 1, 1000);
   s.read("max_iterations", c.em.max_iterations, 1, 1000);
   s.read("tolerance", c.em.tolerance, Interval::above(0));
   s.read("fit_samples", c.em.fit_samples, 1000, 100000000);

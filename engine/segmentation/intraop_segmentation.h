@@ -17,6 +17,7 @@
 
 #include "core/image.h"
 #include "segmentation/open_fluid.h"
+#include "segmentation/sharpening_bias.h"
 #include "segmentation/tissue_em.h"
 
 namespace brainshift::segmentation {
@@ -49,6 +50,10 @@ struct SegmentationParameters {
   // (prior_reach_mm, tissue_prior.h).
   double margin_mm = 30;
   EmParameters em;
+  // The shading found from the histogram before the classes are fitted
+  // (sharpening_bias.h): on by default.
+  bool sharpening_bias = true;
+  SharpeningBiasParameters sharpening;
   // Enclosed holes of the segmented brain smaller than this (ml) are noise
   // and filled; larger ones are kept as cavities (the pipeline passes its
   // min_resection_cavity_ml, so what is filled here would be ignored there).

@@ -264,6 +264,9 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
     EXPECT_EQ(c->em.fit_samples, code.classifier.em.fit_samples);
     EXPECT_DOUBLE_EQ(c->em.mrf_beta, code.classifier.em.mrf_beta);
     EXPECT_EQ(c->em.mrf_sweeps, code.classifier.em.mrf_sweeps);
+    EXPECT_EQ(c->sharpening_bias, code.classifier.sharpening_bias);
+    EXPECT_DOUBLE_EQ(c->sharpening.smoothing_mm, code.classifier.sharpening.smoothing_mm);
+    EXPECT_EQ(c->sharpening.max_iterations, code.classifier.sharpening.max_iterations);
   }
   EXPECT_DOUBLE_EQ(file.label_image_check.prior_width_mm, code.label_image_check.prior_width_mm);
   EXPECT_DOUBLE_EQ(file.label_image_check.min_posterior, code.label_image_check.min_posterior);
@@ -273,7 +276,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
 
   const auto p = config::pipeline_parameters_from_text(
       "[auto_segmentation]\nrematch_rounds = 0\ncheck_given_labels = false\ngiven_labels = \"exact\"\n"
-      "[auto_segmentation.classifier]\nmrf_beta = 0.0\nbias_degree = 1\n"
+      "[auto_segmentation.classifier]\nmrf_beta = 0.0\nbias_degree = 1\nsharpening_bias = false\n"
       "[auto_segmentation.label_check]\nband_mm = 2.0\n",
       "t").auto_segmentation;
   EXPECT_EQ(p.rematch_rounds, 0);
@@ -281,6 +284,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_EQ(p.given_labels, GivenLabelsUse::exact);
   EXPECT_DOUBLE_EQ(p.classifier.em.mrf_beta, 0.0);
   EXPECT_EQ(p.classifier.em.bias_degree, 1);
+  EXPECT_FALSE(p.classifier.sharpening_bias);
   EXPECT_EQ(p.label_image_check.classifier.em.bias_degree, 1);  // one classifier for both paths
   EXPECT_DOUBLE_EQ(p.label_image_check.band_mm, 2.0);
 }

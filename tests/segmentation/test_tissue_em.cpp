@@ -11,11 +11,13 @@
 #include <limits>
 #include <random>
 
+#include "core/errors.h"
 #include "image/image_stats.h"
 #include "image/morphology.h"
 #include "segmentation/intraop_segmentation.h"
 #include "registration/boundary_samples.h"
 #include "segmentation/bias_field.h"
+#include "segmentation/sharpening_bias.h"
 #include "segmentation/tissue_em.h"
 #include "misregistered_prior.h"
 #include "classifier_head.h"
@@ -336,13 +338,19 @@ TEST(BiasField, ABoxOffTheFittedGridIsThePolynomialThere) {
 TEST(TissueEm, ARematchWithTheFirstRoundsFitAgreesWithARefit) {
   const Intensities in;
   const Synthetic head = make_head(in, 5.0, 0.3);
+  // With the histogram's shading (the default) the earlier round's bias is
+  // carried as its image, without it as its polynomial.
+  for (const bool sharpening : {true, false}) {
+  SCOPED_TRACE(sharpening ? "sharpening bias" : "polynomial bias only");
   SegmentationParameters first = params_for_test();
+  first.sharpening_bias = sharpening;
   first.ventricle_shift_mm = 6.0;  // as the first image-only round: the ventricles' class held
   const IntraopSegmentation round1 =
       segment_intraop(head.image, misregistered(head.truth, {3, -2, 2}, 1.04), 1, {2}, first);
   ASSERT_TRUE(round1.refusal.empty()) << round1.refusal;
-  ASSERT_TRUE(round1.bias_field.has_value());
+  ASSERT_EQ(round1.bias_field.has_value(), !sharpening);
   SegmentationParameters second = params_for_test();
+  second.sharpening_bias = sharpening;
   second.prior_width_mm = 1.5;
   second.margin_mm = 10.4;
   const LabelImage carried = misregistered(head.truth, {1, -0.5, 0.5}, 1.01);
@@ -363,4 +371,110 @@ TEST(TissueEm, ARematchWithTheFirstRoundsFitAgreesWithARefit) {
     ASSERT_NEAR(reused.bias.voxels[v] / round1.bias.voxels[v], 1.0, 1e-4) << v;
   }
   EXPECT_GT(compared, reused.bias.voxels.size() / 4);
+  }
+}
+
+namespace {
+
+// A receive array's shading on the test head: six loops (radius 45 mm) 110
+// mm from the brain's centre, each falling off as a^3 / (a^2 + r^2)^(3/2),
+// combined root-sum-of-squares, mean log 0 over the brain: bright under each
+// loop, dark in the middle, no low-order polynomial.
+ImageF array_shading(const Synthetic& head) {
+  const double a = 45;
+  const std::vector<Eigen::Vector3d> loops = {{110, 0, 0}, {-110, 0, 0}, {0, 110, 0},
+                                              {0, -110, 0}, {0, 0, 110}, {64, 64, 64}};
+  const Grid3& g = head.image.grid;
+  ImageF log_b(g, 0.f);
+  double mean = 0;
+  std::size_t n = 0;
+  for (int k = 0; k < g.dims[2]; ++k)
+    for (int j = 0; j < g.dims[1]; ++j)
+      for (int i = 0; i < g.dims[0]; ++i) {
+        double sum2 = 0;
+        for (const auto& c : loops) {
+          const double r2 = (g.world_mm(i, j, k) - c).squaredNorm();
+          const double s = a * a * a / std::pow(a * a + r2, 1.5);
+          sum2 += s * s;
+        }
+        log_b.at(i, j, k) = static_cast<float>(0.5 * std::log(sum2));
+        if (head.truth.at(i, j, k)) mean += log_b.at(i, j, k), ++n;
+      }
+  for (auto& v : log_b.voxels) v -= static_cast<float>(mean / static_cast<double>(n));
+  return log_b;
+}
+
+// rms over the brain of (a - b) after their mean difference there.
+double rms_over_brain(const std::vector<float>& a, const std::vector<float>& b, const LabelImage& truth) {
+  double mean = 0, sum2 = 0;
+  std::size_t n = 0;
+  for (std::size_t v = 0; v < a.size(); ++v)
+    if (truth.voxels[v]) mean += a[v] - b[v], ++n;
+  mean /= static_cast<double>(n);
+  for (std::size_t v = 0; v < a.size(); ++v)
+    if (truth.voxels[v]) sum2 += (a[v] - b[v] - mean) * (a[v] - b[v] - mean);
+  return std::sqrt(sum2 / static_cast<double>(n));
+}
+
+}  // namespace
+
+// The histogram's sharpening finds an array's shading that no polynomial
+// follows, and leaves an unshaded image nearly alone.
+TEST(SharpeningBias, FindsAReceiveArraysShadingAndLeavesAnUnshadedImageAlone) {
+  const Intensities in;
+  Synthetic head = make_head(in, 3.0, 0.0);
+  const Mask brain = nonzero_mask(head.truth);
+  const std::vector<float> zero(head.image.voxels.size(), 0.f);
+  const SharpeningBias unshaded = sharpening_log_bias(head.image, brain, {});
+  ASSERT_EQ(unshaded.log_bias.size(), head.image.voxels.size());
+  const double unshaded_rms = rms_over_brain(unshaded.log_bias, zero, head.truth);
+
+  const ImageF log_b = array_shading(head);
+  const double shading_rms = rms_over_brain(log_b.voxels, zero, head.truth);
+  for (std::size_t v = 0; v < head.image.voxels.size(); ++v) head.image.voxels[v] *= std::exp(log_b.voxels[v]);
+  const SharpeningBias shaded = sharpening_log_bias(head.image, brain, {});
+  const double error_rms = rms_over_brain(shaded.log_bias, log_b.voxels, head.truth);
+  std::printf("shading rms %.3f, error %.3f (%d iterations); unshaded field rms %.3f\n", shading_rms, error_rms,
+              shaded.iterations, unshaded_rms);
+  EXPECT_GT(shading_rms, 0.15) << "the test's shading must be strong";
+  EXPECT_LT(error_rms, 0.2 * shading_rms);
+  EXPECT_LT(unshaded_rms, 0.02);
+  EXPECT_LE(shaded.iterations, SharpeningBiasParameters{}.max_iterations);
+}
+
+// The classes on an array-shaded head: the shading taken out first, the
+// brain and ventricles come back as on an unshaded one.
+TEST(SharpeningBias, TheClassifierSeesThroughAReceiveArraysShading) {
+  const Intensities in;
+  Synthetic head = make_head(in, 3.0, 0.0);
+  const ImageF log_b = array_shading(head);
+  for (std::size_t v = 0; v < head.image.voxels.size(); ++v) head.image.voxels[v] *= std::exp(log_b.voxels[v]);
+  const LabelImage prior = misregistered(head.truth, {3, -2, 2}, 1.04);
+  SegmentationParameters without = params_for_test();
+  without.sharpening_bias = false;
+  const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, params_for_test());
+  const IntraopSegmentation plain = segment_intraop(head.image, prior, 1, {2}, without);
+  ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
+  const double with_dice = outline_dice(seg.labels, head.truth);
+  const double without_dice = plain.refusal.empty() ? outline_dice(plain.labels, head.truth) : 0.0;
+  std::printf("brain Dice %.4f with the sharpening, %.4f without (%s)\n", with_dice, without_dice,
+              plain.refusal.empty() ? "accepted" : "refused");
+  EXPECT_GE(with_dice, 0.97) << seg.report.dump();
+  EXPECT_GE(dice(seg.labels, head.truth, 2), 0.85) << seg.report.dump();
+  EXPECT_TRUE(seg.report.at("sharpening_bias").at("iterations").get<int>() > 0);
+}
+
+TEST(SharpeningBias, TooFewSamplesLeaveNoFieldAndBadInputIsAnError) {
+  const Synthetic head = make_head(Intensities{}, 3.0, 0.0);
+  Mask tiny(head.truth.grid, 0);
+  tiny.at(70, 80, 37) = 1;
+  const SharpeningBias none = sharpening_log_bias(head.image, tiny, {});
+  EXPECT_EQ(none.iterations, 0);
+  EXPECT_TRUE(std::all_of(none.log_bias.begin(), none.log_bias.end(), [](float v) { return v == 0.f; }));
+  Grid3 other = head.truth.grid;
+  other.dims[0] -= 1;
+  EXPECT_THROW(sharpening_log_bias(head.image, Mask(other, 1), {}), InputError);
+  SharpeningBiasParameters bad;
+  bad.smoothing_mm = 0;
+  EXPECT_THROW(sharpening_log_bias(head.image, nonzero_mask(head.truth), bad), InputError);
 }

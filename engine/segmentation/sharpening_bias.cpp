@@ -1,0 +1,268 @@
+#include "segmentation/sharpening_bias.h"
+
+#include <algorithm>
+#include <cmath>
+#include <complex>
+
+#include "core/errors.h"
+#include "core/parallel.h"
+#include "image/gaussian_smooth.h"
+
+namespace brainshift::segmentation {
+namespace {
+
+using Complex = std::complex<double>;
+
+// In-place radix-2 FFT (n a power of two); inverse without the 1/n.
+void fft(std::vector<Complex>& a, bool inverse) {
+  const std::size_t n = a.size();
+  for (std::size_t i = 1, j = 0; i < n; ++i) {
+    std::size_t bit = n >> 1;
+    for (; j & bit; bit >>= 1) j ^= bit;
+    j ^= bit;
+    if (i < j) std::swap(a[i], a[j]);
+  }
+  const double pi = std::acos(-1.0);
+  for (std::size_t len = 2; len <= n; len <<= 1) {
+    const double angle = 2 * pi / static_cast<double>(len) * (inverse ? 1 : -1);
+    const Complex step(std::cos(angle), std::sin(angle));
+    for (std::size_t i = 0; i < n; i += len) {
+      Complex w(1, 0);
+      for (std::size_t k = 0; k < len / 2; ++k, w *= step) {
+        const Complex u = a[i + k], v = a[i + k + len / 2] * w;
+        a[i + k] = u + v;
+        a[i + k + len / 2] = u - v;
+      }
+    }
+  }
+}
+
+// Circular convolution of a real signal with the kernel whose transform is
+// kernel_f (both of the padded length).
+std::vector<double> convolve(const std::vector<double>& x, const std::vector<Complex>& kernel_f) {
+  std::vector<Complex> a(x.begin(), x.end());
+  fft(a, false);
+  for (std::size_t i = 0; i < a.size(); ++i) a[i] *= kernel_f[i];
+  fft(a, true);
+  std::vector<double> out(a.size());
+  for (std::size_t i = 0; i < a.size(); ++i) out[i] = a[i].real() / static_cast<double>(a.size());
+  return out;
+}
+
+// N4's histogram sharpening: the expected sharpened value of every bin of
+// the histogram of `values` (a lookup over [lo, lo + (bins - 1) * slope]).
+struct Sharpened {
+  double lo = 0, slope = 1;
+  std::vector<double> expected;
+  double at(double x) const {
+    const double t = std::clamp((x - lo) / slope, 0.0, static_cast<double>(expected.size() - 1));
+    const auto i = std::min(static_cast<std::size_t>(t), expected.size() - 2);
+    const double f = t - static_cast<double>(i);
+    return (1 - f) * expected[i] + f * expected[i + 1];
+  }
+};
+
+Sharpened sharpen(const std::vector<double>& values, const SharpeningBiasParameters& p) {
+  const auto [lo_it, hi_it] = std::minmax_element(values.begin(), values.end());
+  Sharpened s;
+  const int bins = std::max(p.bins, 8);
+  s.lo = *lo_it;
+  s.slope = std::max(*hi_it - *lo_it, 1e-9) / (bins - 1);
+  std::size_t padded = 1;
+  while (padded < static_cast<std::size_t>(bins)) padded <<= 1;
+  padded <<= 1;
+  const std::size_t offset = (padded - static_cast<std::size_t>(bins)) / 2;
+  // Each value split between its two nearest bins.
+  std::vector<double> histogram(padded, 0.0);
+  for (double v : values) {
+    const double t = (v - s.lo) / s.slope;
+    const auto i = std::min(static_cast<std::size_t>(t), static_cast<std::size_t>(bins - 2));
+    const double f = std::clamp(t - static_cast<double>(i), 0.0, 1.0);
+    histogram[offset + i] += 1 - f;
+    histogram[offset + i + 1] += f;
+  }
+  // The blurring kernel, centred on bin 0 (wrapped), and its Wiener inverse.
+  const double sigma_bins = p.fwhm / s.slope / (2 * std::sqrt(2 * std::log(2.0)));
+  std::vector<Complex> kernel(padded, 0.0);
+  double sum = 0;
+  for (std::size_t i = 0; i < padded; ++i) {
+    const double d = static_cast<double>(i <= padded / 2 ? i : padded - i);
+    sum += (kernel[i] = std::exp(-0.5 * d * d / (sigma_bins * sigma_bins))).real();
+  }
+  for (auto& k : kernel) k /= sum;
+  fft(kernel, false);
+  std::vector<Complex> wiener(padded);
+  for (std::size_t i = 0; i < padded; ++i)
+    wiener[i] = std::conj(kernel[i]) / (std::norm(kernel[i]) + p.wiener_noise);
+  std::vector<double> u = convolve(histogram, wiener);
+  for (auto& x : u) x = std::max(x, 0.0);
+  std::vector<double> weighted(padded);
+  for (std::size_t i = 0; i < padded; ++i)
+    weighted[i] = u[i] * (s.lo + (static_cast<double>(i) - static_cast<double>(offset)) * s.slope);
+  const std::vector<double> numerator = convolve(weighted, kernel), denominator = convolve(u, kernel);
+  s.expected.resize(static_cast<std::size_t>(bins));
+  for (std::size_t i = 0; i < s.expected.size(); ++i) {
+    const double centre = s.lo + static_cast<double>(i) * s.slope;
+    const double d = denominator[offset + i];
+    s.expected[i] = d > 1e-12 ? numerator[offset + i] / d : centre;
+  }
+  return s;
+}
+
+// The coarse grid the field lives on: node n along an axis at voxel
+// n * step (step in voxels, not necessarily whole), enough nodes to cover
+// the image; and each sample's trilinear weights on it.
+struct FieldGrid {
+  Eigen::Vector3d step;
+  std::array<int, 3> dims{};
+  std::size_t size() const { return static_cast<std::size_t>(dims[0]) * dims[1] * dims[2]; }
+  std::size_t index(int i, int j, int k) const {
+    return static_cast<std::size_t>(i) + static_cast<std::size_t>(dims[0]) * (j + static_cast<std::size_t>(dims[1]) * k);
+  }
+};
+
+struct Corners {
+  std::array<std::size_t, 8> node{};
+  std::array<double, 8> weight{};
+};
+
+Corners corners(const FieldGrid& f, const Eigen::Vector3d& voxel) {
+  std::array<int, 3> lo{};
+  std::array<double, 3> t{};
+  for (int a = 0; a < 3; ++a) {
+    const double x = std::clamp(voxel[a] / f.step[a], 0.0, static_cast<double>(f.dims[a] - 1));
+    lo[a] = std::min(static_cast<int>(x), std::max(f.dims[a] - 2, 0));
+    t[a] = f.dims[a] > 1 ? x - lo[a] : 0.0;
+  }
+  Corners c;
+  for (int n = 0; n < 8; ++n) {
+    std::array<int, 3> at{};
+    double w = 1;
+    for (int a = 0; a < 3; ++a) {
+      const int up = (n >> a) & 1;
+      w *= up ? t[a] : 1 - t[a];
+      at[a] = std::min(lo[a] + up, f.dims[a] - 1);
+    }
+    c.node[static_cast<std::size_t>(n)] = f.index(at[0], at[1], at[2]);
+    c.weight[static_cast<std::size_t>(n)] = w;
+  }
+  return c;
+}
+
+double interpolate(const Corners& c, const std::vector<double>& field) {
+  double s = 0;
+  for (std::size_t n = 0; n < 8; ++n) s += c.weight[n] * field[c.node[n]];
+  return s;
+}
+
+}  // namespace
+
+SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, const SharpeningBiasParameters& p) {
+  if (!image.grid.same_geometry(region.grid)) throw InputError("sharpening bias: image and region on different grids");
+  if (!(p.lattice_mm > 0) || !(p.smoothing_mm > 0) || !(p.fwhm > 0) || p.max_iterations < 0)
+    throw InputError("sharpening bias: lattice, smoothing and FWHM must be positive");
+  const Grid3& g = image.grid;
+  SharpeningBias out;
+  out.log_bias.assign(g.voxel_count(), 0.f);
+  // The region's floor: air and noise are not tissue.
+  std::vector<float> inside;
+  for (std::size_t v = 0; v < region.voxels.size(); ++v)
+    if (region.voxels[v] && image.voxels[v] > 0) inside.push_back(image.voxels[v]);
+  if (inside.empty()) return out;
+  std::nth_element(inside.begin(), inside.begin() + static_cast<std::ptrdiff_t>(inside.size() / 2), inside.end());
+  const double floor = p.floor_fraction * inside[inside.size() / 2];
+
+  // Samples: single voxels on a lattice of about lattice_mm. The field: a
+  // grid of nodes 2.5 to a smoothing sigma apart (a Gaussian of sigma is
+  // sampled well at that spacing), onto which the samples' residuals are
+  // spread trilinearly and smoothed (normalised convolution).
+  const Eigen::Vector3d spacing = g.spacing_mm();
+  std::array<int, 3> stride{};
+  FieldGrid f;
+  Eigen::Vector3d sigma_nodes;
+  const double node_mm = p.smoothing_mm / 2.5;
+  for (int a = 0; a < 3; ++a) {
+    stride[a] = std::max(1, static_cast<int>(std::lround(p.lattice_mm / spacing[a])));
+    f.step[a] = std::max(node_mm / spacing[a], 1.0);
+    f.dims[a] = static_cast<int>(std::ceil((g.dims[a] - 1) / f.step[a])) + 1;
+    sigma_nodes[a] = p.smoothing_mm / (f.step[a] * spacing[a]);
+  }
+  std::vector<Corners> at;
+  std::vector<double> log_value;
+  for (int k = 0; k < g.dims[2]; k += stride[2])
+    for (int j = 0; j < g.dims[1]; j += stride[1])
+      for (int i = 0; i < g.dims[0]; i += stride[0]) {
+        const std::size_t v = g.index(i, j, k);
+        if (!region.voxels[v] || !(image.voxels[v] > floor)) continue;
+        at.push_back(corners(f, Eigen::Vector3d(i, j, k)));
+        log_value.push_back(std::log(static_cast<double>(image.voxels[v])));
+      }
+  out.samples = at.size();
+  if (at.size() < p.min_samples) return out;
+
+  Grid3 node_grid;
+  node_grid.dims = f.dims;
+  ImageF weight(node_grid, 0.f);
+  for (const Corners& c : at)
+    for (std::size_t n = 0; n < 8; ++n) weight.voxels[c.node[n]] += static_cast<float>(c.weight[n]);
+  gaussian_smooth_voxels(weight, sigma_nodes);
+  std::vector<double> field(f.size(), 0.0), step(f.size(), 0.0), corrected(at.size());
+  for (int it = 0; it < p.max_iterations; ++it) {
+    for (std::size_t s = 0; s < at.size(); ++s) corrected[s] = log_value[s] - interpolate(at[s], field);
+    const Sharpened sharp = sharpen(corrected, p);
+    ImageF residual(node_grid, 0.f);
+    for (std::size_t s = 0; s < at.size(); ++s) {
+      const double e = corrected[s] - sharp.at(corrected[s]);
+      for (std::size_t n = 0; n < 8; ++n) residual.voxels[at[s].node[n]] += static_cast<float>(at[s].weight[n] * e);
+    }
+    gaussian_smooth_voxels(residual, sigma_nodes);
+    for (std::size_t c = 0; c < f.size(); ++c)
+      step[c] = weight.voxels[c] > 1e-6f ? residual.voxels[c] / weight.voxels[c] : 0.0;
+    double change2 = 0, mean = 0;
+    for (std::size_t c = 0; c < f.size(); ++c) field[c] += step[c];
+    for (const Corners& c : at) {
+      const double d = interpolate(c, step);
+      change2 += d * d;
+      mean += interpolate(c, field);
+    }
+    mean /= static_cast<double>(at.size());
+    for (auto& x : field) x -= mean;
+    out.iterations = it + 1;
+    if (std::sqrt(change2 / static_cast<double>(at.size())) < p.tolerance) {
+      out.converged = true;
+      break;
+    }
+  }
+  for (const Corners& c : at) out.max_abs_log_bias = std::max(out.max_abs_log_bias, std::abs(interpolate(c, field)));
+  // Every voxel: the trilinear weights are separable, taken per axis once.
+  std::array<std::vector<int>, 3> lo;
+  std::array<std::vector<double>, 3> t;
+  for (int a = 0; a < 3; ++a)
+    for (int v = 0; v < g.dims[a]; ++v) {
+      const double x = std::clamp(v / f.step[a], 0.0, static_cast<double>(f.dims[a] - 1));
+      lo[a].push_back(std::min(static_cast<int>(x), std::max(f.dims[a] - 2, 0)));
+      t[a].push_back(f.dims[a] > 1 ? x - lo[a].back() : 0.0);
+    }
+  const auto node = [&](int i, int j, int k) {
+    return field[f.index(std::min(i, f.dims[0] - 1), std::min(j, f.dims[1] - 1), std::min(k, f.dims[2] - 1))];
+  };
+  for_each_voxel_on_both_cores(g.dims, [&](std::size_t v, int i, int j, int k) {
+    const int x = lo[0][i], y = lo[1][j], z = lo[2][k];
+    const double tx = t[0][i], ty = t[1][j], tz = t[2][k];
+    const double c00 = (1 - tx) * node(x, y, z) + tx * node(x + 1, y, z);
+    const double c10 = (1 - tx) * node(x, y + 1, z) + tx * node(x + 1, y + 1, z);
+    const double c01 = (1 - tx) * node(x, y, z + 1) + tx * node(x + 1, y, z + 1);
+    const double c11 = (1 - tx) * node(x, y + 1, z + 1) + tx * node(x + 1, y + 1, z + 1);
+    out.log_bias[v] = static_cast<float>((1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11));
+  });
+  return out;
+}
+
+nlohmann::json to_json(const SharpeningBias& b) {
+  return {{"samples", b.samples},
+          {"iterations", b.iterations},
+          {"converged", b.converged},
+          {"max_abs_log_bias", b.max_abs_log_bias}};
+}
+
+}  // namespace brainshift::segmentation

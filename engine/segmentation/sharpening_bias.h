@@ -1,0 +1,71 @@
+#pragma once
+// A smooth multiplicative bias found without classes, by sharpening the
+// brain's intensity histogram (the method of N4, Tustison et al., IEEE TMI
+// 2010, with a Gaussian-smoothed field in place of its B-splines):
+//   repeat: log intensities corrected by the field so far -> their histogram
+//   -> deconvolved by a narrow Gaussian (Wiener) -> each intensity's expected
+//   sharpened value -> the residual log(image) - that value, smoothed in
+//   space -> added to the field.
+// Why before the classes (tissue_em.h): a receive array without intensity
+// normalisation shades the brain bright under each loop and dark in the
+// middle, a field no low-order polynomial follows, and the classes then take
+// the shading for tissue (a parenchyma class per region), after which no
+// residual of theirs shows it (docs/PERFORMANCE.md 12.43). The histogram has
+// no such freedom: a shading broadens every peak, and only a field that
+// varies on the scale of the coils narrows them again. The polynomial bias
+// of the classes still fits what is left.
+#include <cstddef>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "core/image.h"
+#include "image/morphology.h"
+
+namespace brainshift::segmentation {
+
+struct SharpeningBiasParameters {
+  // Lattice the field is estimated on (mm between samples): single voxels,
+  // not block means, so that partial volume does not fill the histogram
+  // between the tissue peaks.
+  double lattice_mm = 4.0;
+  // Gaussian sigma (mm) the residual is smoothed with each iteration. A
+  // receive loop's sensitivity changes on the scale of its radius and depth
+  // (head-array loops are 60-100 mm across, the cortex 20 mm or more from
+  // them): a field of 20 mm sigma follows that, and no anatomy's intensity
+  // (the cortex is 2-4 mm thick), since the residual of a voxel whose
+  // tissue the histogram places is about 0 wherever it lies.
+  double smoothing_mm = 20.0;
+  // The histogram's deconvolution: N4's defaults (log units; Wiener noise).
+  double fwhm = 0.15;
+  double wiener_noise = 0.01;
+  int bins = 200;
+  // Bounded: N4's iteration count per level; stops earlier when the field
+  // changes by less than `tolerance` (rms, log units) in an iteration.
+  int max_iterations = 50;
+  double tolerance = 1e-3;
+  // Region voxels darker than this fraction of the region's median are air
+  // or the noise floor (an open craniotomy's gap), not tissue.
+  double floor_fraction = 0.1;
+  // The smallest region, in lattice samples, a field is estimated from.
+  std::size_t min_samples = 500;
+};
+
+struct SharpeningBias {
+  // log b per voxel of the image's grid (grid order), mean 0 over the region;
+  // all 0 when not estimated (too few samples).
+  std::vector<float> log_bias;
+  int iterations = 0;
+  bool converged = false;
+  std::size_t samples = 0;
+  // Largest |log b| over the region's samples.
+  double max_abs_log_bias = 0;
+};
+
+// The field on the image's grid from the image's voxels inside `region`
+// (same grid): the brain as the prior places it.
+SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, const SharpeningBiasParameters& p);
+
+nlohmann::json to_json(const SharpeningBias& b);
+
+}  // namespace brainshift::segmentation
