@@ -159,8 +159,8 @@ double interpolate(const Corners& c, const std::vector<double>& field) {
 
 SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, const SharpeningBiasParameters& p) {
   if (!image.grid.same_geometry(region.grid)) throw InputError("sharpening bias: image and region on different grids");
-  if (!(p.lattice_mm > 0) || !(p.smoothing_mm > 0) || !(p.fwhm > 0) || p.max_iterations < 0)
-    throw InputError("sharpening bias: lattice, smoothing and FWHM must be positive");
+  if (!(p.lattice_mm > 0) || !(p.smoothing_mm > 0) || !(p.fwhm > 0) || !(p.relaxation > 0) || p.max_iterations < 0)
+    throw InputError("sharpening bias: lattice, smoothing, FWHM and relaxation must be positive");
   const Grid3& g = image.grid;
   SharpeningBias out;
   out.log_bias.assign(g.voxel_count(), 0.f);
@@ -217,7 +217,7 @@ SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, cons
     }
     gaussian_smooth_voxels(residual, sigma_nodes);
     for (std::size_t c = 0; c < f.size(); ++c)
-      step[c] = weight.voxels[c] > 1e-6f ? residual.voxels[c] / weight.voxels[c] : 0.0;
+      step[c] = weight.voxels[c] > 1e-6f ? p.relaxation * residual.voxels[c] / weight.voxels[c] : 0.0;
     double change2 = 0, mean = 0;
     for (std::size_t c = 0; c < f.size(); ++c) field[c] += step[c];
     for (const Corners& c : at) {
