@@ -175,7 +175,7 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   const Stopwatch sharpening_watch;
   if (!fitted && params.sharpening_bias) sharpening = sharpening_log_bias(image_box, outline_box, params.sharpening);
   const double sharpening_seconds = sharpening_watch.seconds();
-  const bool sharpened = sharpening.iterations > 0;
+  const bool sharpened = sharpening.iterations > 0 && !sharpening.discarded;
   EmResult em;
   if (fitted) {
     em = classify_with_classes(image_box, prior, fitted->classes, earlier_log_bias(*fitted, box, g), em_params);

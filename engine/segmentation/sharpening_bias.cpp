@@ -155,86 +155,83 @@ double interpolate(const Corners& c, const std::vector<double>& field) {
   return s;
 }
 
-}  // namespace
-
-SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, const SharpeningBiasParameters& p) {
-  if (!image.grid.same_geometry(region.grid)) throw InputError("sharpening bias: image and region on different grids");
-  if (!(p.lattice_mm > 0) || !(p.smoothing_mm > 0) || !(p.fwhm > 0) || !(p.relaxation > 0) || p.max_iterations < 0)
-    throw InputError("sharpening bias: lattice, smoothing, FWHM and relaxation must be positive");
-  const Grid3& g = image.grid;
-  SharpeningBias out;
-  out.log_bias.assign(g.voxel_count(), 0.f);
-  // The region's floor: air and noise are not tissue.
-  std::vector<float> inside;
-  for (std::size_t v = 0; v < region.voxels.size(); ++v)
-    if (region.voxels[v] && image.voxels[v] > 0) inside.push_back(image.voxels[v]);
-  if (inside.empty()) return out;
-  std::nth_element(inside.begin(), inside.begin() + static_cast<std::ptrdiff_t>(inside.size() / 2), inside.end());
-  const double floor = p.floor_fraction * inside[inside.size() / 2];
-
-  // Samples: single voxels on a lattice of about lattice_mm. The field: a
-  // grid of nodes 2.5 to a smoothing sigma apart (a Gaussian of sigma is
-  // sampled well at that spacing), onto which the samples' residuals are
-  // spread trilinearly and smoothed (normalised convolution).
-  const Eigen::Vector3d spacing = g.spacing_mm();
-  std::array<int, 3> stride{};
-  FieldGrid f;
-  Eigen::Vector3d sigma_nodes;
-  const double node_mm = p.smoothing_mm / 2.5;
-  for (int a = 0; a < 3; ++a) {
-    stride[a] = std::max(1, static_cast<int>(std::lround(p.lattice_mm / spacing[a])));
-    f.step[a] = std::max(node_mm / spacing[a], 1.0);
-    f.dims[a] = static_cast<int>(std::ceil((g.dims[a] - 1) / f.step[a])) + 1;
-    sigma_nodes[a] = p.smoothing_mm / (f.step[a] * spacing[a]);
-  }
+// The image's region voxels on a lattice of stride voxels, brighter than
+// floor_fraction of their median (air and noise are not tissue): their log
+// intensities and their weights on the field's nodes.
+struct Samples {
   std::vector<Corners> at;
   std::vector<double> log_value;
+};
+
+Samples lattice_samples(const ImageF& image, const Mask& region, const std::array<int, 3>& stride,
+                        const FieldGrid& f, double floor_fraction) {
+  const Grid3& g = image.grid;
+  std::vector<std::array<int, 3>> lattice;
+  std::vector<float> values;
   for (int k = 0; k < g.dims[2]; k += stride[2])
     for (int j = 0; j < g.dims[1]; j += stride[1])
-      for (int i = 0; i < g.dims[0]; i += stride[0]) {
-        const std::size_t v = g.index(i, j, k);
-        if (!region.voxels[v] || !(image.voxels[v] > floor)) continue;
-        at.push_back(corners(f, Eigen::Vector3d(i, j, k)));
-        log_value.push_back(std::log(static_cast<double>(image.voxels[v])));
-      }
-  out.samples = at.size();
-  if (at.size() < p.min_samples) return out;
+      for (int i = 0; i < g.dims[0]; i += stride[0])
+        if (region.at(i, j, k)) {
+          lattice.push_back({i, j, k});
+          values.push_back(image.at(i, j, k));
+        }
+  Samples s;
+  if (lattice.empty()) return s;
+  std::vector<float> sorted = values;
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());
+  const double floor = std::max(floor_fraction * sorted[sorted.size() / 2], 0.0);
+  for (std::size_t n = 0; n < lattice.size(); ++n) {
+    if (!(values[n] > floor)) continue;
+    s.at.push_back(corners(f, Eigen::Vector3d(lattice[n][0], lattice[n][1], lattice[n][2])));
+    s.log_value.push_back(std::log(static_cast<double>(values[n])));
+  }
+  return s;
+}
 
+// N4's iterations on the nodes: field += relaxation x the smoothed residual
+// of the samples' sharpening, mean 0 over the samples.
+std::vector<double> iterate_field(const Samples& s, const FieldGrid& f, const Eigen::Vector3d& sigma_nodes,
+                                  const SharpeningBiasParameters& p, SharpeningBias& out) {
   Grid3 node_grid;
   node_grid.dims = f.dims;
   ImageF weight(node_grid, 0.f);
-  for (const Corners& c : at)
+  for (const Corners& c : s.at)
     for (std::size_t n = 0; n < 8; ++n) weight.voxels[c.node[n]] += static_cast<float>(c.weight[n]);
   gaussian_smooth_voxels(weight, sigma_nodes);
-  std::vector<double> field(f.size(), 0.0), step(f.size(), 0.0), corrected(at.size());
+  std::vector<double> field(f.size(), 0.0), step(f.size(), 0.0), corrected(s.at.size());
   for (int it = 0; it < p.max_iterations; ++it) {
-    for (std::size_t s = 0; s < at.size(); ++s) corrected[s] = log_value[s] - interpolate(at[s], field);
+    for (std::size_t n = 0; n < s.at.size(); ++n) corrected[n] = s.log_value[n] - interpolate(s.at[n], field);
     const Sharpened sharp = sharpen(corrected, p);
     ImageF residual(node_grid, 0.f);
-    for (std::size_t s = 0; s < at.size(); ++s) {
-      const double e = corrected[s] - sharp.at(corrected[s]);
-      for (std::size_t n = 0; n < 8; ++n) residual.voxels[at[s].node[n]] += static_cast<float>(at[s].weight[n] * e);
+    for (std::size_t n = 0; n < s.at.size(); ++n) {
+      const double e = corrected[n] - sharp.at(corrected[n]);
+      for (std::size_t c = 0; c < 8; ++c) residual.voxels[s.at[n].node[c]] += static_cast<float>(s.at[n].weight[c] * e);
     }
     gaussian_smooth_voxels(residual, sigma_nodes);
     for (std::size_t c = 0; c < f.size(); ++c)
       step[c] = weight.voxels[c] > 1e-6f ? p.relaxation * residual.voxels[c] / weight.voxels[c] : 0.0;
     double change2 = 0, mean = 0;
     for (std::size_t c = 0; c < f.size(); ++c) field[c] += step[c];
-    for (const Corners& c : at) {
+    for (const Corners& c : s.at) {
       const double d = interpolate(c, step);
       change2 += d * d;
       mean += interpolate(c, field);
     }
-    mean /= static_cast<double>(at.size());
+    mean /= static_cast<double>(s.at.size());
     for (auto& x : field) x -= mean;
     out.iterations = it + 1;
-    if (std::sqrt(change2 / static_cast<double>(at.size())) < p.tolerance) {
+    if (std::sqrt(change2 / static_cast<double>(s.at.size())) < p.tolerance) {
       out.converged = true;
       break;
     }
   }
-  for (const Corners& c : at) out.max_abs_log_bias = std::max(out.max_abs_log_bias, std::abs(interpolate(c, field)));
-  // Every voxel: the trilinear weights are separable, taken per axis once.
+  for (const Corners& c : s.at) out.max_abs_log_bias = std::max(out.max_abs_log_bias, std::abs(interpolate(c, field)));
+  return field;
+}
+
+// The nodes' field at every voxel of g, trilinear (separable: the weights
+// taken per axis once).
+void field_on_voxels(const FieldGrid& f, const std::vector<double>& field, const Grid3& g, std::vector<float>& out) {
   std::array<std::vector<int>, 3> lo;
   std::array<std::vector<double>, 3> t;
   for (int a = 0; a < 3; ++a)
@@ -253,13 +250,50 @@ SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, cons
     const double c10 = (1 - tx) * node(x, y + 1, z) + tx * node(x + 1, y + 1, z);
     const double c01 = (1 - tx) * node(x, y, z + 1) + tx * node(x + 1, y, z + 1);
     const double c11 = (1 - tx) * node(x, y + 1, z + 1) + tx * node(x + 1, y + 1, z + 1);
-    out.log_bias[v] = static_cast<float>((1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11));
+    out[v] = static_cast<float>((1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11));
   });
+}
+
+}  // namespace
+
+SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, const SharpeningBiasParameters& p) {
+  if (!image.grid.same_geometry(region.grid)) throw InputError("sharpening bias: image and region on different grids");
+  if (!(p.lattice_mm > 0) || !(p.smoothing_mm > 0) || !(p.fwhm > 0) || !(p.relaxation > 0) || p.max_iterations < 0)
+    throw InputError("sharpening bias: lattice, smoothing, FWHM and relaxation must be positive");
+  const Grid3& g = image.grid;
+  SharpeningBias out;
+  out.log_bias.assign(g.voxel_count(), 0.f);
+  // Samples: single voxels on a lattice of about lattice_mm. The field: a
+  // grid of nodes 2.5 to a smoothing sigma apart (a Gaussian of sigma is
+  // sampled well at that spacing), onto which the samples' residuals are
+  // spread trilinearly and smoothed (normalised convolution).
+  const Eigen::Vector3d spacing = g.spacing_mm();
+  std::array<int, 3> stride{};
+  FieldGrid f;
+  Eigen::Vector3d sigma_nodes;
+  for (int a = 0; a < 3; ++a) {
+    stride[a] = std::max(1, static_cast<int>(std::lround(p.lattice_mm / spacing[a])));
+    f.step[a] = std::max(p.smoothing_mm / 2.5 / spacing[a], 1.0);
+    f.dims[a] = static_cast<int>(std::ceil((g.dims[a] - 1) / f.step[a])) + 1;
+    sigma_nodes[a] = p.smoothing_mm / (f.step[a] * spacing[a]);
+  }
+  const Samples samples = lattice_samples(image, region, stride, f, p.floor_fraction);
+  out.samples = samples.at.size();
+  if (samples.at.size() < p.min_samples) return out;
+  const std::vector<double> field = iterate_field(samples, f, sigma_nodes, p, out);
+  // A field beyond what coils do found something else (a lesion or a
+  // contrast the histogram cannot place): not used.
+  if (out.max_abs_log_bias > p.max_log_bias) {
+    out.discarded = true;
+    return out;
+  }
+  field_on_voxels(f, field, g, out.log_bias);
   return out;
 }
 
 nlohmann::json to_json(const SharpeningBias& b) {
   return {{"samples", b.samples},
+          {"discarded", b.discarded},
           {"iterations", b.iterations},
           {"converged", b.converged},
           {"max_abs_log_bias", b.max_abs_log_bias}};

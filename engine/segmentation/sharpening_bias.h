@@ -14,6 +14,7 @@
 // no such freedom: a shading broadens every peak, and only a field that
 // varies on the scale of the coils narrows them again. The polynomial bias
 // of the classes still fits what is left.
+#include <cmath>
 #include <cstddef>
 #include <vector>
 
@@ -55,6 +56,10 @@ struct SharpeningBiasParameters {
   // Region voxels darker than this fraction of the region's median are air
   // or the noise floor (an open craniotomy's gap), not tissue.
   double floor_fraction = 0.1;
+  // The largest |log b| over the brain a coil gives: an unnormalised
+  // 8-loop array spans about 4.3-fold (log +-0.73 about its mean); a field
+  // past 8-fold found something else and is not used.
+  double max_log_bias = std::log(8.0);
   // The smallest region, in lattice samples, a field is estimated from.
   std::size_t min_samples = 500;
 };
@@ -68,6 +73,8 @@ struct SharpeningBias {
   std::size_t samples = 0;
   // Largest |log b| over the region's samples.
   double max_abs_log_bias = 0;
+  // Past max_log_bias: log_bias left 0.
+  bool discarded = false;
 };
 
 // The field on the image's grid from the image's voxels inside `region`

@@ -474,6 +474,16 @@ TEST(SharpeningBias, TooFewSamplesLeaveNoFieldAndBadInputIsAnError) {
   Grid3 other = head.truth.grid;
   other.dims[0] -= 1;
   EXPECT_THROW(sharpening_log_bias(head.image, Mask(other, 1), {}), InputError);
+  // A field past what coils do is not used.
+  Synthetic shaded = make_head(Intensities{}, 3.0, 0.0);
+  const ImageF log_b = array_shading(shaded);
+  for (std::size_t v = 0; v < shaded.image.voxels.size(); ++v) shaded.image.voxels[v] *= std::exp(log_b.voxels[v]);
+  SharpeningBiasParameters strict;
+  strict.max_log_bias = 0.1;
+  const SharpeningBias past = sharpening_log_bias(shaded.image, nonzero_mask(shaded.truth), strict);
+  EXPECT_TRUE(past.discarded);
+  EXPECT_GT(past.max_abs_log_bias, 0.1);
+  EXPECT_TRUE(std::all_of(past.log_bias.begin(), past.log_bias.end(), [](float v) { return v == 0.f; }));
   SharpeningBiasParameters bad;
   bad.smoothing_mm = 0;
   EXPECT_THROW(sharpening_log_bias(head.image, nonzero_mask(head.truth), bad), InputError);
