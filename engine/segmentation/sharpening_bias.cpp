@@ -7,6 +7,7 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "image/gaussian_smooth.h"
+#include "segmentation/bias_field.h"
 
 namespace brainshift::segmentation {
 namespace {
@@ -54,12 +55,13 @@ std::vector<double> convolve(const std::vector<double>& x, const std::vector<Com
 struct Sharpened {
   double lo = 0, slope = 1;
   std::vector<double> expected;
-  double at(double x) const {
-    const double t = std::clamp((x - lo) / slope, 0.0, static_cast<double>(expected.size() - 1));
-    const auto i = std::min(static_cast<std::size_t>(t), expected.size() - 2);
+  static double lookup(const std::vector<double>& table, double t) {
+    t = std::clamp(t, 0.0, static_cast<double>(table.size() - 1));
+    const auto i = std::min(static_cast<std::size_t>(t), table.size() - 2);
     const double f = t - static_cast<double>(i);
-    return (1 - f) * expected[i] + f * expected[i + 1];
+    return (1 - f) * table[i] + f * table[i + 1];
   }
+  double at(double x) const { return lookup(expected, (x - lo) / slope); }
 };
 
 Sharpened sharpen(const std::vector<double>& values, const SharpeningBiasParameters& p) {
@@ -161,6 +163,7 @@ double interpolate(const Corners& c, const std::vector<double>& field) {
 struct Samples {
   std::vector<Corners> at;
   std::vector<double> log_value;
+  std::vector<std::array<int, 3>> voxel;
 };
 
 Samples lattice_samples(const ImageF& image, const Mask& region, const std::array<int, 3>& stride,
@@ -183,6 +186,7 @@ Samples lattice_samples(const ImageF& image, const Mask& region, const std::arra
   for (std::size_t n = 0; n < lattice.size(); ++n) {
     if (!(values[n] > floor)) continue;
     s.at.push_back(corners(f, Eigen::Vector3d(lattice[n][0], lattice[n][1], lattice[n][2])));
+    s.voxel.push_back(lattice[n]);
     s.log_value.push_back(std::log(static_cast<double>(values[n])));
   }
   return s;
@@ -254,6 +258,22 @@ void field_on_voxels(const FieldGrid& f, const std::vector<double>& field, const
   });
 }
 
+// What of the field at the samples a log-polynomial of degree 2 (the
+// classes' own bias model, bias_field.h) leaves: rms of the residual.
+double beyond_polynomial_rms(const Samples& s, const std::vector<double>& field, const Grid3& g) {
+  std::vector<double> value(s.at.size()), weight(s.at.size(), 1.0);
+  for (std::size_t n = 0; n < s.at.size(); ++n) value[n] = interpolate(s.at[n], field);
+  LogBiasField quadratic(g, 2);
+  if (!quadratic.fit(s.voxel, value, weight)) return 0.0;
+  double mean = 0, sum2 = 0;
+  std::vector<double> r(s.at.size());
+  for (std::size_t n = 0; n < s.at.size(); ++n)
+    mean += r[n] = value[n] - quadratic.log_bias(s.voxel[n][0], s.voxel[n][1], s.voxel[n][2]);
+  mean /= static_cast<double>(r.size());
+  for (double x : r) sum2 += (x - mean) * (x - mean);
+  return std::sqrt(sum2 / static_cast<double>(r.size()));
+}
+
 }  // namespace
 
 SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, const SharpeningBiasParameters& p) {
@@ -281,6 +301,7 @@ SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, cons
   out.samples = samples.at.size();
   if (samples.at.size() < p.min_samples) return out;
   const std::vector<double> field = iterate_field(samples, f, sigma_nodes, p, out);
+  out.beyond_polynomial_rms = beyond_polynomial_rms(samples, field, g);
   // A field beyond what coils do found something else (a lesion or a
   // contrast the histogram cannot place): not used.
   if (out.max_abs_log_bias > p.max_log_bias) {
@@ -294,6 +315,7 @@ SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, cons
 nlohmann::json to_json(const SharpeningBias& b) {
   return {{"samples", b.samples},
           {"discarded", b.discarded},
+          {"beyond_polynomial_rms", b.beyond_polynomial_rms},
           {"iterations", b.iterations},
           {"converged", b.converged},
           {"max_abs_log_bias", b.max_abs_log_bias}};

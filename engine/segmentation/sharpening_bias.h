@@ -75,6 +75,11 @@ struct SharpeningBias {
   double max_abs_log_bias = 0;
   // Past max_log_bias: log_bias left 0.
   bool discarded = false;
+  // rms (log) of what a degree-2 log-polynomial fitted to the field over the
+  // samples leaves of it: the shading the classes' own bias cannot follow
+  // (the real Colin27 T1: 0.033; an 8-loop array, half and fully
+  // unnormalised: 0.07-0.09 and 0.11).
+  double beyond_polynomial_rms = 0;
 };
 
 // The field on the image's grid from the image's voxels inside `region`

@@ -276,7 +276,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
 
   const auto p = config::pipeline_parameters_from_text(
       "[auto_segmentation]\nrematch_rounds = 0\ncheck_given_labels = false\ngiven_labels = \"exact\"\n"
-      "[auto_segmentation.classifier]\nmrf_beta = 0.0\nbias_degree = 1\nsharpening_bias = false\n"
+      "[auto_segmentation.classifier]\nmrf_beta = 0.0\nbias_degree = 1\nsharpening_bias = true\n"
       "[auto_segmentation.label_check]\nband_mm = 2.0\n",
       "t").auto_segmentation;
   EXPECT_EQ(p.rematch_rounds, 0);
@@ -284,7 +284,7 @@ TEST(Config, AutoSegmentationDefaultsMatchTheEngineAndOverride) {
   EXPECT_EQ(p.given_labels, GivenLabelsUse::exact);
   EXPECT_DOUBLE_EQ(p.classifier.em.mrf_beta, 0.0);
   EXPECT_EQ(p.classifier.em.bias_degree, 1);
-  EXPECT_FALSE(p.classifier.sharpening_bias);
+  EXPECT_TRUE(p.classifier.sharpening_bias);
   EXPECT_EQ(p.label_image_check.classifier.em.bias_degree, 1);  // one classifier for both paths
   EXPECT_DOUBLE_EQ(p.label_image_check.band_mm, 2.0);
 }

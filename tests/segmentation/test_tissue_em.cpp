@@ -338,8 +338,8 @@ TEST(BiasField, ABoxOffTheFittedGridIsThePolynomialThere) {
 TEST(TissueEm, ARematchWithTheFirstRoundsFitAgreesWithARefit) {
   const Intensities in;
   const Synthetic head = make_head(in, 5.0, 0.3);
-  // With the histogram's shading (the default) the earlier round's bias is
-  // carried as its image, without it as its polynomial.
+  // With the histogram's shading the earlier round's bias is carried as its
+  // image, without it (the default) as its polynomial.
   for (const bool sharpening : {true, false}) {
   SCOPED_TRACE(sharpening ? "sharpening bias" : "polynomial bias only");
   SegmentationParameters first = params_for_test();
@@ -450,9 +450,10 @@ TEST(SharpeningBias, TheClassifierSeesThroughAReceiveArraysShading) {
   const ImageF log_b = array_shading(head);
   for (std::size_t v = 0; v < head.image.voxels.size(); ++v) head.image.voxels[v] *= std::exp(log_b.voxels[v]);
   const LabelImage prior = misregistered(head.truth, {3, -2, 2}, 1.04);
-  SegmentationParameters without = params_for_test();
+  SegmentationParameters with = params_for_test(), without = params_for_test();
+  with.sharpening_bias = true;
   without.sharpening_bias = false;
-  const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, params_for_test());
+  const IntraopSegmentation seg = segment_intraop(head.image, prior, 1, {2}, with);
   const IntraopSegmentation plain = segment_intraop(head.image, prior, 1, {2}, without);
   ASSERT_TRUE(seg.refusal.empty()) << seg.refusal;
   const double with_dice = outline_dice(seg.labels, head.truth);
