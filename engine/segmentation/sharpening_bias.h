@@ -13,7 +13,9 @@
 // residual of theirs shows it (docs/PERFORMANCE.md 12.43). The histogram has
 // no such freedom: a shading broadens every peak, and only a field that
 // varies on the scale of the coils narrows them again. The polynomial bias
-// of the classes still fits what is left.
+// of the classes still fits what is left. Off by default: on real anatomy
+// it reads the cortex rim's partial volume as shading (docs/DESIGN.md
+// "Automatic intraop segmentation", item 17).
 #include <cmath>
 #include <cstddef>
 #include <vector>
@@ -33,21 +35,23 @@ struct SharpeningBiasParameters {
   // Gaussian sigma (mm) the residual is smoothed with each iteration. A
   // receive loop's sensitivity changes on the scale of its radius and depth
   // (head-array loops are 60-100 mm across, the cortex 20 mm or more from
-  // them): a field of 20 mm sigma follows that, and no anatomy's intensity
-  // (the cortex is 2-4 mm thick), since the residual of a voxel whose
-  // tissue the histogram places is about 0 wherever it lies.
+  // them): a field of 20 mm sigma follows that (30 mm left 3-4x the error).
+  // A voxel whose tissue the histogram places has a residual of about 0
+  // wherever it lies; partial volume between the peaks does not, and where
+  // it is common (the cortex's rim) the field takes some of it.
   double smoothing_mm = 20.0;
   // The histogram's deconvolution: N4's defaults (log units; Wiener noise).
   double fwhm = 0.15;
   double wiener_noise = 0.01;
   int bins = 200;
   // Each iteration's smoothed residual is added this many times over. One
-  // sharpening moves every intensity only part of the way to its peak, and
-  // under an unnormalised array's shading (log rms 0.42 on the unit test's
-  // head) 50 plain iterations left 36 % of it (0.15 in log); twice the
-  // step left 8 %, and an unshaded image's field stayed at 0.004-0.020 rms
-  // (SNR 8-25); four times diverged on an unshaded image (0.045), so 2
-  // keeps a factor of 2 from that.
+  // sharpening moves every intensity only part of the way to its peak:
+  // under a strong array's shading (log rms 0.42: six loops, raised to the
+  // power 1.7, on the classifier tests' head) 50 plain iterations left 36 %
+  // of it (0.15 in log), twice the step 8 %, and an unshaded image's field
+  // stayed at 0.004-0.020 rms (SNR 8-25); four times diverged on an
+  // unshaded image (0.045), so 2 keeps a factor of 2 from that
+  // (docs/PERFORMANCE.md 12.44).
   double relaxation = 2.0;
   // Bounded: N4's iteration count per level; stops earlier when the field
   // changes by less than `tolerance` (rms, log units) in an iteration.
