@@ -133,6 +133,30 @@ std::vector<float> earlier_log_bias(const IntraopSegmentation& fitted, const Vox
   return out;
 }
 
+// The classes fitted on the box, first under the shading found from the
+// histogram when that is on (sharpening_bias.h): the classes and their
+// polynomial see the image corrected by it, every use of the bias after them
+// the product. The product is no polynomial: bias_field is left empty, and a
+// later round that reuses the fit reuses the bias image (earlier_log_bias).
+// The sharpening's report in `report` (null when off).
+EmResult fit_classes(const ImageF& image_box, const TissuePrior& prior, const Mask& outline_box,
+                     const SegmentationParameters& params, const EmParameters& em_params, nlohmann::json& report) {
+  if (!params.sharpening_bias) return fit_tissue_mixture(image_box, prior, em_params);
+  const Stopwatch watch;
+  const SharpeningBias sharpening = sharpening_log_bias(image_box, outline_box, params.sharpening);
+  report = to_json(sharpening);
+  report["seconds"] = watch.seconds();
+  if (sharpening.iterations == 0 || sharpening.discarded) return fit_tissue_mixture(image_box, prior, em_params);
+  ImageF flattened = image_box;
+  for (std::size_t v = 0; v < flattened.voxels.size(); ++v)
+    flattened.voxels[v] = static_cast<float>(flattened.voxels[v] * std::exp(-sharpening.log_bias[v]));
+  EmResult em = fit_tissue_mixture(flattened, prior, em_params);
+  for (std::size_t v = 0; v < em.bias.size(); ++v)
+    em.bias[v] = static_cast<float>(em.bias[v] * std::exp(sharpening.log_bias[v]));
+  em.bias_field.reset();
+  return em;
+}
+
 nlohmann::json describe(const EmResult& em) {
   nlohmann::json classes = nlohmann::json::array();
   for (const auto& g : em.classes)
@@ -168,27 +192,10 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   const TissuePrior prior = tissue_prior(outline_box, ventricle_box, widths, params.prior_floor);
   EmParameters em_params = params.em;
   em_params.fixed_ventricle_class = params.ventricle_shift_mm > 0;
-  // The shading no polynomial follows, found first from the histogram
-  // (sharpening_bias.h); the classes and their polynomial see the image
-  // corrected by it, and every use of the bias after them the product.
-  SharpeningBias sharpening;
-  const Stopwatch sharpening_watch;
-  if (!fitted && params.sharpening_bias) sharpening = sharpening_log_bias(image_box, outline_box, params.sharpening);
-  const double sharpening_seconds = sharpening_watch.seconds();
-  const bool sharpened = sharpening.iterations > 0 && !sharpening.discarded;
-  EmResult em;
-  if (fitted) {
-    em = classify_with_classes(image_box, prior, fitted->classes, earlier_log_bias(*fitted, box, g), em_params);
-  } else if (sharpened) {
-    ImageF flattened = image_box;
-    for (std::size_t v = 0; v < flattened.voxels.size(); ++v)
-      flattened.voxels[v] = static_cast<float>(flattened.voxels[v] * std::exp(-sharpening.log_bias[v]));
-    em = fit_tissue_mixture(flattened, prior, em_params);
-    for (std::size_t v = 0; v < em.bias.size(); ++v)
-      em.bias[v] = static_cast<float>(em.bias[v] * std::exp(sharpening.log_bias[v]));
-  } else {
-    em = fit_tissue_mixture(image_box, prior, em_params);
-  }
+  nlohmann::json sharpening_report;
+  const EmResult em = fitted ? classify_with_classes(image_box, prior, fitted->classes,
+                                                     earlier_log_bias(*fitted, box, g), em_params)
+                             : fit_classes(image_box, prior, outline_box, params, em_params, sharpening_report);
 
   Mask brain(g, 0), ventricle(g, 0);
   parallel_halves(g.voxel_count(), 1 << 16, [&](std::size_t begin, std::size_t end) {  // each voxel on its own
@@ -281,15 +288,12 @@ IntraopSegmentation segment_intraop(const ImageF& image, const LabelImage& carri
   if (fitted) {
     result.bias_field = fitted->bias_field;
     result.bias_origin = fitted->bias_origin;
-  } else if (!sharpened) {  // a sharpened bias is no polynomial: a later round reuses its image
+  } else {
     result.bias_field = em.bias_field;
     result.bias_origin = box.lo;
   }
   result.report = describe(em);
-  if (!fitted && params.sharpening_bias) {
-    result.report["sharpening_bias"] = to_json(sharpening);
-    result.report["sharpening_bias"]["seconds"] = sharpening_seconds;
-  }
+  if (!sharpening_report.is_null()) result.report["sharpening_bias"] = std::move(sharpening_report);
   result.report["classes_from_earlier_round"] = fitted != nullptr;
   const double class_contrast = fluid_contrast_sd(em.classes);
   result.report["fluid_contrast_sd"] = std::isfinite(class_contrast) ? class_contrast : -1.0;
