@@ -7,6 +7,7 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "image/gaussian_smooth.h"
+#include "image/interpolation.h"
 #include "segmentation/bias_field.h"
 
 namespace brainshift::segmentation {
@@ -55,13 +56,12 @@ std::vector<double> convolve(const std::vector<double>& x, const std::vector<Com
 struct Sharpened {
   double lo = 0, slope = 1;
   std::vector<double> expected;
-  static double lookup(const std::vector<double>& table, double t) {
-    t = std::clamp(t, 0.0, static_cast<double>(table.size() - 1));
-    const auto i = std::min(static_cast<std::size_t>(t), table.size() - 2);
+  double at(double x) const {
+    const double t = std::clamp((x - lo) / slope, 0.0, static_cast<double>(expected.size() - 1));
+    const auto i = std::min(static_cast<std::size_t>(t), expected.size() - 2);
     const double f = t - static_cast<double>(i);
-    return (1 - f) * table[i] + f * table[i + 1];
+    return (1 - f) * expected[i] + f * expected[i + 1];
   }
-  double at(double x) const { return lookup(expected, (x - lo) / slope); }
 };
 
 Sharpened sharpen(const std::vector<double>& values, const SharpeningBiasParameters& p) {
@@ -112,56 +112,44 @@ Sharpened sharpen(const std::vector<double>& values, const SharpeningBiasParamet
 }
 
 // The coarse grid the field lives on: node n along an axis at voxel
-// n * step (step in voxels, not necessarily whole), enough nodes to cover
-// the image; and each sample's trilinear weights on it.
+// n * step (step in voxels, not necessarily whole), at least two nodes and
+// enough to cover the image. A point's place on it is the project's
+// trilinear cell (image/interpolation.h), clamped onto the nodes.
 struct FieldGrid {
+  Grid3 nodes;
   Eigen::Vector3d step;
-  std::array<int, 3> dims{};
-  std::size_t size() const { return static_cast<std::size_t>(dims[0]) * dims[1] * dims[2]; }
-  std::size_t index(int i, int j, int k) const {
-    return static_cast<std::size_t>(i) + static_cast<std::size_t>(dims[0]) * (j + static_cast<std::size_t>(dims[1]) * k);
+  std::size_t size() const { return nodes.voxel_count(); }
+  TrilinearCell<double> cell_of(const Eigen::Vector3d& voxel) const {
+    TrilinearCell<double> c;
+    trilinear_cell<TrilinearEdge::kClamp>(nodes, Eigen::Vector3d(voxel.cwiseQuotient(step)), &c);
+    return c;
   }
 };
 
-struct Corners {
-  std::array<std::size_t, 8> node{};
-  std::array<double, 8> weight{};
-};
-
-Corners corners(const FieldGrid& f, const Eigen::Vector3d& voxel) {
-  std::array<int, 3> lo{};
-  std::array<double, 3> t{};
-  for (int a = 0; a < 3; ++a) {
-    const double x = std::clamp(voxel[a] / f.step[a], 0.0, static_cast<double>(f.dims[a] - 1));
-    lo[a] = std::min(static_cast<int>(x), std::max(f.dims[a] - 2, 0));
-    t[a] = f.dims[a] > 1 ? x - lo[a] : 0.0;
-  }
-  Corners c;
-  for (int n = 0; n < 8; ++n) {
-    std::array<int, 3> at{};
-    double w = 1;
-    for (int a = 0; a < 3; ++a) {
-      const int up = (n >> a) & 1;
-      w *= up ? t[a] : 1 - t[a];
-      at[a] = std::min(lo[a] + up, f.dims[a] - 1);
-    }
-    c.node[static_cast<std::size_t>(n)] = f.index(at[0], at[1], at[2]);
-    c.weight[static_cast<std::size_t>(n)] = w;
-  }
-  return c;
+double interpolate(const TrilinearCell<double>& c, const std::vector<double>& field) {
+  return trilinear_blend(trilinear_corners<double>(field.data(), c), c);
 }
 
-double interpolate(const Corners& c, const std::vector<double>& field) {
-  double s = 0;
-  for (std::size_t n = 0; n < 8; ++n) s += c.weight[n] * field[c.node[n]];
-  return s;
+// The transpose of interpolate: value spread onto the cell's corners by
+// their trilinear weights (corner order as trilinear_corners).
+void splat(const TrilinearCell<double>& c, double value, ImageF& nodes) {
+  for (int n = 0; n < 8; ++n) {
+    double w = 1;
+    std::size_t at = c.origin;
+    for (int a = 0; a < 3; ++a) {
+      const bool up = (n >> a) & 1;
+      w *= up ? c.t[static_cast<std::size_t>(a)] : 1 - c.t[static_cast<std::size_t>(a)];
+      if (up) at += c.step[static_cast<std::size_t>(a)];
+    }
+    nodes.voxels[at] += static_cast<float>(w * value);
+  }
 }
 
 // The image's region voxels on a lattice of stride voxels, brighter than
 // floor_fraction of their median (air and noise are not tissue): their log
 // intensities and their weights on the field's nodes.
 struct Samples {
-  std::vector<Corners> at;
+  std::vector<TrilinearCell<double>> at;
   std::vector<double> log_value;
   std::vector<std::array<int, 3>> voxel;
 };
@@ -185,7 +173,7 @@ Samples lattice_samples(const ImageF& image, const Mask& region, const std::arra
   const double floor = std::max(floor_fraction * sorted[sorted.size() / 2], 0.0);
   for (std::size_t n = 0; n < lattice.size(); ++n) {
     if (!(values[n] > floor)) continue;
-    s.at.push_back(corners(f, Eigen::Vector3d(lattice[n][0], lattice[n][1], lattice[n][2])));
+    s.at.push_back(f.cell_of(Eigen::Vector3d(lattice[n][0], lattice[n][1], lattice[n][2])));
     s.voxel.push_back(lattice[n]);
     s.log_value.push_back(std::log(static_cast<double>(values[n])));
   }
@@ -196,27 +184,21 @@ Samples lattice_samples(const ImageF& image, const Mask& region, const std::arra
 // of the samples' sharpening, mean 0 over the samples.
 std::vector<double> iterate_field(const Samples& s, const FieldGrid& f, const Eigen::Vector3d& sigma_nodes,
                                   const SharpeningBiasParameters& p, SharpeningBias& out) {
-  Grid3 node_grid;
-  node_grid.dims = f.dims;
-  ImageF weight(node_grid, 0.f);
-  for (const Corners& c : s.at)
-    for (std::size_t n = 0; n < 8; ++n) weight.voxels[c.node[n]] += static_cast<float>(c.weight[n]);
+  ImageF weight(f.nodes, 0.f);
+  for (const auto& c : s.at) splat(c, 1.0, weight);
   gaussian_smooth_voxels(weight, sigma_nodes);
   std::vector<double> field(f.size(), 0.0), step(f.size(), 0.0), corrected(s.at.size());
   for (int it = 0; it < p.max_iterations; ++it) {
     for (std::size_t n = 0; n < s.at.size(); ++n) corrected[n] = s.log_value[n] - interpolate(s.at[n], field);
     const Sharpened sharp = sharpen(corrected, p);
-    ImageF residual(node_grid, 0.f);
-    for (std::size_t n = 0; n < s.at.size(); ++n) {
-      const double e = corrected[n] - sharp.at(corrected[n]);
-      for (std::size_t c = 0; c < 8; ++c) residual.voxels[s.at[n].node[c]] += static_cast<float>(s.at[n].weight[c] * e);
-    }
+    ImageF residual(f.nodes, 0.f);
+    for (std::size_t n = 0; n < s.at.size(); ++n) splat(s.at[n], corrected[n] - sharp.at(corrected[n]), residual);
     gaussian_smooth_voxels(residual, sigma_nodes);
     for (std::size_t c = 0; c < f.size(); ++c)
       step[c] = weight.voxels[c] > 1e-6f ? p.relaxation * residual.voxels[c] / weight.voxels[c] : 0.0;
     double change2 = 0, mean = 0;
     for (std::size_t c = 0; c < f.size(); ++c) field[c] += step[c];
-    for (const Corners& c : s.at) {
+    for (const auto& c : s.at) {
       const double d = interpolate(c, step);
       change2 += d * d;
       mean += interpolate(c, field);
@@ -229,32 +211,14 @@ std::vector<double> iterate_field(const Samples& s, const FieldGrid& f, const Ei
       break;
     }
   }
-  for (const Corners& c : s.at) out.max_abs_log_bias = std::max(out.max_abs_log_bias, std::abs(interpolate(c, field)));
+  for (const auto& c : s.at) out.max_abs_log_bias = std::max(out.max_abs_log_bias, std::abs(interpolate(c, field)));
   return field;
 }
 
-// The nodes' field at every voxel of g, trilinear (separable: the weights
-// taken per axis once).
+// The nodes' field at every voxel of g, trilinear.
 void field_on_voxels(const FieldGrid& f, const std::vector<double>& field, const Grid3& g, std::vector<float>& out) {
-  std::array<std::vector<int>, 3> lo;
-  std::array<std::vector<double>, 3> t;
-  for (int a = 0; a < 3; ++a)
-    for (int v = 0; v < g.dims[a]; ++v) {
-      const double x = std::clamp(v / f.step[a], 0.0, static_cast<double>(f.dims[a] - 1));
-      lo[a].push_back(std::min(static_cast<int>(x), std::max(f.dims[a] - 2, 0)));
-      t[a].push_back(f.dims[a] > 1 ? x - lo[a].back() : 0.0);
-    }
-  const auto node = [&](int i, int j, int k) {
-    return field[f.index(std::min(i, f.dims[0] - 1), std::min(j, f.dims[1] - 1), std::min(k, f.dims[2] - 1))];
-  };
   for_each_voxel_on_both_cores(g.dims, [&](std::size_t v, int i, int j, int k) {
-    const int x = lo[0][i], y = lo[1][j], z = lo[2][k];
-    const double tx = t[0][i], ty = t[1][j], tz = t[2][k];
-    const double c00 = (1 - tx) * node(x, y, z) + tx * node(x + 1, y, z);
-    const double c10 = (1 - tx) * node(x, y + 1, z) + tx * node(x + 1, y + 1, z);
-    const double c01 = (1 - tx) * node(x, y, z + 1) + tx * node(x + 1, y, z + 1);
-    const double c11 = (1 - tx) * node(x, y + 1, z + 1) + tx * node(x + 1, y + 1, z + 1);
-    out[v] = static_cast<float>((1 - tz) * ((1 - ty) * c00 + ty * c10) + tz * ((1 - ty) * c01 + ty * c11));
+    out[v] = static_cast<float>(interpolate(f.cell_of(Eigen::Vector3d(i, j, k)), field));
   });
 }
 
@@ -294,7 +258,7 @@ SharpeningBias sharpening_log_bias(const ImageF& image, const Mask& region, cons
   for (int a = 0; a < 3; ++a) {
     stride[a] = std::max(1, static_cast<int>(std::lround(p.lattice_mm / spacing[a])));
     f.step[a] = std::max(p.smoothing_mm / 2.5 / spacing[a], 1.0);
-    f.dims[a] = static_cast<int>(std::ceil((g.dims[a] - 1) / f.step[a])) + 1;
+    f.nodes.dims[a] = std::max(2, static_cast<int>(std::ceil((g.dims[a] - 1) / f.step[a])) + 1);
     sigma_nodes[a] = p.smoothing_mm / (f.step[a] * spacing[a]);
   }
   const Samples samples = lattice_samples(image, region, stride, f, p.floor_fraction);
