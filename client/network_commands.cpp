@@ -432,7 +432,7 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   push->add_option("--labels", pa->labels,
                    "intraop labels (1 brain, 2 ventricles): NIfTI, NRRD or Slicer .seg.nrrd; without them the "
                    "daemon segments the image (pull intraop_labels to see it)");
-  push->add_option("--image", pa->image, "intraop T1 (on the labels' grid when both are given), NIfTI or NRRD");
+  push->add_option("--image", pa->image, "intraop T1 (the labels on its grid, or on a part of it, when both are given), NIfTI or NRRD");
   push->add_option("--dicom", pa->dicom, "intraop T1 as a DICOM series folder (sent as NIfTI), instead of --image");
   push->add_option("--series", pa->series, "SeriesInstanceUID in --dicom when the folder holds several");
   push->add_option("--labels-use", pa->labels_use,

@@ -15,6 +15,7 @@
 #include "core/timer.h"
 #include "fem/petsc_session.h"
 #include "image/dicom_series.h"
+#include "image/label_placement.h"
 #include "image/nifti_io.h"
 #include "image/nrrd_io.h"
 #include "phantom/brain_shift_phantom.h"
@@ -67,8 +68,10 @@ PreopInput read_preop(const PreopPaths& paths, const LabelTable& table) {
     DefaultAtlas atlas = load_or_build_default_atlas(cache);
     return PreopInput{std::move(atlas.t1), atlas_labels_for(atlas.labels, table)};
   }
-  return PreopInput{read_scalar_input(paths.image, paths.dicom, paths.series, "preop", static_cast<std::size_t>(-1)),
-                    read_label_input(paths.labels, table, static_cast<std::size_t>(-1))};
+  ImageF t1 = read_scalar_input(paths.image, paths.dicom, paths.series, "preop", static_cast<std::size_t>(-1));
+  LabelImage labels = labels_on_image_grid(read_label_input(paths.labels, table, static_cast<std::size_t>(-1)), t1.grid,
+                                           paths.labels);
+  return PreopInput{std::move(t1), std::move(labels)};
 }
 
 PipelineParameters read_parameters(const std::string& config_path) {
@@ -103,9 +106,7 @@ int run_register_rank0(const RegisterOptions& o) {
     scan.labels = read_label_input(o.intraop_labels, params.label_table, params.max_image_bytes);
   if (has_image)
     scan.image = read_scalar_input(o.intraop_image, o.intraop_dicom, o.intraop_series, "intraop", params.max_image_bytes);
-  if (scan.labels && scan.image && !scan.image->grid.same_geometry(scan.labels->grid))
-    throw InputError((o.intraop_image.empty() ? o.intraop_dicom : o.intraop_image) +
-                     ": grid differs from the intraop labels' grid (dims or world_from_voxel)");
+  if (scan.labels && scan.image) scan.labels = labels_on_image_grid(std::move(*scan.labels), scan.image->grid, o.intraop_labels);
   scan.read_seconds = read_clock.seconds();
   if (!o.labels_use.empty()) scan.labels_use = given_labels_use_from_string(o.labels_use);
 
@@ -221,7 +222,7 @@ int run_phantom(const PhantomOptions& o) {
 
 void add_preop_options(CLI::App* cmd, PreopPaths& p) {
   cmd->add_option("--preop-image", p.image, "preop T1 (NIfTI); default: the built-in Colin27 atlas");
-  cmd->add_option("--preop-labels", p.labels, "preop label map on the T1's grid (NIfTI, NRRD or Slicer .seg.nrrd)");
+  cmd->add_option("--preop-labels", p.labels, "preop label map on the T1's grid or a part of it (NIfTI, NRRD or Slicer .seg.nrrd)");
   cmd->add_option("--preop-dicom", p.dicom, "preop T1 as a DICOM series folder, instead of --preop-image");
   cmd->add_option("--preop-series", p.series, "SeriesInstanceUID in --preop-dicom when it holds several");
   cmd->add_option("--atlas-cache", p.atlas_cache, "where the default atlas is cached (default ~/.cache/brainshift/atlas)");
@@ -236,7 +237,7 @@ void add_offline_commands(CLI::App& app, int* exit_code) {
   r->add_option("--intraop-labels", reg->intraop_labels,
                 "intraop label map (1 brain, 2 lateral ventricles): NIfTI, NRRD or Slicer .seg.nrrd; without it "
                 "the image is segmented (intraop_labels.nii.gz and segmentation_confidence.nii.gz are written)");
-  r->add_option("--intraop-image", reg->intraop_image, "intraop MR image (on the labels' grid when both are given)");
+  r->add_option("--intraop-image", reg->intraop_image, "intraop MR image (the labels on its grid, or on a part of it, when both are given)");
   r->add_option("--intraop-dicom", reg->intraop_dicom, "intraop image as a DICOM series folder, instead of --intraop-image");
   r->add_option("--intraop-series", reg->intraop_series, "SeriesInstanceUID in --intraop-dicom when it holds several");
   r->add_option("--labels-use", reg->labels_use,

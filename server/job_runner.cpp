@@ -6,6 +6,7 @@
 
 #include "core/errors.h"
 #include "core/file_bytes.h"
+#include "image/label_placement.h"
 #include "image/nifti_io.h"
 #include "protocol/events.h"
 #include "protocol/result_outputs.h"
@@ -65,8 +66,7 @@ void ServerCore::run_preop_job(PreopJob job) {
           job.label_table_json = read_whole_file(settings_.preop.label_table, "label map");
           job.label_map = std::make_shared<const protocol::LabelMap>(parse_label_map_json(job.label_table_json));
         }
-        if (!images.t1.grid.same_geometry(images.labels.grid))
-          throw InputError(settings_.preop.labels.string() + ": grid differs from the preop T1's");
+        images.labels = labels_on_image_grid(std::move(images.labels), images.t1.grid, settings_.preop.labels.string());
         map_label_values(images.labels, job.label_map.get(), engine_.label_table());
         job.images = std::move(images);
       }

@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include "core/errors.h"
+#include "image/label_placement.h"
 #include "image/nifti_io.h"
 #include "protocol/media.h"
 #include "server/label_mapping.h"
@@ -143,8 +144,7 @@ Message ServerCore::on_preop_load(const Message& m) {
     PreopImages images;
     images.t1 = scalar_image_from_bytes(req.t1->bytes, "t1", max_bytes);
     images.labels = label_image_from_bytes(req.labels->bytes, "labels", max_bytes);
-    if (!images.t1.grid.same_geometry(images.labels.grid))
-      throw InputError("labels: grid differs from t1's (dims or world_from_voxel)");
+    images.labels = labels_on_image_grid(std::move(images.labels), images.t1.grid, "labels");
     if (req.label_map) {
       job->label_map = std::make_shared<const protocol::LabelMap>(std::move(*req.label_map));
       job->label_table_json = req.label_table->bytes;

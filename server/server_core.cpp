@@ -9,6 +9,7 @@
 #include <spdlog/spdlog.h>
 
 #include "core/errors.h"
+#include "image/label_placement.h"
 #include "image/nifti_io.h"
 #include "protocol/events.h"
 #include "protocol/version.h"
@@ -92,8 +93,7 @@ ServerCore::DecodedScan ServerCore::decode_scan(const PushedScan& input) const {
   if (input.labels_bytes) d.labels = label_image_from_bytes(*input.labels_bytes, "labels", max_bytes);
   if (image.valid()) {
     d.image = image.get();
-    if (d.labels && !d.image->grid.same_geometry(d.labels->grid))
-      throw InputError("image: grid differs from the labels' grid (dims or world_from_voxel)");
+    if (d.labels) d.labels = labels_on_image_grid(std::move(*d.labels), d.image->grid, "labels");
   }
   if (input.labels_use) d.labels_use = given_labels_use_from_string(*input.labels_use);
   d.read_seconds = seconds_since(t0);

@@ -68,7 +68,7 @@ std::vector<ImageCase> image_cases(const std::filesystem::path& dir) {
   nan_t1 = poked<float>(nan_t1, kData + 4 * 2000, std::numeric_limits<float>::infinity());
   cases.push_back({"NaN/Inf in the image", gz, gzip(nan_t1), "NaN", true});
   ImageF shifted = t1;
-  shifted.grid.world_from_voxel(0, 3) += 5.0;
+  shifted.grid.world_from_voxel.col(3) += 0.5 * shifted.grid.world_from_voxel.col(0);  // half a voxel
   cases.push_back({"image grid differs from the labels'", gz, scalar_image_to_bytes(shifted, VoxelType::float32, true),
                    "grid differs", true});
   LabelImage unknown = labels;

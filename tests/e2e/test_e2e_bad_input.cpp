@@ -467,7 +467,8 @@ TEST_F(BadInputE2E, BrokenPreopUploadsLeaveTheWarmPreopInPlace) {
         "p", {false, bp::media::nifti_frame("t1", t1_bytes), bp::media::nifti_frame("labels", label_image_to_bytes(l, true)), {}}));
   };
   LabelImage moved = labels;
-  moved.grid.world_from_voxel(1, 3) += 3.0;
+  // Half a voxel: not the T1's grid, nor a part of it shifted by whole voxels.
+  moved.grid.world_from_voxel.col(3) += 0.5 * moved.grid.world_from_voxel.col(1);
   LabelImage empty = labels;
   std::fill(empty.voxels.begin(), empty.voxels.end(), 0);
   LabelImage unknown = labels;

@@ -8,6 +8,7 @@
 
 #include "core/errors.h"
 #include "field/lps.h"
+#include "image/label_placement.h"
 #include "image/nrrd_io.h"
 #include "temp_dir.h"
 
@@ -123,6 +124,43 @@ TEST(NrrdIo, SlicerSegmentationMapsSegmentNamesToTheLabelTable) {
     EXPECT_NE(std::string(e.what()).find("\"skull\" is not in the label table (brain, ventricles"), std::string::npos)
         << e.what();
   }
+}
+
+// As 3D Slicer stores a segmentation: the box around its segments only, on
+// the reference volume's spacing and axes, its origin moved to the box's
+// first voxel (and the box's offset in Segmentation_ReferenceImageExtentOffset,
+// which the standard fields make redundant). Read and placed on the
+// reference volume's grid (image/label_placement.h), it is the segmentation
+// drawn there, voxel for voxel.
+TEST(NrrdIo, ASlicerSegmentationOfABoxIsPlacedOnItsVolumesGrid) {
+  test::TempDir dir;
+  Grid3 volume = oblique_las();
+  volume.dims = {30, 26, 12};
+  LabelImage drawn(volume, 0);
+  for (int k = 4; k < 9; ++k)
+    for (int j = 6; j < 20; ++j)
+      for (int i = 11; i < 25; ++i) drawn.at(i, j, k) = (i + j) % 5 == 0 ? 2 : 1;
+  const std::array<int, 3> lo = {10, 5, 3}, dims = {16, 16, 7};
+  LabelImage box;
+  box.grid.dims = dims;
+  box.grid.world_from_voxel = volume.world_from_voxel;
+  box.grid.world_from_voxel.col(3) = volume.world_from_voxel * Eigen::Vector4d(lo[0], lo[1], lo[2], 1);
+  box.voxels.assign(box.grid.voxel_count(), 0);
+  for (int k = 0; k < dims[2]; ++k)
+    for (int j = 0; j < dims[1]; ++j)
+      for (int i = 0; i < dims[0]; ++i) box.at(i, j, k) = drawn.at(i + lo[0], j + lo[1], k + lo[2]);
+  write_nrrd_labels(dir.path() / "box.nrrd", box);
+  std::string text = read_text(dir.path() / "box.nrrd");
+  text.insert(text.find("\n\n") + 1,
+              "Segmentation_ReferenceImageExtentOffset:=10 5 3\n"
+              "Segment0_Name:=brain\nSegment0_LabelValue:=1\nSegment0_Layer:=0\n"
+              "Segment1_Name:=ventricles\nSegment1_LabelValue:=2\nSegment1_Layer:=0\n");
+  std::ofstream(dir.path() / "box.seg.nrrd", std::ios::binary) << text;
+  const LabelImage read = read_slicer_segmentation(dir.path() / "box.seg.nrrd", table(), kMax);
+  EXPECT_FALSE(read.grid.same_geometry(volume));
+  const LabelImage placed = labels_on_image_grid(read, volume, "box.seg.nrrd");
+  EXPECT_TRUE(placed.grid.same_geometry(volume));
+  EXPECT_EQ(placed.voxels, drawn.voxels);
 }
 
 TEST(NrrdIo, WhatIsNotReadIsRefusedNamingTheField) {

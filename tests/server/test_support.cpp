@@ -104,6 +104,7 @@ server::EngineScanOutput FakeEngine::register_scan(const std::optional<LabelImag
                                                    const server::StageProgressFn& progress) {
   ++scans_run;
   last_labels_use = labels_use;
+  last_labels = given;
   progress("affine", 0.0, 0.0);
   progress("affine", 1.0, 0.002);
   if (fail_next_scan) {

@@ -78,6 +78,7 @@ class FakeEngine : public server::EnginePort {
   bool fallback_next_scan = false;
   bool fail_preop = false;       // InputError from load_preop
   std::optional<GivenLabelsUse> last_labels_use;  // what the last scan's push said
+  std::optional<LabelImage> last_labels;          // the labels the last scan was given, as decoded
   std::optional<TetMesh> last_stored_mesh;
   server::PreopImages last_preop;
   std::optional<ImageF> last_scan_image;  // the intraop image of the last register_scan
