@@ -30,6 +30,7 @@ struct Nrrd {
   Scalar type = Scalar::u8;
   std::size_t bytes_per_value = 1;
   std::vector<long> sizes;
+  long layers = 1;  // a leading list axis (a Slicer segmentation's layers), when read
   bool big_endian = false, gzip = false;
   bool lps = true;
   std::vector<Eigen::Vector3d> directions;  // one per spatial axis
@@ -88,7 +89,10 @@ std::vector<Eigen::Vector3d> vectors_of(const fs::path& p, const std::string& te
   return out;
 }
 
-Nrrd parse(const fs::path& path) {
+// layered: a leading list axis of several values (the layers of a Slicer
+// segmentation whose segments overlap) is kept in Nrrd::layers; otherwise
+// only a list axis of one value is read.
+Nrrd parse(const fs::path& path, bool layered = false) {
   Nrrd n;
   n.path = path;
   const std::string file = read_whole_file(path, "NRRD file");
@@ -97,6 +101,7 @@ Nrrd parse(const fs::path& path) {
   std::string data_file;
   bool ended = false, space_seen = false;
   std::size_t nones = 0;
+  bool list_axis_first = false;
   while (at != std::string::npos && at + 1 <= file.size()) {
     if (at > kMaxHeaderBytes) fail(path, "header longer than 1 MB");
     const std::size_t next = file.find('\n', at + 1);
@@ -130,7 +135,10 @@ Nrrd parse(const fs::path& path) {
       if (value == "left-posterior-superior" || value == "LPS") n.lps = true;
       else if (value == "right-anterior-superior" || value == "RAS") n.lps = false;
       else fail(path, "space \"" + value + "\": only left-posterior-superior and right-anterior-superior are read");
-    } else if (field == "space directions") n.directions = vectors_of(path, value, &nones);
+    } else if (field == "space directions") {
+      n.directions = vectors_of(path, value, &nones);
+      list_axis_first = value.rfind("none", 0) == 0;
+    }
     else if (field == "space origin") {
       std::size_t none = 0;
       const auto o = vectors_of(path, value, &none);
@@ -146,9 +154,15 @@ Nrrd parse(const fs::path& path) {
   if (n.directions.size() != 3) fail(path, "needs space directions for 3 spatial axes");
   if (n.sizes.size() != 3 + nones) fail(path, "sizes do not match the space directions");
   if (nones > 0 && !(nones == 1 && !n.directions.empty())) fail(path, "more than one non-spatial axis");
-  if (nones == 1 && n.sizes.front() != 1) fail(path, "a non-spatial axis of " + std::to_string(n.sizes.front()) +
-                                                     " values (several layers or components) is not read");
-  if (nones == 1) n.sizes.erase(n.sizes.begin());
+  constexpr long kMaxLayers = 64;
+  if (nones == 1 && n.sizes.front() != 1 && !(layered && list_axis_first && n.sizes.front() <= kMaxLayers))
+    fail(path, "a non-spatial axis of " + std::to_string(n.sizes.front()) + " values (" +
+                   (layered ? "more than 64 layers, or not the first axis" : "several layers or components") +
+                   ") is not read");
+  if (nones == 1) {
+    n.layers = n.sizes.front();
+    n.sizes.erase(n.sizes.begin());
+  }
   for (long s : n.sizes)
     if (s < 1 || s > (1L << 20)) fail(path, "size " + std::to_string(s) + " out of range");
   if (data_file.empty()) n.data = file.substr(at == std::string::npos ? file.size() : at + 1);
@@ -180,11 +194,12 @@ double value_at(const char* p, bool swap) {
   return static_cast<double>(v);
 }
 
-// The voxels, decoded to double one at a time into emit(index, value).
+// The values, decoded to double one at a time into emit(index, value): a
+// voxel's layers (Nrrd::layers) side by side, voxel after voxel.
 template <class Emit>
 Grid3 decode(const Nrrd& n, std::size_t max_bytes, std::size_t out_bytes_per_voxel, Emit emit) {
   const Grid3 g = grid_of(n);
-  const std::size_t count = g.voxel_count();
+  const std::size_t count = g.voxel_count() * static_cast<std::size_t>(n.layers);
   if (count * out_bytes_per_voxel > max_bytes || count * n.bytes_per_value > max_bytes)
     fail(n.path, std::to_string(count) + " voxels exceed the " + std::to_string(max_bytes) + " bytes allowed");
   std::string raw(count * n.bytes_per_value, '\0');
@@ -282,36 +297,111 @@ ImageF read_nrrd_scalar(const fs::path& path, std::size_t max_bytes) {
 
 LabelImage read_nrrd_labels(const fs::path& path, std::size_t max_bytes) { return labels_of(parse(path), max_bytes); }
 
-LabelImage read_slicer_segmentation(const fs::path& path, const LabelTable& table, std::size_t max_bytes) {
-  const Nrrd n = parse(path);
-  LabelImage stored = labels_of(n, max_bytes);
-  std::map<std::uint16_t, std::uint16_t> to_table;  // stored value -> table value
+namespace {
+
+// A segment of a Slicer segmentation: where it is stored (layer, value) and
+// the label table's entry its name matches.
+struct Segment {
+  std::string name;
+  long layer = 0;
+  std::uint16_t stored = 0;
+  std::uint16_t table_value = 0;
+};
+
+std::vector<Segment> segments_of(const Nrrd& n, const LabelTable& table) {
+  std::vector<Segment> out;
   for (int s = 0; s < 1000; ++s) {
     const std::string k = "Segment" + std::to_string(s) + "_";
     const auto name = n.keys.find(k + "Name");
     if (name == n.keys.end()) break;
     const auto value = n.keys.find(k + "LabelValue");
     const auto layer = n.keys.find(k + "Layer");
-    if (layer != n.keys.end() && trim(layer->second) != "0") fail(path, "segments in several layers (overlapping) are not read");
-    if (value == n.keys.end()) fail(path, k + "LabelValue missing");
+    if (value == n.keys.end()) fail(n.path, k + "LabelValue missing");
+    Segment seg;
+    seg.name = trim(name->second);
+    try {
+      seg.layer = layer == n.keys.end() ? 0 : std::stol(layer->second);
+      const unsigned long v = std::stoul(value->second);
+      if (v == 0 || v > 65535) throw std::out_of_range("label value");
+      seg.stored = static_cast<std::uint16_t>(v);
+    } catch (const std::logic_error&) {
+      fail(n.path, k + "Layer or " + k + "LabelValue is not a number in range");
+    }
+    if (seg.layer < 0 || seg.layer >= n.layers)
+      fail(n.path, k + "Layer " + std::to_string(seg.layer) + " is not one of the file's " + std::to_string(n.layers) + " layers");
     const LabelEntry* entry = nullptr;
     for (const auto& e : table.entries)
-      if (lower(e.name) == lower(trim(name->second)) || lower(short_name_of(e)) == lower(trim(name->second))) entry = &e;
+      if (lower(e.name) == lower(seg.name) || lower(short_name_of(e)) == lower(seg.name)) entry = &e;
     if (!entry) {
       std::string names;
       for (const auto& e : table.entries) names += (names.empty() ? "" : ", ") + e.name;
-      fail(path, "segment \"" + name->second + "\" is not in the label table (" + names + ")");
+      fail(n.path, "segment \"" + name->second + "\" is not in the label table (" + names + ")");
     }
-    to_table[static_cast<std::uint16_t>(std::stoul(value->second))] = entry->value;
+    seg.table_value = entry->value;
+    out.push_back(seg);
   }
-  if (to_table.empty()) fail(path, "no Segment0_Name: not a Slicer segmentation");
-  for (auto& v : stored.voxels) {
-    if (v == 0) continue;
-    const auto it = to_table.find(v);
-    if (it == to_table.end()) fail(path, "voxel value " + std::to_string(v) + " belongs to no segment");
-    v = it->second;
-  }
-  return stored;
+  if (out.empty()) fail(n.path, "no Segment0_Name: not a Slicer segmentation");
+  return out;
+}
+
+}  // namespace
+
+LabelImage read_slicer_segmentation(const fs::path& path, const LabelTable& table, std::size_t max_bytes) {
+  const Nrrd n = parse(path, true);
+  const std::vector<Segment> segments = segments_of(n, table);
+  // (layer, stored value) -> the segment stored so.
+  std::map<std::pair<long, std::uint16_t>, std::size_t> stored_as;
+  for (std::size_t s = 0; s < segments.size(); ++s)
+    if (!stored_as.emplace(std::make_pair(segments[s].layer, segments[s].stored), s).second)
+      fail(path, "two segments are stored as value " + std::to_string(segments[s].stored) + " in layer " +
+                     std::to_string(segments[s].layer));
+  // The container: the table's parenchyma label (none in a table without one).
+  std::uint16_t brain = 0;
+  for (const auto& e : table.entries)
+    if (e.role == LabelRole::parenchyma) brain = e.value;
+  const auto L = static_cast<std::size_t>(n.layers);
+  LabelImage out;
+  std::vector<std::uint16_t>& voxels = out.voxels;
+  // Segments may overlap only across layers. The brain is the container of
+  // the others (ventricles, tract, tumour lie in it): where it overlaps one,
+  // the other is kept. Two other structures overlapping (a tumour over the
+  // tract) are the site's to resolve: which one a voxel is decides its
+  // material and whether it is resected.
+  std::size_t overlaps = 0;
+  std::pair<std::size_t, std::size_t> first_overlap{0, 0};
+  std::vector<std::size_t> in_voxel(segments.size(), 0);
+  out.grid = decode(n, max_bytes, 2, [&](std::size_t i, double v) {
+    if (v < 0 || v > 65535 || v != std::floor(v)) fail(path, "label value " + std::to_string(v) + " is not in 0..65535");
+    if (voxels.empty()) voxels.resize(grid_of(n).voxel_count(), 0);
+    if (v == 0) return;
+    const std::size_t voxel = i / L;
+    const long layer = static_cast<long>(i % L);
+    const auto it = stored_as.find({layer, static_cast<std::uint16_t>(v)});
+    if (it == stored_as.end())
+      fail(path, "voxel value " + std::to_string(static_cast<long>(v)) + " in layer " + std::to_string(layer) +
+                     " belongs to no segment");
+    const Segment& seg = segments[it->second];
+    std::uint16_t& at = voxels[voxel];
+    if (at == 0 || at == brain || at == seg.table_value) {
+      if (at == 0 || seg.table_value != brain) at = seg.table_value;
+      in_voxel[it->second] = voxel;
+      return;
+    }
+    if (seg.table_value == brain) return;
+    if (overlaps++ == 0) {
+      std::size_t other = 0;
+      for (std::size_t s = 0; s < segments.size(); ++s)
+        if (segments[s].table_value == at && segments[s].layer != layer && in_voxel[s] == voxel) other = s;
+      first_overlap = {other, it->second};
+    }
+  });
+  if (voxels.empty()) voxels.resize(out.grid.voxel_count(), 0);
+  if (overlaps > 0)
+    fail(path, "segments \"" + segments[first_overlap.first].name + "\" and \"" + segments[first_overlap.second].name +
+                   "\" overlap in " + std::to_string(overlaps) +
+                   " voxels: which structure a voxel is decides its material and whether it is resected; resolve the "
+                   "overlap in the segment editor (only the brain may contain the others)");
+  return out;
 }
 
 void write_nrrd_scalar(const fs::path& path, const ImageF& image) {

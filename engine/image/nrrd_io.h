@@ -25,10 +25,15 @@ bool is_slicer_segmentation_path(const std::filesystem::path& path);
 ImageF read_nrrd_scalar(const std::filesystem::path& path, std::size_t max_bytes);
 // Integer values in 0..65535 only.
 LabelImage read_nrrd_labels(const std::filesystem::path& path, std::size_t max_bytes);
-// A Slicer segmentation (.seg.nrrd) with one layer: each segment's
-// SegmentN_Name is looked up in the label table (name or short name, case
-// ignored) and its SegmentN_LabelValue voxels get that entry's value; a
-// segment the table does not name is refused, listing the table's names.
+// A Slicer segmentation (.seg.nrrd): each segment's SegmentN_Name is looked
+// up in the label table (name or short name, case ignored) and its
+// SegmentN_LabelValue voxels in layer SegmentN_Layer get that entry's value;
+// a segment the table does not name is refused, listing the table's names.
+// Overlapping segments (stored in several layers, a leading list axis of at
+// most 64): the brain label gives way to any other (it contains them: a
+// brain drawn over the ventricles); two other structures overlapping are
+// refused, naming them (which one a voxel is decides its material and
+// whether it is resected: the site resolves it in the editor).
 LabelImage read_slicer_segmentation(const std::filesystem::path& path, const LabelTable& table,
                                     std::size_t max_bytes);
 

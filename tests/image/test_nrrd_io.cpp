@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <fstream>
+#include <sstream>
 
 #include "core/errors.h"
 #include "field/lps.h"
@@ -51,6 +52,7 @@ LabelTable table() {
     e.name = name;
     t.entries.push_back(e);
   }
+  t.entries[0].role = LabelRole::parenchyma;
   t.entries[2].short_name = "cst";
   return t;
 }
@@ -161,6 +163,95 @@ TEST(NrrdIo, ASlicerSegmentationOfABoxIsPlacedOnItsVolumesGrid) {
   const LabelImage placed = labels_on_image_grid(read, volume, "box.seg.nrrd");
   EXPECT_TRUE(placed.grid.same_geometry(volume));
   EXPECT_EQ(placed.voxels, drawn.voxels);
+}
+
+// A Slicer segmentation whose segments overlap, as Slicer stores it: one
+// layer per set of non-overlapping segments along a leading list axis
+// ("space directions: none ...", "kinds: list domain domain domain"), raw
+// uint8, the layers of a voxel side by side.
+std::string layered_segmentation(const Grid3& g, const std::vector<std::vector<std::uint8_t>>& layers,
+                                 const std::string& segments) {
+  const Eigen::Matrix4d lps = lps_world_from_ras_world_matrix(g.world_from_voxel);
+  auto v = [](const Eigen::Vector3d& d) {
+    std::ostringstream os;
+    os.precision(17);
+    os << '(' << d.x() << ',' << d.y() << ',' << d.z() << ')';
+    return os.str();
+  };
+  std::ostringstream h;
+  h << "NRRD0004\ntype: unsigned char\ndimension: 4\nspace: left-posterior-superior\nsizes: " << layers.size() << ' '
+    << g.dims[0] << ' ' << g.dims[1] << ' ' << g.dims[2] << "\nspace directions: none " << v(lps.block<3, 1>(0, 0)) << ' '
+    << v(lps.block<3, 1>(0, 1)) << ' ' << v(lps.block<3, 1>(0, 2))
+    << "\nkinds: list domain domain domain\nencoding: raw\nspace origin: " << v(lps.block<3, 1>(0, 3)) << '\n'
+    << segments << '\n';
+  std::string data;
+  for (std::size_t i = 0; i < g.voxel_count(); ++i)
+    for (const auto& layer : layers) data.push_back(static_cast<char>(layer[i]));
+  return h.str() + data;
+}
+
+TEST(NrrdIo, OverlappingSlicerSegmentsAreReadWithTheBrainContainingTheOthers) {
+  test::TempDir dir;
+  const Grid3 g = oblique_las();  // 7 x 5 x 4
+  const std::size_t n = g.voxel_count();
+  // Layer 0: the brain everywhere but voxel 0. Layer 1: the ventricles (1)
+  // and the tumour (2) inside it, and the tract (3) on voxel 0 alone.
+  std::vector<std::uint8_t> brain(n, 1), inner(n, 0);
+  brain[0] = 0;
+  inner[0] = 3;
+  inner[10] = inner[11] = 1;
+  inner[30] = 2;
+  const std::string segments =
+      "Segment0_Name:=Brain\nSegment0_LabelValue:=1\nSegment0_Layer:=0\n"
+      "Segment1_Name:=ventricles\nSegment1_LabelValue:=1\nSegment1_Layer:=1\n"
+      "Segment2_Name:=tumor\nSegment2_LabelValue:=2\nSegment2_Layer:=1\n"
+      "Segment3_Name:=cst\nSegment3_LabelValue:=3\nSegment3_Layer:=1\n";
+  std::ofstream(dir.path() / "layers.seg.nrrd", std::ios::binary) << layered_segmentation(g, {brain, inner}, segments);
+  const LabelImage read = read_slicer_segmentation(dir.path() / "layers.seg.nrrd", table(), kMax);
+  EXPECT_TRUE(read.grid.same_geometry(g));
+  ASSERT_EQ(read.voxels.size(), n);
+  for (std::size_t i = 0; i < n; ++i) {
+    const std::uint16_t expected = i == 0 ? 3 : (i == 10 || i == 11) ? 2 : i == 30 ? 4 : 1;
+    EXPECT_EQ(read.voxels[i], expected) << i;
+  }
+  // The brain in the later layer: the same.
+  std::ofstream(dir.path() / "swapped.seg.nrrd", std::ios::binary) << layered_segmentation(
+      g, {inner, brain},
+      "Segment0_Name:=Brain\nSegment0_LabelValue:=1\nSegment0_Layer:=1\n"
+      "Segment1_Name:=ventricles\nSegment1_LabelValue:=1\nSegment1_Layer:=0\n"
+      "Segment2_Name:=tumor\nSegment2_LabelValue:=2\nSegment2_Layer:=0\n"
+      "Segment3_Name:=cst\nSegment3_LabelValue:=3\nSegment3_Layer:=0\n");
+  EXPECT_EQ(read_slicer_segmentation(dir.path() / "swapped.seg.nrrd", table(), kMax).voxels, read.voxels);
+  // Two structures other than the brain overlapping: refused, naming them.
+  std::vector<std::uint8_t> tract(n, 0);
+  tract[30] = tract[31] = 1;
+  std::ofstream(dir.path() / "clash.seg.nrrd", std::ios::binary) << layered_segmentation(
+      g, {brain, inner, tract}, segments + "Segment4_Name:=corticospinal_tract\nSegment4_LabelValue:=1\nSegment4_Layer:=2\n");
+  try {
+    read_slicer_segmentation(dir.path() / "clash.seg.nrrd", table(), kMax);
+    FAIL() << "overlapping tumour and tract were accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("segments \"tumor\" and \"corticospinal_tract\" overlap in 1 voxels"),
+              std::string::npos)
+        << e.what();
+  }
+  // A segment in a layer the file does not have.
+  std::ofstream(dir.path() / "nolayer.seg.nrrd", std::ios::binary)
+      << layered_segmentation(g, {brain, inner}, segments + "Segment4_Name:=cst\nSegment4_LabelValue:=4\nSegment4_Layer:=2\n");
+  try {
+    read_slicer_segmentation(dir.path() / "nolayer.seg.nrrd", table(), kMax);
+    FAIL() << "a segment in a missing layer was accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("Segment4_Layer 2 is not one of the file's 2 layers"), std::string::npos) << e.what();
+  }
+  // A plain label map with layers is still refused (it is no segmentation).
+  std::ofstream(dir.path() / "layers.nrrd", std::ios::binary) << layered_segmentation(g, {brain, inner}, "");
+  try {
+    read_nrrd_labels(dir.path() / "layers.nrrd", kMax);
+    FAIL() << "a layered label map was read as one";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("several layers or components"), std::string::npos) << e.what();
+  }
 }
 
 TEST(NrrdIo, WhatIsNotReadIsRefusedNamingTheField) {
