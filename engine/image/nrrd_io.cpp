@@ -308,6 +308,15 @@ struct Segment {
   std::uint16_t table_value = 0;
 };
 
+// A segment's name as the table spells names: lower case, a space or a
+// hyphen as "_" ("Corticospinal tract" is corticospinal_tract).
+std::string as_table_name(const std::string& segment_name) {
+  std::string s = lower(trim(segment_name));
+  for (char& c : s)
+    if (c == ' ' || c == '-') c = '_';
+  return s;
+}
+
 std::vector<Segment> segments_of(const Nrrd& n, const LabelTable& table) {
   std::vector<Segment> out;
   for (int s = 0; s < 1000; ++s) {
@@ -331,7 +340,7 @@ std::vector<Segment> segments_of(const Nrrd& n, const LabelTable& table) {
       fail(n.path, k + "Layer " + std::to_string(seg.layer) + " is not one of the file's " + std::to_string(n.layers) + " layers");
     const LabelEntry* entry = nullptr;
     for (const auto& e : table.entries)
-      if (lower(e.name) == lower(seg.name) || lower(short_name_of(e)) == lower(seg.name)) entry = &e;
+      if (lower(e.name) == as_table_name(seg.name) || lower(short_name_of(e)) == as_table_name(seg.name)) entry = &e;
     if (!entry) {
       std::string names;
       for (const auto& e : table.entries) names += (names.empty() ? "" : ", ") + e.name;

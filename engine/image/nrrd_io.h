@@ -26,7 +26,8 @@ ImageF read_nrrd_scalar(const std::filesystem::path& path, std::size_t max_bytes
 // Integer values in 0..65535 only.
 LabelImage read_nrrd_labels(const std::filesystem::path& path, std::size_t max_bytes);
 // A Slicer segmentation (.seg.nrrd): each segment's SegmentN_Name is looked
-// up in the label table (name or short name, case ignored) and its
+// up in the label table (name or short name, case ignored, a space or a
+// hyphen read as "_": "Corticospinal tract") and its
 // SegmentN_LabelValue voxels in layer SegmentN_Layer get that entry's value;
 // a segment the table does not name is refused, listing the table's names.
 // Overlapping segments (stored in several layers, a leading list axis of at

@@ -205,7 +205,7 @@ TEST(NrrdIo, OverlappingSlicerSegmentsAreReadWithTheBrainContainingTheOthers) {
       "Segment0_Name:=Brain\nSegment0_LabelValue:=1\nSegment0_Layer:=0\n"
       "Segment1_Name:=ventricles\nSegment1_LabelValue:=1\nSegment1_Layer:=1\n"
       "Segment2_Name:=tumor\nSegment2_LabelValue:=2\nSegment2_Layer:=1\n"
-      "Segment3_Name:=cst\nSegment3_LabelValue:=3\nSegment3_Layer:=1\n";
+      "Segment3_Name:=Corticospinal tract\nSegment3_LabelValue:=3\nSegment3_Layer:=1\n";
   std::ofstream(dir.path() / "layers.seg.nrrd", std::ios::binary) << layered_segmentation(g, {brain, inner}, segments);
   const LabelImage read = read_slicer_segmentation(dir.path() / "layers.seg.nrrd", table(), kMax);
   EXPECT_TRUE(read.grid.same_geometry(g));
@@ -220,7 +220,7 @@ TEST(NrrdIo, OverlappingSlicerSegmentsAreReadWithTheBrainContainingTheOthers) {
       "Segment0_Name:=Brain\nSegment0_LabelValue:=1\nSegment0_Layer:=1\n"
       "Segment1_Name:=ventricles\nSegment1_LabelValue:=1\nSegment1_Layer:=0\n"
       "Segment2_Name:=tumor\nSegment2_LabelValue:=2\nSegment2_Layer:=0\n"
-      "Segment3_Name:=cst\nSegment3_LabelValue:=3\nSegment3_Layer:=0\n");
+      "Segment3_Name:=corticospinal-tract\nSegment3_LabelValue:=3\nSegment3_Layer:=0\n");
   EXPECT_EQ(read_slicer_segmentation(dir.path() / "swapped.seg.nrrd", table(), kMax).voxels, read.voxels);
   // Two structures other than the brain overlapping: refused, naming them.
   std::vector<std::uint8_t> tract(n, 0);
