@@ -4,6 +4,7 @@
 
 #include "core/errors.h"
 #include "core/fault_injection.h"
+#include "image/intensity_offset.h"
 #include "pipeline/mpi_commands.h"
 #include "pipeline/labels_with_image.h"
 #include "pipeline/prepare_stage.h"
@@ -55,10 +56,12 @@ EngineSession::~EngineSession() {
 
 void EngineSession::load_preop(PreopInput input, const ProgressFn& progress,
                                std::optional<TetMesh> stored_mesh) {
+  const double lifted_by = lift_negative_intensities(input.t1);
   // Built aside and swapped in: a failed load keeps the previous warm state.
   auto next = build_warm_state(comm_, std::move(input), params_, progress, std::move(stored_mesh));
   with_atlas_seconds(next->timings, atlas_seconds_);
   warm_ = std::move(next);
+  preop_lifted_by_ = lifted_by;
 }
 
 bool EngineSession::ready() const { return warm_ != nullptr; }
@@ -82,15 +85,57 @@ void EngineSession::set_atlas_seconds(double seconds) {
   if (warm_) with_atlas_seconds(warm_->timings, seconds);
 }
 
-ScanResult EngineSession::register_scan(const IntraopInput& input, const ProgressFn& progress,
-                                        bool defer_quality_metrics) {
-  if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
-  return run_intraop(*warm_, input, params_, progress, !defer_quality_metrics);
+namespace {
+
+// The input with its image lifted (image/intensity_offset.h) when it holds
+// negative values, else nullopt (the caller keeps its own, no copy).
+std::optional<IntraopInput> lifted(const IntraopInput& input, double* by) {
+  *by = 0;
+  if (!input.t1 || !has_negative_intensities(*input.t1)) return std::nullopt;
+  IntraopInput copy = input;
+  *by = lift_negative_intensities(*copy.t1);
+  return copy;
 }
 
-ScanResult EngineSession::register_scan(const ScanInput& scan, const ProgressFn& progress,
+std::optional<ScanInput> lifted(const ScanInput& scan, double* by) {
+  *by = 0;
+  if (!scan.image || !has_negative_intensities(*scan.image)) return std::nullopt;
+  ScanInput copy = scan;
+  *by = lift_negative_intensities(*copy.image);
+  return copy;
+}
+
+}  // namespace
+
+// What was lifted, in the scan's metrics (PROTOCOL.md 5.4 "intensity_lift").
+void EngineSession::report_lift(ScanResult& result, double intraop_by) const {
+  if (intraop_by > 0 || preop_lifted_by_ > 0)
+    result.metrics["intensity_lift"] = {{"intraop", intraop_by}, {"preop_t1", preop_lifted_by_}};
+}
+
+ScanResult EngineSession::register_scan(const IntraopInput& given, const ProgressFn& progress,
                                         bool defer_quality_metrics) {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
+  double by = 0;
+  const auto lifted_input = lifted(given, &by);
+  ScanResult result = run_intraop(*warm_, lifted_input ? *lifted_input : given, params_, progress, !defer_quality_metrics);
+  report_lift(result, by);
+  return result;
+}
+
+ScanResult EngineSession::register_scan(const ScanInput& given, const ProgressFn& progress,
+                                        bool defer_quality_metrics) {
+  if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
+  double by = 0;
+  const auto lifted_scan = lifted(given, &by);
+  const ScanInput& scan = lifted_scan ? *lifted_scan : given;
+  ScanResult result = register_scan_as_given(scan, progress, defer_quality_metrics);
+  report_lift(result, by);
+  return result;
+}
+
+ScanResult EngineSession::register_scan_as_given(const ScanInput& scan, const ProgressFn& progress,
+                                                 bool defer_quality_metrics) {
   if (!scan.labels && !scan.image) throw InputError("a scan needs an intraop image, labels, or both");
   if (scan.labels && (!scan.image || !params_.auto_segmentation.check_given_labels))
     return register_given_labels(*warm_, IntraopInput{*scan.labels, scan.image, scan.read_seconds}, params_, progress,
@@ -104,15 +149,19 @@ ScanResult EngineSession::register_scan(const ScanInput& scan, const ProgressFn&
   return result;
 }
 
-void EngineSession::add_quality_metrics(const IntraopInput& input, ScanResult& result,
+void EngineSession::add_quality_metrics(const IntraopInput& given, ScanResult& result,
                                         const ProgressFn& progress) const {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
-  brainshift::add_quality_metrics(*warm_, input, params_, result, progress);
+  double by = 0;
+  const auto input = lifted(given, &by);
+  brainshift::add_quality_metrics(*warm_, input ? *input : given, params_, result, progress);
 }
 
-void EngineSession::add_uncertainty(const IntraopInput& input, ScanResult& result, const ProgressFn& progress) {
+void EngineSession::add_uncertainty(const IntraopInput& given, ScanResult& result, const ProgressFn& progress) {
   if (!warm_) throw InputError("no preop state is loaded: load the preop images first");
-  brainshift::add_uncertainty(*warm_, input, params_, result, progress);
+  double by = 0;
+  const auto input = lifted(given, &by);
+  brainshift::add_uncertainty(*warm_, input ? *input : given, params_, result, progress);
 }
 
 void EngineSession::stop_workers() {

@@ -158,9 +158,16 @@ class EngineSession {
   int ranks() const;
 
  private:
+  ScanResult register_scan_as_given(const ScanInput& scan, const ProgressFn& progress, bool defer_quality_metrics);
+  void report_lift(ScanResult& result, double intraop_by) const;
+
   MPI_Comm comm_;
   PipelineParameters params_;
   std::unique_ptr<WarmState> warm_;
+  // Intraop and preop images with negative values (a stored intercept, a
+  // z-scored export) are lifted to a magnitude image's range before use, by
+  // every entry point alike (image/intensity_offset.h); the preop T1's lift:
+  double preop_lifted_by_ = 0;
   double atlas_seconds_ = 0;
   bool workers_stopped_ = false;
 };

@@ -7,6 +7,7 @@
 #include <mpi.h>
 
 #include <algorithm>
+#include <cmath>
 #include <string>
 
 #include "coarse_parameters.h"  // tests/support
@@ -145,6 +146,41 @@ TEST_F(FieldOfView, AnImageThatMissesMostOfTheBrainIsAClearError) {
   // The session keeps serving.
   scan.image = test::scanner_image(*cut_scan(preop, {0, 0, 0}, -0.1).t1);
   EXPECT_EQ(session.register_scan(scan, nullptr).kind, ResultKind::nonrigid);
+}
+
+// An image shifted below zero on its way here (a z-scored export: air at
+// about -1 instead of 0) was taken for one that misses most of the brain:
+// the head mask and the classifier read intensities as a magnitude image's.
+// It is lifted back (image/intensity_offset.h) and registers as the image
+// itself does; the metrics say by how much.
+TEST_F(FieldOfView, AnImageShiftedBelowZeroRegistersAsTheImageItself) {
+  ScanInput plain;
+  plain.image = test::scanner_image(*cut_scan(preop, shift, -0.1).t1);
+  const ScanResult a = session.register_scan(plain, nullptr);
+  ASSERT_EQ(a.kind, ResultKind::nonrigid) << a.fallback_reason;
+  EXPECT_FALSE(a.metrics.contains("intensity_lift"));
+  ScanInput z_scored = plain;
+  double sum = 0, sum2 = 0;
+  for (float v : z_scored.image->voxels) sum += v, sum2 += static_cast<double>(v) * v;
+  const double n = static_cast<double>(z_scored.image->voxels.size()), mean = sum / n;
+  const double sd = std::sqrt(sum2 / n - mean * mean);
+  for (float& v : z_scored.image->voxels) v = static_cast<float>((v - mean) / sd);
+  const ScanResult b = session.register_scan(z_scored, nullptr);
+  ASSERT_EQ(b.kind, ResultKind::nonrigid) << b.fallback_reason;
+  EXPECT_GT(b.metrics["intensity_lift"]["intraop"].get<double>(), 0.5) << b.metrics["intensity_lift"].dump();
+  EXPECT_EQ(b.metrics["intensity_lift"]["preop_t1"].get<double>(), 0.0);
+  // The same answer to a fraction of a voxel over the brain.
+  const Grid3& g = a.pullback_field_mm.grid;
+  ASSERT_TRUE(g.same_geometry(b.pullback_field_mm.grid));
+  double differs = 0;
+  std::size_t voxels = 0;
+  for (std::size_t v = 0; v < g.voxel_count(); ++v) {
+    if (!a.intraop_labels || a.intraop_labels->voxels[v] == 0) continue;
+    differs += (a.pullback_field_mm.vectors[v] - b.pullback_field_mm.vectors[v]).norm();
+    ++voxels;
+  }
+  ASSERT_GT(voxels, 1000u);
+  EXPECT_LT(differs / static_cast<double>(voxels), 0.1);
 }
 
 }  // namespace
