@@ -10,6 +10,7 @@
 #include "field/warp.h"
 #include "image/image_stats.h"
 #include "protocol/stage_names.h"
+#include "registration/intensity_placement.h"
 #include "segmentation/enhanced_shell.h"
 #include "segmentation/head_mask.h"
 #include "segmentation/preop_fluid_spaces.h"
@@ -56,9 +57,39 @@ LabelImage as_labels(const Mask& m) {
   return out;
 }
 
+// A head mask at most this many times the preop brain's volume is a brain,
+// not a head: scalp, skull and the CSF round a brain (a sphere of some 70 mm
+// radius) are at least 10 mm thick, so a whole head holds (80 / 70)^3 = 1.5
+// times the brain or more (the face and neck add to it), while a
+// brain-extracted image keeps the brain and a little CSF (1.0-1.2).
+constexpr double kBrainExtractedHeadRatio = 1.35;
+
+namespace {
+
+// The preop placed by its T1's intensities (registration/intensity_placement.h)
+// when one of the two images has no head to match: a brain-extracted preop
+// T1 (or scan). The head outlines would match a brain to a head and shrink it
+// onto the scalp.
+Eigen::Matrix4d place_preop_by_intensity(WarmState& warm, const ImageF& image, const std::string& why,
+                                         nlohmann::json& metrics) {
+  const Mask brain = nonzero_mask(warm.preop.labels);
+  const IntensityPlacement r = place_by_intensity(warm.preop.t1, brain, image, Eigen::Matrix4d::Identity());
+  metrics = {{"by", "intensity"},
+             {"why", why},
+             {"correlation", r.correlation},
+             {"inside_fraction", r.inside_fraction},
+             {"evaluations", r.evaluations},
+             {"message", r.message},
+             {"volume_scale", r.intraop_from_preop.topLeftCorner<3, 3>().determinant()}};
+  return r.intraop_from_preop;
+}
+
+}  // namespace
+
 // Two passes: the preop head seen through the identity (scanners place a
 // patient's head within centimetres of the same RAS position) or, when that
 // sees too little of it, the whole head; then seen through the first result.
+// When either image is brain-extracted, by intensity instead.
 Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const AffineRegistrationParameters& affine,
                                     nlohmann::json& metrics) {
   if (!warm.preop_head) {
@@ -67,6 +98,12 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
   }
   const Mask head = segmentation::head_mask(image);
   if (count_nonzero(head) == 0) throw InputError("intraop image: no head found (the image is flat)");
+  const double preop_brain_ml = warm.brain_volume_ml;
+  if (volume_ml(*warm.preop_head) < kBrainExtractedHeadRatio * preop_brain_ml)
+    return place_preop_by_intensity(warm, image, "the preop T1 is brain-extracted (its head is its brain)", metrics);
+  if (volume_ml(head) < kBrainExtractedHeadRatio * preop_brain_ml)
+    return place_preop_by_intensity(warm, image, "the intraop image is brain-extracted (its head is the size of a brain)",
+                                    metrics);
   const IntraopDistanceMaps maps = prepare_intraop_maps(as_labels(head), 1, 2);
   // The full affine, not a placement's (placement_affine), though the
   // placement only has to put the brain within the first round's 3 mm

@@ -1,0 +1,161 @@
+#include "registration/intensity_placement.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <vector>
+
+#include "core/errors.h"
+#include "image/gaussian_smooth.h"
+#include "image/resample.h"
+
+namespace brainshift {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+
+ImageF smoothed(const ImageF& image, double sigma_mm) {
+  ImageF out = image;
+  gaussian_smooth_voxels(out, Eigen::Vector3d(sigma_mm / image.grid.spacing_mm().array()));
+  return out;
+}
+
+// Parameters: translation (mm), rotation (rad, about x, y, z), log scale;
+// about the preop brain's centroid, after the start transform.
+using Params = std::array<double, 7>;
+
+Eigen::Matrix4d transform_of(const Params& q, const Eigen::Vector3d& centre, const Eigen::Matrix4d& start) {
+  const Eigen::Matrix3d r = (Eigen::AngleAxisd(q[5], Eigen::Vector3d::UnitZ()) *
+                             Eigen::AngleAxisd(q[4], Eigen::Vector3d::UnitY()) *
+                             Eigen::AngleAxisd(q[3], Eigen::Vector3d::UnitX()))
+                                .toRotationMatrix();
+  Eigen::Matrix4d local = Eigen::Matrix4d::Identity();
+  local.topLeftCorner<3, 3>() = std::exp(q[6]) * r;
+  local.topRightCorner<3, 1>() = centre + Eigen::Vector3d(q[0], q[1], q[2]) - local.topLeftCorner<3, 3>() * centre;
+  return start * local;
+}
+
+struct Samples {
+  std::vector<Eigen::Vector3d> at_mm;  // preop world
+  std::vector<double> value;
+};
+
+Samples samples_of(const ImageF& preop, const Mask& brain, double spacing_mm, std::size_t max_samples) {
+  const Eigen::Vector3d sp = preop.grid.spacing_mm();
+  std::array<int, 3> stride;
+  for (int a = 0; a < 3; ++a) stride[a] = std::max(1, static_cast<int>(std::lround(spacing_mm / sp[a])));
+  Samples s;
+  for (int k = 0; k < preop.grid.dims[2]; k += stride[2])
+    for (int j = 0; j < preop.grid.dims[1]; j += stride[1])
+      for (int i = 0; i < preop.grid.dims[0]; i += stride[0])
+        if (brain.at(i, j, k)) {
+          s.at_mm.push_back(preop.grid.world_mm(i, j, k));
+          s.value.push_back(preop.at(i, j, k));
+        }
+  if (s.at_mm.size() > max_samples) {  // an even subset
+    const double step = static_cast<double>(s.at_mm.size()) / static_cast<double>(max_samples);
+    Samples kept;
+    for (std::size_t n = 0; n < max_samples; ++n) {
+      const auto idx = static_cast<std::size_t>(static_cast<double>(n) * step);
+      kept.at_mm.push_back(s.at_mm[idx]);
+      kept.value.push_back(s.value[idx]);
+    }
+    return kept;
+  }
+  return s;
+}
+
+struct Score {
+  double ncc = 0, inside = 0;
+  double objective() const { return inside < 0.5 ? -1.0 : ncc * ncc; }
+};
+
+Score score(const Samples& s, const ImageF& image, const GridSampler& sampler, const Eigen::Matrix4d& t) {
+  double sx = 0, sy = 0, sxx = 0, syy = 0, sxy = 0;
+  std::size_t n = 0;
+  constexpr float kOutside = -1e30f;
+  for (std::size_t i = 0; i < s.at_mm.size(); ++i) {
+    const Eigen::Vector3d p = (t * s.at_mm[i].homogeneous()).head<3>();
+    const float y = sampler.linear(image.voxels, p, kOutside);
+    if (y == kOutside) continue;
+    const double x = s.value[i];
+    sx += x, sy += y, sxx += x * x, syy += static_cast<double>(y) * y, sxy += x * y;
+    ++n;
+  }
+  Score out;
+  out.inside = s.at_mm.empty() ? 0 : static_cast<double>(n) / static_cast<double>(s.at_mm.size());
+  if (n < 2) return out;
+  const double dn = static_cast<double>(n);
+  const double vx = sxx - sx * sx / dn, vy = syy - sy * sy / dn;
+  if (vx <= 0 || vy <= 0) return out;
+  out.ncc = (sxy - sx * sy / dn) / std::sqrt(vx * vy);
+  return out;
+}
+
+}  // namespace
+
+IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_brain, const ImageF& intraop,
+                                      const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
+  if (!preop_t1.grid.same_geometry(preop_brain.grid)) throw InputError("intensity placement: preop T1 and brain on different grids");
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+  std::size_t count = 0;
+  for (int k = 0; k < preop_brain.grid.dims[2]; ++k)
+    for (int j = 0; j < preop_brain.grid.dims[1]; ++j)
+      for (int i = 0; i < preop_brain.grid.dims[0]; ++i)
+        if (preop_brain.at(i, j, k)) centre += preop_brain.grid.world_mm(i, j, k), ++count;
+  if (count == 0) throw InputError("intensity placement: the preop brain is empty");
+  centre /= static_cast<double>(count);
+
+  IntensityPlacement out;
+  Params q{};
+  const double deg = kPi / 180.0;
+  const std::array<double, 7> first_step = {p.translation_step_mm, p.translation_step_mm, p.translation_step_mm,
+                                            p.rotation_step_deg * deg, p.rotation_step_deg * deg,
+                                            p.rotation_step_deg * deg, p.log_scale_step};
+  Score best;
+  for (const double level_mm : {p.coarse_mm, p.fine_mm}) {
+    const ImageF preop_level = smoothed(preop_t1, level_mm);
+    const ImageF intraop_level = smoothed(intraop, level_mm);
+    const Samples s = samples_of(preop_level, preop_brain, level_mm, p.max_samples);
+    const GridSampler sampler(intraop_level.grid);
+    best = score(s, intraop_level, sampler, transform_of(q, centre, start));
+    ++out.evaluations;
+    // Pattern search: each parameter tried a step either way, the best move
+    // kept; the steps halve when none helps, down to 1/16 of the first
+    // (0.25 mm, 0.25 deg, 0.0025). Bounded by max_evaluations.
+    std::array<double, 7> step = first_step;
+    if (level_mm == p.fine_mm)
+      for (double& x : step) x *= 0.5;
+    int evaluations = 0;
+    while (evaluations < p.max_evaluations && step[0] >= first_step[0] / 16.0 - 1e-12) {
+      Params best_q = q;
+      Score best_move = best;
+      const int parameters = p.max_log_scale > 0 ? 7 : 6;
+      for (int a = 0; a < parameters && evaluations < p.max_evaluations; ++a)
+        for (const double sign : {-1.0, 1.0}) {
+          Params trial = q;
+          trial[static_cast<std::size_t>(a)] += sign * step[static_cast<std::size_t>(a)];
+          if (std::abs(trial[6]) > p.max_log_scale) continue;
+          const Score sc = score(s, intraop_level, sampler, transform_of(trial, centre, start));
+          ++evaluations;
+          if (sc.objective() > best_move.objective() + 1e-9) best_move = sc, best_q = trial;
+        }
+      if (best_q == q) {
+        for (double& x : step) x *= 0.5;
+      } else {
+        q = best_q;
+        best = best_move;
+      }
+    }
+    out.evaluations += evaluations;
+  }
+  out.intraop_from_preop = transform_of(q, centre, start);
+  out.correlation = best.ncc;
+  out.inside_fraction = best.inside;
+  out.message = "normalised correlation " + std::to_string(best.ncc) + " over " +
+                std::to_string(static_cast<int>(100 * best.inside)) + " % of the preop brain's samples in view, " +
+                std::to_string(out.evaluations) + " evaluations";
+  return out;
+}
+
+}  // namespace brainshift

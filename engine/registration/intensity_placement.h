@@ -1,0 +1,53 @@
+#pragma once
+// The preop placed on an intraop image by its intensities, for a preop T1
+// whose head the image-only path cannot use: a brain-extracted T1 (skull
+// and scalp removed, as planning systems and atlases store them; the
+// mricron-data ch2bet) has no head outline to match the scan's head to, and
+// matching its brain to the scan's head shrank it onto the scalp
+// (docs/DESIGN.md "A brain-extracted preop"). Here the preop T1's brain
+// voxels are compared with the intraop image through a rigid transform and
+// an isotropic scale: the squared normalised correlation (so that a T2-like
+// scan, dark where the T1 is bright, places as well), on images smoothed to
+// 4 then 2 mm, by a bounded pattern search from the start given. Rigid by
+// default (IntensityPlacementParameters::max_log_scale).
+#include <Eigen/Dense>
+#include <string>
+
+#include "core/image.h"
+#include "image/morphology.h"
+
+namespace brainshift {
+
+struct IntensityPlacementParameters {
+  // Smoothing (Gaussian sigma) and sample spacing of the levels, coarse to
+  // fine: 4 mm captures the centimetres a scanner's placement of the head
+  // leaves; 2 mm places within about a millimetre, which the first
+  // segmentation round's 3 mm prior needs.
+  double coarse_mm = 4.0, fine_mm = 2.0;
+  std::size_t max_samples = 40000;  // per level, a strided subset of the brain's voxels
+  int max_evaluations = 600;        // per level (bounded search)
+  // Steps at the start of each level (translation mm, rotation deg, log
+  // scale); the search halves them down to 1/16.
+  double translation_step_mm = 4.0, rotation_step_deg = 4.0, log_scale_step = 0.04;
+  // The isotropic scale's bound, |log scale|. 0 (the default): rigid. The
+  // preop and the scan are the same patient's brain, and with a scale the
+  // fit shrank the preop into the gap a 20 mm sinking leaves (volume -13 %,
+  // refused by the segmentation's volume gate; docs/performance/12.45).
+  double max_log_scale = 0.0;
+};
+
+struct IntensityPlacement {
+  Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
+  double correlation = 0;      // normalised correlation at the end (signed)
+  double inside_fraction = 0;  // of the samples, mapped inside the image
+  int evaluations = 0;
+  std::string message;
+};
+
+// preop_brain: the preop voxels to compare (the brain labels), on the T1's
+// grid. InputError for an empty brain or grids that differ.
+IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_brain, const ImageF& intraop,
+                                      const Eigen::Matrix4d& start_intraop_from_preop,
+                                      const IntensityPlacementParameters& p = {});
+
+}  // namespace brainshift
