@@ -98,11 +98,19 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
   }
   const Mask head = segmentation::head_mask(image);
   if (count_nonzero(head) == 0) throw InputError("intraop image: no head found (the image is flat)");
+  // Outlines of the same kind (two heads, or two brains) are matched; a
+  // brain to a head is not. A scan's head is also small when its field of
+  // view cuts the head (a slab, a short coil): then only a brain-extracted
+  // preop sends it here, where the correlation ignores what is out of view.
   const double preop_brain_ml = warm.brain_volume_ml;
-  if (volume_ml(*warm.preop_head) < kBrainExtractedHeadRatio * preop_brain_ml)
+  const bool preop_is_brain = volume_ml(*warm.preop_head) < kBrainExtractedHeadRatio * preop_brain_ml;
+  const bool scan_is_brain = volume_ml(head) < kBrainExtractedHeadRatio * preop_brain_ml;
+  if (preop_is_brain && !scan_is_brain)
     return place_preop_by_intensity(warm, image, "the preop T1 is brain-extracted (its head is its brain)", metrics);
-  if (volume_ml(head) < kBrainExtractedHeadRatio * preop_brain_ml)
-    return place_preop_by_intensity(warm, image, "the intraop image is brain-extracted (its head is the size of a brain)",
+  if (!preop_is_brain && scan_is_brain)
+    return place_preop_by_intensity(warm, image,
+                                    "the intraop image's head is the size of a brain (brain-extracted, or cut by "
+                                    "its field of view)",
                                     metrics);
   const IntraopDistanceMaps maps = prepare_intraop_maps(as_labels(head), 1, 2);
   // The full affine, not a placement's (placement_affine), though the

@@ -121,13 +121,13 @@ IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_
     best = score(s, intraop_level, sampler, transform_of(q, centre, start));
     ++out.evaluations;
     // Pattern search: each parameter tried a step either way, the best move
-    // kept; the steps halve when none helps, down to 1/16 of the first
-    // (0.25 mm, 0.25 deg, 0.0025). Bounded by max_evaluations.
+    // kept; the steps halve when none helps, down to the finest. Bounded by
+    // max_evaluations.
     std::array<double, 7> step = first_step;
     if (level_mm == p.fine_mm)
       for (double& x : step) x *= 0.5;
     int evaluations = 0;
-    while (evaluations < p.max_evaluations && step[0] >= first_step[0] / 16.0 - 1e-12) {
+    while (evaluations < p.max_evaluations && step[0] >= first_step[0] / p.finest_step_fraction - 1e-12) {
       Params best_q = q;
       Score best_move = best;
       const int parameters = p.max_log_scale > 0 ? 7 : 6;

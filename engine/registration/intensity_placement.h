@@ -26,9 +26,12 @@ struct IntensityPlacementParameters {
   double coarse_mm = 4.0, fine_mm = 2.0;
   std::size_t max_samples = 40000;  // per level, a strided subset of the brain's voxels
   int max_evaluations = 600;        // per level (bounded search)
-  // Steps at the start of each level (translation mm, rotation deg, log
-  // scale); the search halves them down to 1/16.
+  // Steps at the start (translation mm, rotation deg, log scale; the fine
+  // level starts at half); the search halves them down to 1/finest_step_fraction
+  // (0.125 mm and 0.125 deg: a tenth of the fine level's 2 mm, below what
+  // the first round's 3 mm prior can feel).
   double translation_step_mm = 4.0, rotation_step_deg = 4.0, log_scale_step = 0.04;
+  double finest_step_fraction = 32.0;
   // The isotropic scale's bound, |log scale|. 0 (the default): rigid. The
   // preop and the scan are the same patient's brain, and with a scale the
   // fit shrank the preop into the gap a 20 mm sinking leaves (volume -13 %,
