@@ -12,7 +12,7 @@
 namespace brainshift {
 
 // The value the image is lifted by: its 0.1st percentile (a strided sample),
-// negated; values still below zero then are clamped to it. Air fills a large
+// negated; values still below zero then are clamped to zero. Air fills a large
 // part of any head scan's field of view, so that percentile lies in the air's
 // noise, not in tissue; the lowest value itself would follow one outlier.
 inline constexpr double kIntensityFloorPercentile = 0.001;
