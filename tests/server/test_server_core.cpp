@@ -245,7 +245,10 @@ TEST(ServerCore, BadPreopIsATypedErrorAndNothingChanges) {
   expect_error(h.call(make_preop_load_request("bad1", r)), ErrorCode::kInvalidRequest, "bad1");
   r.labels = media::nifti_frame("labels", "\x1f\x8b garbage that is not gzip");
   expect_error(h.call(make_preop_load_request("bad2", r)), ErrorCode::kInvalidRequest, "bad2");
-  LabelImage other = test::ball_labels(11);
+  // Half a voxel off the T1's grid (a box of it shifted by whole voxels
+  // would be placed on it: image/label_placement.h).
+  LabelImage other = test::ball_labels(10);
+  other.grid.world_from_voxel.col(3) += 0.5 * other.grid.world_from_voxel.col(0);
   r.labels = media::nifti_frame("labels", label_image_to_bytes(other, false));
   expect_error(h.call(make_preop_load_request("bad3", r)), ErrorCode::kInvalidRequest, "bad3");
   EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).state, ServerState::kIdle);
