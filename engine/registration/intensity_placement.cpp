@@ -9,6 +9,7 @@
 #include "core/parallel.h"
 #include "image/gaussian_smooth.h"
 #include "image/resample.h"
+#include "registration/boundary_samples.h"
 
 namespace brainshift {
 namespace {
@@ -110,14 +111,9 @@ Score score(const Samples& s, const ImageF& image, const GridSampler& sampler, c
 IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_brain, const ImageF& intraop,
                                       const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
   if (!preop_t1.grid.same_geometry(preop_brain.grid)) throw InputError("intensity placement: preop T1 and brain on different grids");
-  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
-  std::size_t count = 0;
-  for (int k = 0; k < preop_brain.grid.dims[2]; ++k)
-    for (int j = 0; j < preop_brain.grid.dims[1]; ++j)
-      for (int i = 0; i < preop_brain.grid.dims[0]; ++i)
-        if (preop_brain.at(i, j, k)) centre += preop_brain.grid.world_mm(i, j, k), ++count;
-  if (count == 0) throw InputError("intensity placement: the preop brain is empty");
-  centre /= static_cast<double>(count);
+  const MaskMoments moments = mask_moments(preop_brain);
+  if (moments.volume_ml <= 0) throw InputError("intensity placement: the preop brain is empty");
+  const Eigen::Vector3d centre = moments.centroid_mm;
 
   IntensityPlacement out;
   Params q{};
