@@ -72,8 +72,9 @@ namespace {
 // onto the scalp.
 Eigen::Matrix4d place_preop_by_intensity(WarmState& warm, const ImageF& image, const std::string& why,
                                          nlohmann::json& metrics) {
-  const Mask brain = nonzero_mask(warm.preop.labels);
-  const IntensityPlacement r = place_by_intensity(warm.preop.t1, brain, image, Eigen::Matrix4d::Identity());
+  if (!warm.intensity_placement_preop)
+    warm.intensity_placement_preop = intensity_placement_preop(warm.preop.t1, nonzero_mask(warm.preop.labels));
+  const IntensityPlacement r = place_by_intensity(*warm.intensity_placement_preop, image, Eigen::Matrix4d::Identity());
   metrics = {{"by", "intensity"},
              {"why", why},
              {"correlation", r.correlation},

@@ -17,6 +17,7 @@
 #include "pipeline/fem_cluster.h"
 #include "quality/left_right_check.h"
 #include "registration/boundary_samples.h"
+#include "registration/intensity_placement.h"
 
 namespace brainshift {
 
@@ -67,6 +68,10 @@ struct WarmState {
   // The preop head (coarse grid), for placing the preop on a scan given
   // without labels (prepare_stage.h); made on the first such scan.
   std::optional<Mask> preop_head;
+  // The preop T1's brain samples for placing it by intensity
+  // (registration/intensity_placement.h), made on the first scan that needs
+  // them: a brain-extracted preop, or scan.
+  std::optional<IntensityPlacementPreop> intensity_placement_preop;
   // The preop labels' tissue box (field/tissue_guard.h), worked out by the
   // first scan's field.
   std::optional<VoxelBox> preop_tissue_voxels;

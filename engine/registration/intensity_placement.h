@@ -12,6 +12,7 @@
 // default (IntensityPlacementParameters::max_log_scale).
 #include <Eigen/Dense>
 #include <string>
+#include <vector>
 
 #include "core/image.h"
 #include "image/morphology.h"
@@ -47,8 +48,31 @@ struct IntensityPlacement {
   std::string message;
 };
 
+// What the placement compares of the preop, per level: its brain's voxels
+// (strided at the level's spacing, at most max_samples) in preop world mm
+// and the T1 smoothed to the level there. The same for every scan of a
+// preop, so the daemon makes it once (WarmState): smoothing the 1 mm T1
+// twice cost 0.7 s a scan.
+struct IntensityPlacementPreop {
+  struct Level {
+    double smoothing_mm = 0;
+    std::vector<Eigen::Vector3f> at_mm;
+    std::vector<float> value;
+  };
+  Eigen::Vector3d centre_mm = Eigen::Vector3d::Zero();  // the brain's centroid, the rotations' centre
+  std::vector<Level> levels;                            // coarse to fine
+};
+
 // preop_brain: the preop voxels to compare (the brain labels), on the T1's
 // grid. InputError for an empty brain or grids that differ.
+IntensityPlacementPreop intensity_placement_preop(const ImageF& preop_t1, const Mask& preop_brain,
+                                                  const IntensityPlacementParameters& p = {});
+
+IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+                                      const Eigen::Matrix4d& start_intraop_from_preop,
+                                      const IntensityPlacementParameters& p = {});
+
+// Both steps at once.
 IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_brain, const ImageF& intraop,
                                       const Eigen::Matrix4d& start_intraop_from_preop,
                                       const IntensityPlacementParameters& p = {});
