@@ -299,6 +299,20 @@ std::vector<RobustnessSpec> robustness_suite() {
     r.image.bias_amplitude = 0.3;
     suite.push_back(r);
   }
+  {
+    // A lateral approach: the head turned 70 degrees in its clamp (and
+    // flexed), which the scanner's RAS does not follow; the craniotomy
+    // uppermost, gravity toward the other side.
+    RobustnessSpec r = robust("temporal_sinking_10mm_head_turned_70_noise1.0_short", 113, true, 1.0, 4);
+    r.phantom.sinking.craniotomy_direction = {-1.0, 0.15, 0.2};
+    r.phantom.sinking.gravity = Eigen::Vector3d(1, 0, 0);
+    r.phantom.sinking.cortex_mm = 10;
+    r.phantom.sinking.deep_mm = 3;
+    r.phantom.rigid.rotation_deg = {12, -5, 70};
+    r.phantom.rigid.translation_mm = {15, -25, 10};
+    r.image.wm_snr = 15;
+    suite.push_back(r);
+  }
   return suite;
 }
 
@@ -309,6 +323,8 @@ std::vector<RobustnessSpec> robustness_suite_cases(const std::vector<std::string
   std::erase_if(suite, [&](const RobustnessSpec& s) { return !want.count(s.phantom.name); });
   return suite;
 }
+
+RobustnessSpec robustness_turned_head_case() { return robustness_suite().back(); }
 
 std::vector<RobustnessSpec> robustness_ci_subset() {
   const auto all = robustness_suite();

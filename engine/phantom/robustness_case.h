@@ -52,11 +52,13 @@ struct RobustnessSpec {
 // as t1). InputError on bad specs (see make_phantom) or artefact values.
 PhantomCase make_robustness_case(const ImageF& t1, const LabelImage& truth_labels, const RobustnessSpec& spec);
 
-// Twelve cases over two preop maps, 0.5-1.5 voxel noise of short and long
+// Thirteen cases over two preop maps, 0.5-1.5 voxel noise of short and long
 // correlation, LAS / RAS / coronal / oblique grids, sinking, swelling and
-// resection. ci_subset: the few CI runs.
+// resection, and a head turned 70 degrees in its clamp. ci_subset: the few CI
+// runs; turned_head_case: the last.
 std::vector<RobustnessSpec> robustness_suite();
 std::vector<RobustnessSpec> robustness_ci_subset();
+RobustnessSpec robustness_turned_head_case();
 // The suite's cases named in `names`, in the suite's order (all when empty).
 std::vector<RobustnessSpec> robustness_suite_cases(const std::vector<std::string>& names);
 

@@ -166,7 +166,8 @@ ScanResult run_intraop(WarmState& warm, const IntraopInput& input, const Pipelin
 
   clock.start(stages::kAffine);
   const IntraopDistanceMaps maps = prepare_intraop_maps(input.labels, brain_region, table.brain_label(), ventricle);
-  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine, pass.affine_start);
+  const AffineRegistrationResult affine = register_affine(warm.affine_samples, maps, params.affine, pass.affine_start,
+                                                          pass.affine_start ? nullptr : pass.affine_candidate);
   const Eigen::Matrix4d A = affine.intraop_from_preop;
   result.intraop_from_preop = A;
   metrics["affine"] = {{"converged", affine.converged}, {"plausible", affine.plausible}, {"iterations", affine.iterations},

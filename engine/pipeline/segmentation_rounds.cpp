@@ -10,6 +10,7 @@
 #include "field/warp.h"
 #include "image/image_stats.h"
 #include "protocol/stage_names.h"
+#include "quality/plausibility_gates.h"
 #include "registration/intensity_placement.h"
 #include "segmentation/enhanced_shell.h"
 #include "segmentation/head_mask.h"
@@ -66,23 +67,120 @@ constexpr double kBrainExtractedHeadRatio = 1.35;
 
 namespace {
 
+// A pose the search finds more than this far from the placement it starts
+// from is another pose, not the same one refined: half the search's yaw
+// step (registration/intensity_placement.h), the most a candidate lies from
+// the pose it stands for.
+constexpr double kOtherPoseDeg = 15.0;
+
+const IntensityPlacementPreop& placement_samples(WarmState& warm) {
+  if (!warm.intensity_placement_preop)
+    warm.intensity_placement_preop = intensity_placement_preop(warm.preop.t1, nonzero_mask(warm.preop.labels));
+  return *warm.intensity_placement_preop;
+}
+
+nlohmann::json describe(const PoseSearch& s) {
+  return {{"best_candidate_rotation_deg", s.rotation_from_start_deg},
+          {"best_candidate_correlation", s.correlation},
+          {"candidates", s.candidates},
+          {"evaluations", s.evaluations},
+          {"seconds", s.seconds}};
+}
+
+// The angle between two placements' rotations (their rigid parts, degrees).
+double rotation_between_deg(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b) {
+  const Eigen::Vector3d origin = Eigen::Vector3d::Zero();
+  const Eigen::Matrix3d relative =
+      rigid_part(a, origin).topLeftCorner<3, 3>().transpose() * rigid_part(b, origin).topLeftCorner<3, 3>();
+  return Eigen::AngleAxisd(relative).angle() * 180.0 / 3.14159265358979323846;
+}
+
+// The pose an earlier scan of this preop checked, when the placement is
+// within kOtherPoseDeg of it (WarmState::checked_head_pose).
+bool pose_checked_before(const WarmState& warm, const Eigen::Matrix4d& placement) {
+  return warm.checked_head_pose && rotation_between_deg(*warm.checked_head_pose, placement) <= kOtherPoseDeg;
+}
+
+nlohmann::json checked_before_report(const std::string& used) {
+  return {{"used", used},
+          {"checked", "on an earlier scan of this preop: the head's pose then, within " +
+                          std::to_string(static_cast<int>(kOtherPoseDeg)) + " degrees"}};
+}
+
 // The preop placed by its T1's intensities (registration/intensity_placement.h)
 // when one of the two images has no head to match: a brain-extracted preop
 // T1 (or scan). The head outlines would match a brain to a head and shrink it
-// onto the scalp.
+// onto the scalp. From the pose an earlier scan found (the head stays in its
+// clamp) or the scanner's placement; then, unless an earlier scan checked
+// that pose, from the best pose of the search when that is another pose:
+// the one that correlates better.
 Eigen::Matrix4d place_preop_by_intensity(WarmState& warm, const ImageF& image, const std::string& why,
                                          nlohmann::json& metrics) {
-  if (!warm.intensity_placement_preop)
-    warm.intensity_placement_preop = intensity_placement_preop(warm.preop.t1, nonzero_mask(warm.preop.labels));
-  const IntensityPlacement r = place_by_intensity(*warm.intensity_placement_preop, image, Eigen::Matrix4d::Identity());
+  const IntensityPlacementPreop& samples = placement_samples(warm);
+  const Eigen::Matrix4d start = warm.checked_head_pose ? *warm.checked_head_pose : Eigen::Matrix4d::Identity();
+  IntensityPlacement r = place_by_intensity(samples, image, start);
+  nlohmann::json pose;
+  if (pose_checked_before(warm, r.intraop_from_preop)) {
+    pose = checked_before_report("the earlier scan's pose, refined");
+  } else {
+    const PoseSearch search = search_pose_by_intensity(samples, image, r.intraop_from_preop);
+    pose = describe(search);
+    pose["used"] = "the scanner's placement, refined";
+    if (search.rotation_from_start_deg > kOtherPoseDeg) {
+      IntensityPlacement other = place_by_intensity(samples, image, search.intraop_from_preop);
+      pose["other_pose_correlation"] = other.correlation;
+      if (other.correlation * other.correlation > r.correlation * r.correlation) {
+        other.evaluations += r.evaluations;
+        r = std::move(other);
+        pose["used"] = "the pose the search found, refined";
+      }
+    }
+    warm.checked_head_pose = r.intraop_from_preop;
+  }
   metrics = {{"by", "intensity"},
              {"why", why},
              {"correlation", r.correlation},
              {"inside_fraction", r.inside_fraction},
              {"evaluations", r.evaluations},
              {"message", r.message},
+             {"pose_search", pose},
              {"volume_scale", r.intraop_from_preop.topLeftCorner<3, 3>().determinant()}};
   return r.intraop_from_preop;
+}
+
+// The outlines' match is local: a head turned in its clamp (a lateral
+// approach, 60-90 degrees) leaves it in another pose, which the search by
+// intensity finds (registration/intensity_placement.h). The outlines are
+// then matched again from the pose it found, and whichever placement the
+// preop brain's intensities correlate with better is kept.
+nlohmann::json checked_pose(WarmState& warm, const ImageF& image, const IntraopDistanceMaps& maps,
+                            const AffineRegistrationParameters& p, Eigen::Matrix4d& placement,
+                            AffineRegistrationResult& r) {
+  const IntensityPlacementPreop& intensity = placement_samples(warm);
+  const double outline_correlation = intensity_correlation(intensity, image, placement);
+  const PoseSearch search = search_pose_by_intensity(intensity, image, placement);
+  nlohmann::json pose = describe(search);
+  pose["outline_correlation"] = outline_correlation;
+  pose["used"] = "the outlines' match";
+  if (search.rotation_from_start_deg <= kOtherPoseDeg) return pose;
+  const IntensityPlacement other = place_by_intensity(intensity, image, search.intraop_from_preop);
+  pose["other_pose_correlation"] = other.correlation;
+  const PreopBoundarySamples samples = visible_head(*warm.preop_head, image.grid, &other.intraop_from_preop);
+  const AffineRegistrationResult again = samples.outer_mm.size() < 100
+                                             ? AffineRegistrationResult{}
+                                             : register_affine(samples, maps, p, &other.intraop_from_preop);
+  const double again_correlation = again.converged ? intensity_correlation(intensity, image, again.intraop_from_preop) : 0.0;
+  pose["other_pose_outline_correlation"] = again_correlation;
+  const double best_so_far = outline_correlation * outline_correlation;
+  if (again.converged && again_correlation * again_correlation > best_so_far) {
+    r = again;
+    placement = r.intraop_from_preop;
+    pose["used"] = "the outlines' match from the pose the search found";
+  } else if (other.correlation * other.correlation > best_so_far) {
+    placement = other.intraop_from_preop;
+    pose["used"] = "the pose the search found, refined by intensity";
+  }
+  return pose;
 }
 
 }  // namespace
@@ -124,6 +222,7 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
   p.ventricle_weight = 0;
   Eigen::Matrix4d placement = Eigen::Matrix4d::Identity();
   AffineRegistrationResult r;
+  nlohmann::json pose;
   for (int pass = 0; pass < 2; ++pass) {
     PreopBoundarySamples samples = visible_head(*warm.preop_head, image.grid, &placement);
     if (pass == 0 && samples.outer_moments.volume_ml < 0.5 * volume_ml(head))
@@ -132,10 +231,21 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
     r = register_affine(samples, maps, p);
     placement = r.intraop_from_preop;
   }
+  // The outlines' match is local: a head turned in its clamp (a lateral
+  // approach, 60-90 degrees; a prone patient recorded supine, 180) leaves it
+  // in another pose, which the search by intensity finds. The outlines are
+  // then matched again from the pose it found, and whichever placement the
+  // preop brain's intensities correlate with better is kept.
+  if (pose_checked_before(warm, placement)) {
+    pose = checked_before_report("the outlines' match");
+  } else {
+    pose = checked_pose(warm, image, maps, p, placement, r);
+    warm.checked_head_pose = placement;
+  }
   // Its volume scale is not the brain's: the gates take it out
   // (carried_preop_volumes).
   metrics = {{"converged", r.converged}, {"rms_surface_distance_mm", r.rms_surface_distance_mm},
-             {"inlier_fraction", r.inlier_fraction}, {"message", r.message},
+             {"inlier_fraction", r.inlier_fraction}, {"message", r.message}, {"pose_search", pose},
              {"volume_scale", placement.topLeftCorner<3, 3>().determinant()}};
   return placement;
 }

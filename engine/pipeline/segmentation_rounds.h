@@ -74,7 +74,11 @@ struct ScanOnGrid {
                                               intraop_from_preop.topLeftCorner<3, 3>().determinant())),
         stage_grid(working_grid(im.grid, p.auto_segmentation.passes.stage_spacing_mm)) {
     if (stage_grid.dims != im.grid.dims) stage_image = downsample_linear(im, stage_grid);
+    placement = intraop_from_preop;
   }
+  // Where the head was placed (place_preop_by_head): one more start for the
+  // passes' affine (PassOptions::affine_candidate).
+  Eigen::Matrix4d placement = Eigen::Matrix4d::Identity();
 
   // As for given labels (run_intraop), but said of the image and before the
   // segmentation's time is spent: the preop placed by the head shows how much
@@ -193,6 +197,7 @@ struct ScanOnGrid {
   ScanResult stages(const segmentation::IntraopSegmentation& s, const std::string& forced,
                     PassOptions pass) const {
     pass.segmented_by_engine = true;
+    pass.affine_candidate = &placement;
     if (!stage_image || pass.prior_only)
       return run_intraop(warm, IntraopInput{s.labels, image, read_seconds, s.open_fluid_ml}, params, progress, false,
                          forced, pass);

@@ -72,6 +72,11 @@ struct WarmState {
   // (registration/intensity_placement.h), made on the first scan that needs
   // them: a brain-extracted preop, or scan.
   std::optional<IntensityPlacementPreop> intensity_placement_preop;
+  // The head's pose on the last scan whose placement the pose search checked
+  // (segmentation_rounds.h place_preop_by_head): the head stays pinned in its
+  // clamp through the operation, so a later scan placed within a few degrees
+  // of it needs no new search.
+  std::optional<Eigen::Matrix4d> checked_head_pose;
   // The preop labels' tissue box (field/tissue_guard.h), worked out by the
   // first scan's field.
   std::optional<VoxelBox> preop_tissue_voxels;
@@ -121,6 +126,9 @@ struct PassOptions {
   // The affine's warm start (register_affine): a previous pass's, on a
   // nearly identical segmentation; nullptr: the full search.
   const Eigen::Matrix4d* affine_start = nullptr;
+  // Without a warm start, one more start for the affine's search
+  // (register_affine's candidate): the image-only path's head placement.
+  const Eigen::Matrix4d* affine_candidate = nullptr;
   // The field keeps preop tissue out of the gap a sinking left
   // (field/tissue_guard.h), judged against the pass's own outline. Off for
   // the pass on given labels that their image refines: that pass makes the

@@ -320,6 +320,57 @@ std::vector<AffineState> initial_candidates(const PreopBoundarySamples& preop,
   return out;
 }
 
+constexpr double kPi = 3.14159265358979323846;
+
+// The angle of the rotation between two candidates' linear parts (their
+// polar decompositions' rotations), degrees.
+double rotation_between_deg(const Eigen::Matrix3d& a, const Eigen::Matrix3d& b) {
+  const auto rotation = [](const Eigen::Matrix3d& m) {
+    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(m, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    return Eigen::Matrix3d(svd.matrixU() * svd.matrixV().transpose());
+  };
+  return Eigen::AngleAxisd(rotation(a).transpose() * rotation(b)).angle() * 180.0 / kPi;
+}
+
+// A start the coarse level does not already reach from a candidate: more
+// than half the pose sweep's step (15 degrees) from every one of them. Nearer
+// starts would only repeat the search they make (and their noise decide
+// between near-equal answers).
+void add_if_another_pose(const AffineState& start, std::vector<AffineState>& candidates) {
+  for (const AffineState& existing : candidates)
+    if (rotation_between_deg(existing.B, start.B) <= 15.0) return;
+  candidates.push_back(start);
+}
+
+// The head's pose swept where the candidates above cannot reach: a head
+// turned in its clamp for a lateral approach (60-90 degrees about S-I), or
+// flexed, which the scanner's RAS does not follow. The coarse level's cost
+// at every 30 degrees of yaw about the preop's S-I axis, with pitch and roll
+// 0 and +-30 (108 poses: any pose within 15 degrees of yaw, and of pitch and
+// roll up to 45, of one), the centroids on each other and the volume's
+// scale; the cheapest pose is one more candidate when it is another pose
+// (add_if_another_pose). About 10 ms.
+void add_swept_pose(const std::vector<Term>& coarse_terms, double c, const PreopBoundarySamples& preop,
+                    const IntraopDistanceMaps& intraop, double radius, std::vector<AffineState>& candidates) {
+  constexpr double kStepDeg = 30.0;
+  const double scale = std::cbrt(intraop.outer_moments.volume_ml / preop.outer_moments.volume_ml);
+  AffineState best;
+  double best_cost = std::numeric_limits<double>::infinity();
+  for (int yaw = 0; yaw < 12; ++yaw)
+    for (const double pitch : {0.0, -kStepDeg, kStepDeg})
+      for (const double roll : {0.0, -kStepDeg, kStepDeg}) {
+        const double deg = kPi / 180.0;
+        const Eigen::Matrix3d r = (Eigen::AngleAxisd(yaw * kStepDeg * deg, Eigen::Vector3d::UnitZ()) *
+                                   Eigen::AngleAxisd(roll * deg, Eigen::Vector3d::UnitY()) *
+                                   Eigen::AngleAxisd(pitch * deg, Eigen::Vector3d::UnitX()))
+                                      .toRotationMatrix();
+        const AffineState pose{scale * radius * r, intraop.outer_moments.centroid_mm};
+        const double cost = evaluate(coarse_terms, pose, c).cost;
+        if (cost < best_cost) best_cost = cost, best = pose;
+      }
+  add_if_another_pose(best, candidates);
+}
+
 Eigen::Matrix4d to_matrix(const AffineState& s, const Eigen::Vector3d& centre, double radius) {
   Eigen::Matrix4d m = Eigen::Matrix4d::Identity();
   const Eigen::Matrix3d A = s.B / radius;
@@ -405,7 +456,7 @@ AffineRegistrationResult finish_affine(const std::vector<Term>& fine_terms, cons
 AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
                                          const IntraopDistanceMaps& intraop,
                                          const AffineRegistrationParameters& p,
-                                         const Eigen::Matrix4d* start) {
+                                         const Eigen::Matrix4d* start, const Eigen::Matrix4d* candidate) {
   if (p.levels < 1 || p.coarse_points < 12 || p.fine_points < 12 || !(p.robust_scale_mm > 0) ||
       p.iterations_per_level < 1 || !(p.min_robust_scale_mm > 0) || p.min_robust_scale_mm > p.robust_scale_mm ||
       !(p.data_scale_factor > 0)) {
@@ -439,7 +490,12 @@ AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
     return level == p.levels - 1 ? p.tolerance_mm : p.coarse_tolerance_mm;
   };
   const std::vector<Term> coarse_terms = make_terms(preop, intraop, p, 0, centre, radius);
-  const auto candidates = initial_candidates(preop, intraop, p, radius);
+  auto candidates = initial_candidates(preop, intraop, p, radius);
+  if (candidate)
+    add_if_another_pose({candidate->topLeftCorner<3, 3>() * radius,
+                         candidate->topRightCorner<3, 1>() + candidate->topLeftCorner<3, 3>() * centre},
+                        candidates);
+  add_swept_pose(coarse_terms, level_c(0), preop, intraop, radius, candidates);
   LevelOutcome best;
   double best_cost = std::numeric_limits<double>::infinity();
   for (const AffineState& candidate : candidates) {

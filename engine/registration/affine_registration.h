@@ -21,8 +21,10 @@
 // toward a 25 mm local sink, and by the time the affine's extra freedom is
 // switched on the sunken points are far outside the robust scale. Initialisation from moments (centroids; isotropic scale from
 // the volume ratio), plus the principal-axes rotation as a second candidate
-// when both covariances have well separated eigenvalues; each candidate runs the
-// coarse level and the lowest cost wins.
+// when both covariances have well separated eigenvalues, plus the cheapest of
+// a sweep of 108 head poses when it is another pose (a head turned for a
+// lateral approach); each candidate runs the coarse level and the lowest cost
+// wins.
 #include <cstdint>
 #include <string>
 
@@ -108,10 +110,16 @@ AffineRegistrationResult register_affine(const LabelImage& preop_labels,
 // intraop segmentation" item 9), within a voxel or two of this one: only the
 // finest level runs, from it (the coarse levels and the moment candidates
 // are there for capture range), then the full affine as usual.
+// candidate (optional, without start): one more start for the coarse level
+// beside the moments' (identity and principal axes) and the pose sweep's
+// (a head turned in its clamp, see the .cpp), the lowest cost winning: where
+// the head was placed on the scan (the image-only path). Like the sweep's,
+// only when more than 15 degrees from every other start.
 AffineRegistrationResult register_affine(const PreopBoundarySamples& preop,
                                          const IntraopDistanceMaps& intraop,
                                          const AffineRegistrationParameters& params,
-                                         const Eigen::Matrix4d* start = nullptr);
+                                         const Eigen::Matrix4d* start = nullptr,
+                                         const Eigen::Matrix4d* candidate = nullptr);
 
 // The parameters of a placement: an affine that only has to bring a
 // structure within a search's width (millimetres: a fluid space several mm

@@ -7,6 +7,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/timer.h"
 #include "image/gaussian_smooth.h"
 #include "image/interpolation.h"
 #include "image/resample.h"
@@ -143,52 +144,132 @@ IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_
   return place_by_intensity(intensity_placement_preop(preop_t1, preop_brain, p), intraop, start, p);
 }
 
-IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
-                                      const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
+namespace {
+
+void check_levels(const IntensityPlacementPreop& preop, const IntensityPlacementParameters& p) {
   if (preop.levels.size() != 2 || preop.levels[0].smoothing_mm != p.coarse_mm || preop.levels[1].smoothing_mm != p.fine_mm)
     throw InputError("intensity placement: the preop's samples were made for other levels");
-  const Eigen::Vector3d centre = preop.centre_mm;
+}
 
+std::array<double, 7> first_steps(const IntensityPlacementParameters& p) {
+  const double deg = kPi / 180.0;
+  return {p.translation_step_mm,     p.translation_step_mm,     p.translation_step_mm, p.rotation_step_deg * deg,
+          p.rotation_step_deg * deg, p.rotation_step_deg * deg, p.log_scale_step};
+}
+
+// Pattern search from q: each of the first `parameters` tried a step either
+// way, the best move kept; the steps halve when none helps, down to
+// step[0] at most min_step_mm. Bounded by max_evaluations. Returns q's score.
+Score pattern_search(const IntensityPlacementPreop::Level& s, const ImageF& image, const Eigen::Vector3d& centre,
+                     const Eigen::Matrix4d& start, int parameters, double max_log_scale, double min_step_mm,
+                     int max_evaluations, std::array<double, 7> step, Params& q, int& evaluations) {
+  Score best = score(s, image, transform_of(q, centre, start));
+  ++evaluations;
+  int used = 0;
+  while (used < max_evaluations && step[0] >= min_step_mm - 1e-12) {
+    Params best_q = q;
+    Score best_move = best;
+    for (int a = 0; a < parameters && used < max_evaluations; ++a)
+      for (const double sign : {-1.0, 1.0}) {
+        Params trial = q;
+        trial[static_cast<std::size_t>(a)] += sign * step[static_cast<std::size_t>(a)];
+        if (std::abs(trial[6]) > max_log_scale) continue;
+        const Score sc = score(s, image, transform_of(trial, centre, start));
+        ++used;
+        if (sc.objective() > best_move.objective() + 1e-9) best_move = sc, best_q = trial;
+      }
+    if (best_q == q) {
+      for (double& x : step) x *= 0.5;
+    } else {
+      q = best_q;
+      best = best_move;
+    }
+  }
+  evaluations += used;
+  return best;
+}
+
+// Every k-th sample, at most max_samples of them.
+IntensityPlacementPreop::Level thinned(const IntensityPlacementPreop::Level& s, std::size_t max_samples) {
+  if (s.at_mm.size() <= max_samples) return s;
+  IntensityPlacementPreop::Level out;
+  out.smoothing_mm = s.smoothing_mm;
+  const std::size_t k = (s.at_mm.size() + max_samples - 1) / max_samples;
+  for (std::size_t i = 0; i < s.at_mm.size(); i += k) out.at_mm.push_back(s.at_mm[i]), out.value.push_back(s.value[i]);
+  return out;
+}
+
+}  // namespace
+
+double intensity_correlation(const IntensityPlacementPreop& preop, const ImageF& intraop,
+                             const Eigen::Matrix4d& intraop_from_preop, const IntensityPlacementParameters& p) {
+  check_levels(preop, p);
+  const IntensityPlacementPreop::Level& fine = preop.levels.back();
+  return score(fine, scan_at_level(intraop, fine.smoothing_mm), intraop_from_preop).ncc;
+}
+
+PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+                                    const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
+  check_levels(preop, p);
+  const Stopwatch watch;
+  const IntensityPlacementPreop::Level few = thinned(preop.levels.front(), p.pose_samples);
+  const ImageF image = scan_at_level(intraop, few.smoothing_mm);
+  const double deg = kPi / 180.0;
+  std::array<double, 7> step{};
+  for (int a = 0; a < 3; ++a) step[static_cast<std::size_t>(a)] = 2 * p.translation_step_mm;
+  // The candidates, each searched on its own: the two halves of them side
+  // by side (each evaluation on one thread), the best taken in candidate
+  // order: the same answer on one core or two.
+  std::vector<Params> candidates;
+  const int yaws = static_cast<int>(std::lround(360.0 / p.pose_yaw_step_deg));
+  for (int y = 0; y < yaws; ++y)
+    for (const double pitch : {0.0, -p.pose_tilt_deg, p.pose_tilt_deg})
+      for (const double roll : {0.0, -p.pose_tilt_deg, p.pose_tilt_deg}) {
+        Params q{};
+        q[3] = pitch * deg, q[4] = roll * deg, q[5] = y * p.pose_yaw_step_deg * deg;
+        if (q[5] > kPi) q[5] -= 2 * kPi;
+        candidates.push_back(q);
+      }
+  std::vector<Score> scores(candidates.size());
+  std::vector<int> evaluations(candidates.size(), 0);
+  parallel_halves(candidates.size(), 1, [&](std::size_t begin, std::size_t end) {
+    const SerialOnThisThread serial;
+    for (std::size_t c = begin; c < end; ++c)
+      scores[c] = pattern_search(few, image, preop.centre_mm, start, 3, 0.0, p.translation_step_mm / 2,
+                                 p.pose_evaluations, step, candidates[c], evaluations[c]);
+  });
+  PoseSearch out;
+  double best_objective = -2;
+  for (std::size_t c = 0; c < candidates.size(); ++c) {
+    ++out.candidates;
+    out.evaluations += evaluations[c];
+    if (scores[c].objective() > best_objective) {
+      best_objective = scores[c].objective();
+      out.intraop_from_preop = transform_of(candidates[c], preop.centre_mm, start);
+      out.correlation = scores[c].ncc;
+    }
+  }
+  const Eigen::Matrix3d relative = start.topLeftCorner<3, 3>().inverse() * out.intraop_from_preop.topLeftCorner<3, 3>();
+  out.rotation_from_start_deg = Eigen::AngleAxisd(relative).angle() / deg;
+  out.seconds = watch.seconds();
+  return out;
+}
+
+IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+                                      const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
+  check_levels(preop, p);
+  const Eigen::Vector3d centre = preop.centre_mm;
   IntensityPlacement out;
   Params q{};
-  const double deg = kPi / 180.0;
-  const std::array<double, 7> first_step = {p.translation_step_mm, p.translation_step_mm, p.translation_step_mm,
-                                            p.rotation_step_deg * deg, p.rotation_step_deg * deg,
-                                            p.rotation_step_deg * deg, p.log_scale_step};
+  const std::array<double, 7> first_step = first_steps(p);
   Score best;
   for (const IntensityPlacementPreop::Level& s : preop.levels) {
-    const double level_mm = s.smoothing_mm;
-    const ImageF intraop_level = scan_at_level(intraop, level_mm);
-    best = score(s, intraop_level, transform_of(q, centre, start));
-    ++out.evaluations;
-    // Pattern search: each parameter tried a step either way, the best move
-    // kept; the steps halve when none helps, down to the finest. Bounded by
-    // max_evaluations.
     std::array<double, 7> step = first_step;
-    if (level_mm == p.fine_mm)
+    if (s.smoothing_mm == p.fine_mm)
       for (double& x : step) x *= 0.5;
-    int evaluations = 0;
-    while (evaluations < p.max_evaluations && step[0] >= first_step[0] / p.finest_step_fraction - 1e-12) {
-      Params best_q = q;
-      Score best_move = best;
-      const int parameters = p.max_log_scale > 0 ? 7 : 6;
-      for (int a = 0; a < parameters && evaluations < p.max_evaluations; ++a)
-        for (const double sign : {-1.0, 1.0}) {
-          Params trial = q;
-          trial[static_cast<std::size_t>(a)] += sign * step[static_cast<std::size_t>(a)];
-          if (std::abs(trial[6]) > p.max_log_scale) continue;
-          const Score sc = score(s, intraop_level, transform_of(trial, centre, start));
-          ++evaluations;
-          if (sc.objective() > best_move.objective() + 1e-9) best_move = sc, best_q = trial;
-        }
-      if (best_q == q) {
-        for (double& x : step) x *= 0.5;
-      } else {
-        q = best_q;
-        best = best_move;
-      }
-    }
-    out.evaluations += evaluations;
+    best = pattern_search(s, scan_at_level(intraop, s.smoothing_mm), centre, start, p.max_log_scale > 0 ? 7 : 6,
+                          p.max_log_scale, first_step[0] / p.finest_step_fraction, p.max_evaluations, step, q,
+                          out.evaluations);
   }
   out.intraop_from_preop = transform_of(q, centre, start);
   out.correlation = best.ncc;

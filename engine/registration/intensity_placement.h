@@ -38,6 +38,20 @@ struct IntensityPlacementParameters {
   // fit shrank the preop into the gap a 20 mm sinking leaves (volume -13 %,
   // refused by the segmentation's volume gate; docs/performance/12.45).
   double max_log_scale = 0.0;
+  // The pose search (search_pose_by_intensity): the head's yaw about the
+  // preop's S-I axis every pose_yaw_step_deg all round, and its pitch and
+  // roll 0 and +-pose_tilt_deg, each candidate's translation searched on the
+  // coarse level (steps 8 mm down to 2 mm, at most pose_evaluations) with at
+  // most pose_samples samples. Surgery positions the head in its clamp
+  // turned up to 90 degrees for a lateral approach, flexed or tilted by
+  // tens of degrees, and a prone patient recorded as supine turns it 180:
+  // the scanner's RAS does not follow any of it. 30 degree steps leave any
+  // pose within 15 degrees of yaw (and of pitch and roll up to 45) of a
+  // candidate, inside the placement's own reach from it (its 4 degree
+  // steps, on a 4 mm blur of a 140 mm brain).
+  double pose_yaw_step_deg = 30.0, pose_tilt_deg = 30.0;
+  std::size_t pose_samples = 2000;  // r's sampling error ~(1 - r^2) / sqrt(n) ~ 0.01, against 0.2-0.7 between poses
+  int pose_evaluations = 40;
 };
 
 struct IntensityPlacement {
@@ -71,6 +85,24 @@ IntensityPlacementPreop intensity_placement_preop(const ImageF& preop_t1, const 
 IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
                                       const Eigen::Matrix4d& start_intraop_from_preop,
                                       const IntensityPlacementParameters& p = {});
+
+// The normalised correlation at a placement, on the fine level (signed).
+double intensity_correlation(const IntensityPlacementPreop& preop, const ImageF& intraop,
+                             const Eigen::Matrix4d& intraop_from_preop, const IntensityPlacementParameters& p = {});
+
+// The head's pose found by intensity whatever it is (the candidates above,
+// about the preop brain's centre after start): the best candidate, for
+// place_by_intensity to refine. 108 candidates of at most 41 evaluations on
+// 2000 samples.
+struct PoseSearch {
+  Eigen::Matrix4d intraop_from_preop = Eigen::Matrix4d::Identity();
+  double correlation = 0;              // the coarse level's, on the thinned samples
+  double rotation_from_start_deg = 0;  // of the best candidate
+  int candidates = 0, evaluations = 0;
+  double seconds = 0;
+};
+PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+                                    const Eigen::Matrix4d& start, const IntensityPlacementParameters& p = {});
 
 // Both steps at once.
 IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_brain, const ImageF& intraop,

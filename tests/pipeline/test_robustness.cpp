@@ -94,3 +94,37 @@ TEST(Robustness, IndependentPreopMapNoisySegmentationsDegradedImages) {
   EXPECT_NE(refused.labels_only.metrics.value("fallback_reason", "").find("surface match of"), std::string::npos)
       << refused.labels_only.metrics.value("fallback_reason", "");
 }
+
+// A lateral approach with the head turned 70 degrees in its clamp, which the
+// scanner's RAS does not follow. The affine's starts (moments, principal
+// axes) did not reach it: from the image alone the scan was refused ("not an
+// MR contrast"), and given labels fell back to an affine 27 mm off. Now the
+// affine sweeps the head's pose (registration/affine_registration.h), and
+// the image-only path checks its head placement by intensity
+// (segmentation_rounds.h place_preop_by_head): every mode non-rigid and
+// accurate.
+TEST(Robustness, AHeadTurnedInItsClampIsRegisteredInEveryInputMode) {
+  const evaluation::RobustnessInputs inputs = evaluation::load_robustness_inputs(atlas_cache());
+  const RobustnessSpec spec = robustness_turned_head_case();
+  const evaluation::CaseAnatomy anatomy = evaluation::case_anatomy(inputs, spec);
+  EngineSession session(MPI_COMM_WORLD, defaults());
+  session.load_preop(anatomy.preop, nullptr);
+  const auto run = evaluation::run_robustness_case(session, anatomy, spec, false, true);
+  ASSERT_TRUE(run.image_only);
+  const evaluation::CaseResult& c = *run.image_only;
+  print("image only", c);
+  expect_sound(c);
+  EXPECT_LE(c.nonrigid_mean_mm, 0.5 * c.affine_mean_mm);
+  EXPECT_LE(c.nonrigid_mean_mm, 0.6);
+  EXPECT_LE(c.nonrigid_max_mm, 4.0);
+  const auto& pose = c.metrics["segmentation"]["head_placement"]["pose_search"];
+  EXPECT_GT(pose.value("outline_correlation", 0.0), 0.6) << pose.dump();
+  print("with image", run.with_image);
+  print("labels only", run.labels_only);
+  for (const auto* r : {&c, &run.with_image, &run.labels_only}) {
+    EXPECT_FALSE(r->fallback) << r->name << ": " << r->metrics.value("fallback_reason", "");
+    const double turn = r->metrics["plausibility"]["head_rotation"].value("value", 0.0);
+    EXPECT_NEAR(turn, 71.0, 5.0) << r->name;
+    EXPECT_LE(r->nonrigid_mean_mm, 0.6) << r->name;
+  }
+}

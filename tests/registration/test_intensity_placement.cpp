@@ -93,5 +93,25 @@ TEST_F(IntensityPlacementTest, ATranslationBeyondItsReachIsNotFoundAndSaysSo) {
   EXPECT_LT(std::abs(r.correlation), 0.6) << r.message;
 }
 
+TEST_F(IntensityPlacementTest, AHeadTurnedInItsClampIsFoundByThePoseSearch) {
+  // A lateral approach: the head turned 90 degrees about S-I and flexed 20
+  // in the scanner, which its RAS does not follow. From the scanner's
+  // placement the local search cannot reach it; the pose search can.
+  const Eigen::Matrix4d turn = rigid({0, 0, 1}, 90, {12, -8, 15}) * rigid({1, 0, 0}, 20, {0, 0, 0});
+  const IntensityPlacementPreop samples = intensity_placement_preop(preop, brain);
+  const ImageF image = scan(turn, false);
+  const IntensityPlacement local = place_by_intensity(samples, image, Eigen::Matrix4d::Identity());
+  EXPECT_GT(corner_error_mm(local.intraop_from_preop, turn), 10.0) << "beyond the local search's reach";
+  const PoseSearch search = search_pose_by_intensity(samples, image, Eigen::Matrix4d::Identity());
+  EXPECT_GT(search.rotation_from_start_deg, 60.0);
+  EXPECT_EQ(search.candidates, 108);
+  EXPECT_LE(search.evaluations, search.candidates * (IntensityPlacementParameters{}.pose_evaluations + 1));
+  const IntensityPlacement found = place_by_intensity(samples, image, search.intraop_from_preop);
+  EXPECT_LT(corner_error_mm(found.intraop_from_preop, turn), 1.0) << found.message;
+  EXPECT_GT(found.correlation * found.correlation, local.correlation * local.correlation);
+  // The correlation at a placement is the one the placement reports.
+  EXPECT_NEAR(intensity_correlation(samples, image, found.intraop_from_preop), found.correlation, 1e-9);
+}
+
 }  // namespace
 }  // namespace brainshift
