@@ -18,6 +18,7 @@
 #include <fstream>
 #include <map>
 #include <memory>
+#include <random>
 #include <set>
 
 #include "bench_session.h"
@@ -210,6 +211,13 @@ int main(int argc, char** argv) {
   app.add_option("--coil-shading", coil_shading, "with --coil-array: the array's shading raised to this power "
                                                  "(1: no intensity normalisation; default 1)")
       ->check(CLI::Range(0.0, 2.0));
+  double turn_deg = 0;
+  app.add_option("--turn-heads", turn_deg,
+                 "every case's head turned in its clamp, which the scanner's RAS does not follow: a yaw about S-I "
+                 "drawn from the case's seed between a third of this and this (either side), pitch and roll up to "
+                 "15 degrees, a translation up to 20 mm, composed after the case's own rigid move (cases named "
+                 "CASE_turnedD): a lateral or temporal approach")
+      ->check(CLI::Range(0.0, 90.0));
   bool list_subjects = false;
   app.add_flag("--list-subjects", list_subjects, "print the selected cases' subjects, one a line");
   CLI11_PARSE(app, argc, argv);
@@ -254,6 +262,19 @@ int main(int argc, char** argv) {
       std::snprintf(suffix, sizeof suffix, "_coils%d", coil_loops);
       c.deformation.name += suffix;
       if (coil_shading != 1.0) c.deformation.name += "_shading" + std::to_string(coil_shading).substr(0, 4);
+    }
+  if (turn_deg > 0)
+    for (auto& c : suite) {
+      std::mt19937_64 rng(c.deformation.seed * 7919 + 17);
+      std::uniform_real_distribution<double> unit(-1.0, 1.0);
+      const double yaw = unit(rng);
+      auto& rigid = c.deformation.rigid;
+      rigid.rotation_deg += Eigen::Vector3d(15 * unit(rng), 15 * unit(rng),
+                                            (yaw < 0 ? -1 : 1) * turn_deg * (1 + 2 * std::abs(yaw)) / 3);
+      rigid.translation_mm += Eigen::Vector3d(20 * unit(rng), 20 * unit(rng), 20 * unit(rng));
+      char suffix[32];
+      std::snprintf(suffix, sizeof suffix, "_turned%g", turn_deg);
+      c.deformation.name += suffix;
     }
   if (!summarise_path.empty()) return summarise(summarise_path, suite, modes);
   if (list_subjects) {
