@@ -5,12 +5,12 @@
 #include <cstdio>
 
 #include "core/errors.h"
+#include "core/rotation_angle.h"
 #include "core/timer.h"
 #include "field/vector_sampling.h"
 #include "field/warp.h"
 #include "image/image_stats.h"
 #include "protocol/stage_names.h"
-#include "quality/plausibility_gates.h"
 #include "registration/intensity_placement.h"
 #include "segmentation/enhanced_shell.h"
 #include "segmentation/head_mask.h"
@@ -87,18 +87,12 @@ nlohmann::json describe(const PoseSearch& s) {
           {"seconds", s.seconds}};
 }
 
-// The angle between two placements' rotations (their rigid parts, degrees).
-double rotation_between_deg(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b) {
-  const Eigen::Vector3d origin = Eigen::Vector3d::Zero();
-  const Eigen::Matrix3d relative =
-      rigid_part(a, origin).topLeftCorner<3, 3>().transpose() * rigid_part(b, origin).topLeftCorner<3, 3>();
-  return Eigen::AngleAxisd(relative).angle() * 180.0 / 3.14159265358979323846;
-}
-
 // The pose an earlier scan of this preop checked, when the placement is
 // within kOtherPoseDeg of it (WarmState::checked_head_pose).
 bool pose_checked_before(const WarmState& warm, const Eigen::Matrix4d& placement) {
-  return warm.checked_head_pose && rotation_between_deg(*warm.checked_head_pose, placement) <= kOtherPoseDeg;
+  return warm.checked_head_pose &&
+         rotation_between_deg(warm.checked_head_pose->topLeftCorner<3, 3>(), placement.topLeftCorner<3, 3>()) <=
+             kOtherPoseDeg;
 }
 
 nlohmann::json checked_before_report(const std::string& used) {
@@ -231,11 +225,8 @@ Eigen::Matrix4d place_preop_by_head(WarmState& warm, const ImageF& image, const 
     r = register_affine(samples, maps, p);
     placement = r.intraop_from_preop;
   }
-  // The outlines' match is local: a head turned in its clamp (a lateral
-  // approach, 60-90 degrees; a prone patient recorded supine, 180) leaves it
-  // in another pose, which the search by intensity finds. The outlines are
-  // then matched again from the pose it found, and whichever placement the
-  // preop brain's intensities correlate with better is kept.
+  // The placement checked against the head's other poses (checked_pose),
+  // once per pose.
   if (pose_checked_before(warm, placement)) {
     pose = checked_before_report("the outlines' match");
   } else {

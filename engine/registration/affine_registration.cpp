@@ -11,6 +11,7 @@
 #include <Eigen/Eigenvalues>
 
 #include "core/errors.h"
+#include "core/rotation_angle.h"
 #include "registration/linear_sampler.h"
 
 namespace brainshift {
@@ -321,16 +322,6 @@ std::vector<AffineState> initial_candidates(const PreopBoundarySamples& preop,
 }
 
 constexpr double kPi = 3.14159265358979323846;
-
-// The angle of the rotation between two candidates' linear parts (their
-// polar decompositions' rotations), degrees.
-double rotation_between_deg(const Eigen::Matrix3d& a, const Eigen::Matrix3d& b) {
-  const auto rotation = [](const Eigen::Matrix3d& m) {
-    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(m, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    return Eigen::Matrix3d(svd.matrixU() * svd.matrixV().transpose());
-  };
-  return Eigen::AngleAxisd(rotation(a).transpose() * rotation(b)).angle() * 180.0 / kPi;
-}
 
 // A start the coarse level does not already reach from a candidate: more
 // than half the pose sweep's step (15 degrees) from every one of them. Nearer

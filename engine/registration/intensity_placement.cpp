@@ -7,6 +7,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/rotation_angle.h"
 #include "core/timer.h"
 #include "image/gaussian_smooth.h"
 #include "image/interpolation.h"
@@ -249,8 +250,8 @@ PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const 
       out.correlation = scores[c].ncc;
     }
   }
-  const Eigen::Matrix3d relative = start.topLeftCorner<3, 3>().inverse() * out.intraop_from_preop.topLeftCorner<3, 3>();
-  out.rotation_from_start_deg = Eigen::AngleAxisd(relative).angle() / deg;
+  out.rotation_from_start_deg =
+      rotation_between_deg(start.topLeftCorner<3, 3>(), out.intraop_from_preop.topLeftCorner<3, 3>());
   out.seconds = watch.seconds();
   return out;
 }
