@@ -11,6 +11,7 @@
 #include <Eigen/Eigenvalues>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "core/rotation_angle.h"
 #include "registration/linear_sampler.h"
 
@@ -333,6 +334,20 @@ void add_if_another_pose(const AffineState& start, std::vector<AffineState>& can
   candidates.push_back(start);
 }
 
+// The robust cost alone (evaluate's, without the normal equations that cost
+// four fifths of its time): what the pose sweep compares.
+double cost_only(const std::vector<Term>& terms, const AffineState& s, double c) {
+  double cost = 0;
+  for (const Term& term : terms) {
+    const LinearSampler sampler(*term.sdf);
+    for (const Eigen::Vector3d& q : term.q) {
+      double r;
+      cost += term.weight * (sampler.sample(s.B * q + s.t, &r, nullptr) ? gm_rho(r, c) : 0.5 * c * c);
+    }
+  }
+  return cost;
+}
+
 // The head's pose swept where the candidates above cannot reach: a head
 // turned in its clamp for a lateral approach (60-90 degrees about S-I), or
 // flexed, which the scanner's RAS does not follow. The coarse level's cost
@@ -340,25 +355,31 @@ void add_if_another_pose(const AffineState& start, std::vector<AffineState>& can
 // 0 and +-30 (108 poses: any pose within 15 degrees of yaw, and of pitch and
 // roll up to 45, of one), the centroids on each other and the volume's
 // scale; the cheapest pose is one more candidate when it is another pose
-// (add_if_another_pose). About 10 ms.
+// (add_if_another_pose). 108 costs of the coarse level's points, without
+// the normal equations: 9 ms measured on a loaded machine (24 ms with them).
 void add_swept_pose(const std::vector<Term>& coarse_terms, double c, const PreopBoundarySamples& preop,
                     const IntraopDistanceMaps& intraop, double radius, std::vector<AffineState>& candidates) {
   constexpr double kStepDeg = 30.0;
   const double scale = std::cbrt(intraop.outer_moments.volume_ml / preop.outer_moments.volume_ml);
-  AffineState best;
-  double best_cost = std::numeric_limits<double>::infinity();
+  const double deg = kPi / 180.0;
+  std::vector<AffineState> poses;
   for (int yaw = 0; yaw < 12; ++yaw)
     for (const double pitch : {0.0, -kStepDeg, kStepDeg})
       for (const double roll : {0.0, -kStepDeg, kStepDeg}) {
-        const double deg = kPi / 180.0;
         const Eigen::Matrix3d r = (Eigen::AngleAxisd(yaw * kStepDeg * deg, Eigen::Vector3d::UnitZ()) *
                                    Eigen::AngleAxisd(roll * deg, Eigen::Vector3d::UnitY()) *
                                    Eigen::AngleAxisd(pitch * deg, Eigen::Vector3d::UnitX()))
                                       .toRotationMatrix();
-        const AffineState pose{scale * radius * r, intraop.outer_moments.centroid_mm};
-        const double cost = evaluate(coarse_terms, pose, c).cost;
-        if (cost < best_cost) best_cost = cost, best = pose;
+        poses.push_back({scale * radius * r, intraop.outer_moments.centroid_mm});
       }
+  // Each pose's cost on its own, the two halves side by side; the cheapest
+  // taken in pose order: the same on one core or two.
+  std::vector<double> cost(poses.size());
+  parallel_halves(poses.size(), 1, [&](std::size_t begin, std::size_t end) {
+    for (std::size_t i = begin; i < end; ++i) cost[i] = cost_only(coarse_terms, poses[i], c);
+  });
+  const auto cheapest = std::min_element(cost.begin(), cost.end()) - cost.begin();
+  const AffineState& best = poses[static_cast<std::size_t>(cheapest)];
   add_if_another_pose(best, candidates);
 }
 
