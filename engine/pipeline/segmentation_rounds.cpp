@@ -112,16 +112,17 @@ Eigen::Matrix4d place_preop_by_intensity(WarmState& warm, const ImageF& image, c
                                          nlohmann::json& metrics) {
   const IntensityPlacementPreop& samples = placement_samples(warm);
   const Eigen::Matrix4d start = warm.checked_head_pose ? *warm.checked_head_pose : Eigen::Matrix4d::Identity();
-  IntensityPlacement r = place_by_intensity(samples, image, start);
+  const IntensityPlacementScan scan = intensity_placement_scan(samples, image);
+  IntensityPlacement r = place_by_intensity(samples, scan, start);
   nlohmann::json pose;
   if (pose_checked_before(warm, r.intraop_from_preop)) {
     pose = checked_before_report("the earlier scan's pose, refined");
   } else {
-    const PoseSearch search = search_pose_by_intensity(samples, image, r.intraop_from_preop);
+    const PoseSearch search = search_pose_by_intensity(samples, scan, r.intraop_from_preop);
     pose = describe(search);
     pose["used"] = "the scanner's placement, refined";
     if (search.rotation_from_start_deg > kOtherPoseDeg) {
-      IntensityPlacement other = place_by_intensity(samples, image, search.intraop_from_preop);
+      IntensityPlacement other = place_by_intensity(samples, scan, search.intraop_from_preop);
       pose["other_pose_correlation"] = other.correlation;
       if (other.correlation * other.correlation > r.correlation * r.correlation) {
         other.evaluations += r.evaluations;
@@ -151,19 +152,20 @@ nlohmann::json checked_pose(WarmState& warm, const ImageF& image, const IntraopD
                             const AffineRegistrationParameters& p, Eigen::Matrix4d& placement,
                             AffineRegistrationResult& r) {
   const IntensityPlacementPreop& intensity = placement_samples(warm);
-  const double outline_correlation = intensity_correlation(intensity, image, placement);
-  const PoseSearch search = search_pose_by_intensity(intensity, image, placement);
+  const IntensityPlacementScan scan = intensity_placement_scan(intensity, image);
+  const double outline_correlation = intensity_correlation(intensity, scan, placement);
+  const PoseSearch search = search_pose_by_intensity(intensity, scan, placement);
   nlohmann::json pose = describe(search);
   pose["outline_correlation"] = outline_correlation;
   pose["used"] = "the outlines' match";
   if (search.rotation_from_start_deg <= kOtherPoseDeg) return pose;
-  const IntensityPlacement other = place_by_intensity(intensity, image, search.intraop_from_preop);
+  const IntensityPlacement other = place_by_intensity(intensity, scan, search.intraop_from_preop);
   pose["other_pose_correlation"] = other.correlation;
   const PreopBoundarySamples samples = visible_head(*warm.preop_head, image.grid, &other.intraop_from_preop);
   const AffineRegistrationResult again = samples.outer_mm.size() < 100
                                              ? AffineRegistrationResult{}
                                              : register_affine(samples, maps, p, &other.intraop_from_preop);
-  const double again_correlation = again.converged ? intensity_correlation(intensity, image, again.intraop_from_preop) : 0.0;
+  const double again_correlation = again.converged ? intensity_correlation(intensity, scan, again.intraop_from_preop) : 0.0;
   pose["other_pose_outline_correlation"] = again_correlation;
   const double best_so_far = outline_correlation * outline_correlation;
   if (again.converged && again_correlation * again_correlation > best_so_far) {

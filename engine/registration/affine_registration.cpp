@@ -12,6 +12,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/pose_sweep.h"
 #include "core/rotation_angle.h"
 #include "registration/linear_sampler.h"
 
@@ -322,7 +323,6 @@ std::vector<AffineState> initial_candidates(const PreopBoundarySamples& preop,
   return out;
 }
 
-constexpr double kPi = 3.14159265358979323846;
 
 // A start the coarse level does not already reach from a candidate: more
 // than half the pose sweep's step (15 degrees) from every one of them. Nearer
@@ -361,17 +361,9 @@ void add_swept_pose(const std::vector<Term>& coarse_terms, double c, const Preop
                     const IntraopDistanceMaps& intraop, double radius, std::vector<AffineState>& candidates) {
   constexpr double kStepDeg = 30.0;
   const double scale = std::cbrt(intraop.outer_moments.volume_ml / preop.outer_moments.volume_ml);
-  const double deg = kPi / 180.0;
   std::vector<AffineState> poses;
-  for (int yaw = 0; yaw < 12; ++yaw)
-    for (const double pitch : {0.0, -kStepDeg, kStepDeg})
-      for (const double roll : {0.0, -kStepDeg, kStepDeg}) {
-        const Eigen::Matrix3d r = (Eigen::AngleAxisd(yaw * kStepDeg * deg, Eigen::Vector3d::UnitZ()) *
-                                   Eigen::AngleAxisd(roll * deg, Eigen::Vector3d::UnitY()) *
-                                   Eigen::AngleAxisd(pitch * deg, Eigen::Vector3d::UnitX()))
-                                      .toRotationMatrix();
-        poses.push_back({scale * radius * r, intraop.outer_moments.centroid_mm});
-      }
+  for (const SweptPose& pose : swept_poses(kStepDeg, kStepDeg))
+    poses.push_back({scale * radius * swept_pose_rotation(pose), intraop.outer_moments.centroid_mm});
   // Each pose's cost on its own, the two halves side by side; the cheapest
   // taken in pose order: the same on one core or two.
   std::vector<double> cost(poses.size());

@@ -7,6 +7,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/pose_sweep.h"
 #include "core/rotation_angle.h"
 #include "core/timer.h"
 #include "image/gaussian_smooth.h"
@@ -140,16 +141,27 @@ IntensityPlacementPreop intensity_placement_preop(const ImageF& preop_t1, const 
   return out;
 }
 
+IntensityPlacementScan intensity_placement_scan(const IntensityPlacementPreop& preop, const ImageF& intraop) {
+  IntensityPlacementScan out;
+  for (const IntensityPlacementPreop::Level& level : preop.levels)
+    out.levels.push_back(scan_at_level(intraop, level.smoothing_mm));
+  return out;
+}
+
 IntensityPlacement place_by_intensity(const ImageF& preop_t1, const Mask& preop_brain, const ImageF& intraop,
                                       const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
-  return place_by_intensity(intensity_placement_preop(preop_t1, preop_brain, p), intraop, start, p);
+  const IntensityPlacementPreop preop = intensity_placement_preop(preop_t1, preop_brain, p);
+  return place_by_intensity(preop, intensity_placement_scan(preop, intraop), start, p);
 }
 
 namespace {
 
-void check_levels(const IntensityPlacementPreop& preop, const IntensityPlacementParameters& p) {
+void check_levels(const IntensityPlacementPreop& preop, const IntensityPlacementScan& scan,
+                  const IntensityPlacementParameters& p) {
   if (preop.levels.size() != 2 || preop.levels[0].smoothing_mm != p.coarse_mm || preop.levels[1].smoothing_mm != p.fine_mm)
     throw InputError("intensity placement: the preop's samples were made for other levels");
+  if (scan.levels.size() != preop.levels.size())
+    throw InputError("intensity placement: the scan's levels were made for another preop");
 }
 
 std::array<double, 7> first_steps(const IntensityPlacementParameters& p) {
@@ -202,19 +214,18 @@ IntensityPlacementPreop::Level thinned(const IntensityPlacementPreop::Level& s, 
 
 }  // namespace
 
-double intensity_correlation(const IntensityPlacementPreop& preop, const ImageF& intraop,
+double intensity_correlation(const IntensityPlacementPreop& preop, const IntensityPlacementScan& intraop,
                              const Eigen::Matrix4d& intraop_from_preop, const IntensityPlacementParameters& p) {
-  check_levels(preop, p);
-  const IntensityPlacementPreop::Level& fine = preop.levels.back();
-  return score(fine, scan_at_level(intraop, fine.smoothing_mm), intraop_from_preop).ncc;
+  check_levels(preop, intraop, p);
+  return score(preop.levels.back(), intraop.levels.back(), intraop_from_preop).ncc;
 }
 
-PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const IntensityPlacementScan& intraop,
                                     const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
-  check_levels(preop, p);
+  check_levels(preop, intraop, p);
   const Stopwatch watch;
   const IntensityPlacementPreop::Level few = thinned(preop.levels.front(), p.pose_samples);
-  const ImageF image = scan_at_level(intraop, few.smoothing_mm);
+  const ImageF& image = intraop.levels.front();
   const double deg = kPi / 180.0;
   std::array<double, 7> step{};
   for (int a = 0; a < 3; ++a) step[static_cast<std::size_t>(a)] = 2 * p.translation_step_mm;
@@ -222,15 +233,12 @@ PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const 
   // by side (each evaluation on one thread), the best taken in candidate
   // order: the same answer on one core or two.
   std::vector<Params> candidates;
-  const int yaws = static_cast<int>(std::lround(360.0 / p.pose_yaw_step_deg));
-  for (int y = 0; y < yaws; ++y)
-    for (const double pitch : {0.0, -p.pose_tilt_deg, p.pose_tilt_deg})
-      for (const double roll : {0.0, -p.pose_tilt_deg, p.pose_tilt_deg}) {
-        Params q{};
-        q[3] = pitch * deg, q[4] = roll * deg, q[5] = y * p.pose_yaw_step_deg * deg;
-        if (q[5] > kPi) q[5] -= 2 * kPi;
-        candidates.push_back(q);
-      }
+  for (const SweptPose& pose : swept_poses(p.pose_yaw_step_deg, p.pose_tilt_deg)) {
+    Params q{};
+    q[3] = pose.pitch_deg * deg, q[4] = pose.roll_deg * deg, q[5] = pose.yaw_deg * deg;
+    if (q[5] > kPi) q[5] -= 2 * kPi;
+    candidates.push_back(q);
+  }
   std::vector<Score> scores(candidates.size());
   std::vector<int> evaluations(candidates.size(), 0);
   parallel_halves(candidates.size(), 1, [&](std::size_t begin, std::size_t end) {
@@ -256,19 +264,20 @@ PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const 
   return out;
 }
 
-IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const IntensityPlacementScan& intraop,
                                       const Eigen::Matrix4d& start, const IntensityPlacementParameters& p) {
-  check_levels(preop, p);
+  check_levels(preop, intraop, p);
   const Eigen::Vector3d centre = preop.centre_mm;
   IntensityPlacement out;
   Params q{};
   const std::array<double, 7> first_step = first_steps(p);
   Score best;
-  for (const IntensityPlacementPreop::Level& s : preop.levels) {
+  for (std::size_t level = 0; level < preop.levels.size(); ++level) {
+    const IntensityPlacementPreop::Level& s = preop.levels[level];
     std::array<double, 7> step = first_step;
     if (s.smoothing_mm == p.fine_mm)
       for (double& x : step) x *= 0.5;
-    best = pattern_search(s, scan_at_level(intraop, s.smoothing_mm), centre, start, p.max_log_scale > 0 ? 7 : 6,
+    best = pattern_search(s, intraop.levels[level], centre, start, p.max_log_scale > 0 ? 7 : 6,
                           p.max_log_scale, first_step[0] / p.finest_step_fraction, p.max_evaluations, step, q,
                           out.evaluations);
   }

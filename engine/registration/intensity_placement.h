@@ -82,12 +82,21 @@ struct IntensityPlacementPreop {
 IntensityPlacementPreop intensity_placement_preop(const ImageF& preop_t1, const Mask& preop_brain,
                                                   const IntensityPlacementParameters& p = {});
 
-IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+// What the placement reads of the scan, per level of the preop's: the scan
+// smoothed to the level, on a grid of the level's spacing. Made once per scan
+// and shared by every step that compares it (a first scan of a turned head
+// correlates, searches and places: five smoothings of the scan otherwise).
+struct IntensityPlacementScan {
+  std::vector<ImageF> levels;  // as IntensityPlacementPreop::levels
+};
+IntensityPlacementScan intensity_placement_scan(const IntensityPlacementPreop& preop, const ImageF& intraop);
+
+IntensityPlacement place_by_intensity(const IntensityPlacementPreop& preop, const IntensityPlacementScan& intraop,
                                       const Eigen::Matrix4d& start_intraop_from_preop,
                                       const IntensityPlacementParameters& p = {});
 
 // The normalised correlation at a placement, on the fine level (signed).
-double intensity_correlation(const IntensityPlacementPreop& preop, const ImageF& intraop,
+double intensity_correlation(const IntensityPlacementPreop& preop, const IntensityPlacementScan& intraop,
                              const Eigen::Matrix4d& intraop_from_preop, const IntensityPlacementParameters& p = {});
 
 // The head's pose found by intensity whatever it is (the candidates above,
@@ -101,7 +110,7 @@ struct PoseSearch {
   int candidates = 0, evaluations = 0;
   double seconds = 0;
 };
-PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const ImageF& intraop,
+PoseSearch search_pose_by_intensity(const IntensityPlacementPreop& preop, const IntensityPlacementScan& intraop,
                                     const Eigen::Matrix4d& start, const IntensityPlacementParameters& p = {});
 
 // Both steps at once.

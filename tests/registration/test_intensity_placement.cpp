@@ -99,7 +99,7 @@ TEST_F(IntensityPlacementTest, AHeadTurnedInItsClampIsFoundByThePoseSearch) {
   // placement the local search cannot reach it; the pose search can.
   const Eigen::Matrix4d turn = rigid({0, 0, 1}, 90, {12, -8, 15}) * rigid({1, 0, 0}, 20, {0, 0, 0});
   const IntensityPlacementPreop samples = intensity_placement_preop(preop, brain);
-  const ImageF image = scan(turn, false);
+  const IntensityPlacementScan image = intensity_placement_scan(samples, scan(turn, false));
   const IntensityPlacement local = place_by_intensity(samples, image, Eigen::Matrix4d::Identity());
   EXPECT_GT(corner_error_mm(local.intraop_from_preop, turn), 10.0) << "beyond the local search's reach";
   const PoseSearch search = search_pose_by_intensity(samples, image, Eigen::Matrix4d::Identity());
