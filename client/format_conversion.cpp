@@ -15,8 +15,11 @@ namespace {
 constexpr std::size_t kMaxBytes = std::size_t{2} << 30;
 }  // namespace
 
-std::string dicom_series_nifti(const std::string& dir, const std::string& series_uid) {
-  return scalar_image_to_bytes(read_dicom_series(dir, series_uid, kMaxBytes), VoxelType::float32, true);
+DicomNifti dicom_series_nifti(const std::string& dir, const std::string& series_uid) {
+  DicomNifti out;
+  out.nifti = scalar_image_to_bytes(read_dicom_series(dir, series_uid, kMaxBytes, &out.patient_id), VoxelType::float32,
+                                    true);
+  return out;
 }
 
 std::string nrrd_nifti(const std::string& path, bool labels) {

@@ -7,10 +7,12 @@
 // engine's readers and writers).
 #include <string>
 
+#include "dicom_nifti.h"
+
 namespace brainshift::cli {
 
 // Throws InputError (naming the folder) for anything the reader refuses.
-std::string dicom_series_nifti(const std::string& dir, const std::string& series_uid);
+DicomNifti dicom_series_nifti(const std::string& dir, const std::string& series_uid);
 // A .nrrd/.nhdr image, or (labels) a label map; a .seg.nrrd's segments are
 // mapped by name to the shipped label table (config/labels.toml).
 std::string nrrd_nifti(const std::string& path, bool labels);

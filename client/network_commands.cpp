@@ -18,6 +18,7 @@
 #include "offline_forwarding.h"
 #include "pull_command.h"
 #include "protocol/events.h"
+#include "protocol/fields.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
 #include "protocol/result_outputs.h"
@@ -131,7 +132,9 @@ int cmd_status(const NetworkOptions& o, bool json) {
   const StatusReply s = parse_status_reply(reply);
   std::cout << "state:   " << to_string(s.state);
   if (s.progress) std::cout << " (" << s.progress->stage << ", " << std::lround(s.progress->fraction * 100) << "%)";
-  std::cout << "\npreop:   " << s.preop_id.value_or("-") << '\n';
+  std::cout << "\npreop:   " << s.preop_id.value_or("-");
+  if (s.preop_patient_id) std::cout << " (patient " << *s.preop_patient_id << ')';
+  std::cout << '\n';
   if (s.mesh) std::cout << "mesh:    " << s.mesh->nodes << " nodes, " << s.mesh->tets << " tets\n";
   std::cout << "ranks:   " << s.mpi_ranks << "\nqueue:   " << s.queue.depth << " / " << s.queue.capacity << '\n';
   if (s.current_scan_id) std::cout << "running: " << *s.current_scan_id << '\n';
@@ -168,16 +171,26 @@ int wait_preop_ready(Connection& c, const std::string& preop_id, double wait_s) 
   throw CommandError(kExitUnreachable, "preop " + preop_id + " not ready within " + std::to_string(wait_s) + " s");
 }
 
+// --patient-id as the protocol carries it (usage error when it cannot be one).
+std::optional<std::string> patient_id_arg(const std::string& given) {
+  if (given.empty()) return std::nullopt;
+  std::optional<std::string> id = protocol::detail::normalised_patient_id(given);
+  if (!id) throw CommandError(kExitUsage, "--patient-id must be 1..64 characters without control characters");
+  return id;
+}
+
 struct LoadPreopArgs {
-  std::string image, labels, label_table;
+  std::string image, labels, label_table, patient_id;
   bool default_atlas = false, wait = false;
   double wait_s = 1800;
 };
 
 int cmd_load_preop(const NetworkOptions& o, const LoadPreopArgs& a) {
   PreopLoadRequest r;
+  r.patient_id = patient_id_arg(a.patient_id);
   if (a.default_atlas) {
-    if (!a.image.empty() || !a.labels.empty()) throw CommandError(kExitUsage, "--default-atlas excludes --image/--labels");
+    if (!a.image.empty() || !a.labels.empty() || r.patient_id)
+      throw CommandError(kExitUsage, "--default-atlas excludes --image/--labels/--patient-id");
     r.use_default_atlas = true;
   } else {
     if (a.image.empty() || a.labels.empty())
@@ -198,6 +211,7 @@ struct PushArgs {
   std::string labels, image, id;
   std::string dicom, series;  // the image as a DICOM series, converted here
   std::string labels_use;     // empty: the daemon's configuration
+  std::string patient_id;     // empty: the DICOM series' PatientID, if any
   bool wait = false;
   double wait_s = 600;
 };
@@ -293,13 +307,24 @@ int cmd_push(const NetworkOptions& o, const PushArgs& a) {
     throw CommandError(kExitUsage, "give --labels, --image (or --dicom), or both: an image alone is segmented");
   if (!a.labels.empty()) r.labels = input_frame(o, "labels", a.labels, true);
   if (!a.image.empty()) r.image = input_frame(o, "image", a.image, false);
+  r.patient_id = patient_id_arg(a.patient_id);
   if (!a.dicom.empty()) {
     if (!a.image.empty()) throw CommandError(kExitUsage, "give --image or --dicom, not both");
     if (!o.dicom_nifti) throw CommandError(kExitUsage, "--dicom needs brainshift-offline (DICOM is read there)");
+    DicomNifti series;
     try {
-      r.image = media::nifti_frame("image", o.dicom_nifti(a.dicom, a.series));
+      series = o.dicom_nifti(a.dicom, a.series);
     } catch (const InputError& e) {
       throw CommandError(kExitUsage, e.what());
+    }
+    r.image = media::nifti_frame("image", std::move(series.nifti));
+    // The series names its patient: sent, so that the daemon refuses a scan
+    // of another patient than the preop's.
+    if (const auto from_series = protocol::detail::normalised_patient_id(series.patient_id)) {
+      if (r.patient_id && *r.patient_id != *from_series)
+        throw CommandError(kExitUsage, "--patient-id \"" + *r.patient_id + "\" but the DICOM series is of patient \"" +
+                                           *from_series + "\"");
+      r.patient_id = from_series;
     }
   } else if (!a.series.empty()) {
     throw CommandError(kExitUsage, "--series needs --dicom");
@@ -422,6 +447,8 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
   load->add_option("--image", lp->image, "preop T1 (NIfTI)");
   load->add_option("--labels", lp->labels, "preop label map on the T1's grid (NIfTI)");
   load->add_option("--label-table", lp->label_table, "label table JSON (PROTOCOL.md) when labels are not 1..4");
+  load->add_option("--patient-id", lp->patient_id,
+                   "the patient the preop is of (DICOM PatientID): the daemon then refuses scans of another patient");
   load->add_flag("--default-atlas", lp->default_atlas, "use the daemon's default atlas (Colin27)");
   load->add_flag("--wait", lp->wait, "return once the warm-up is done (progress on stderr)");
   load->add_option("--wait-timeout", lp->wait_s, "seconds to wait with --wait");
@@ -440,6 +467,8 @@ void add_network_commands(CLI::App& app, NetworkOptions& o, int* exit_code) {
                    "labels) or exact (used as given; corrected by hand); default: the daemon's given_labels")
       ->check(CLI::IsMember({"refine", "exact"}));
   push->add_option("--id", pa->id, "client scan id: pushing it again returns the same scan");
+  push->add_option("--patient-id", pa->patient_id,
+                   "the scan's patient (DICOM PatientID; taken from the series with --dicom): refused unless the preop's");
   push->add_flag("--wait", pa->wait,
                  "return once the result is ready (exit 4: affine-only fallback, 5: the scan failed; a caution "
                  "on a non-rigid result is printed, exit 0)");

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "connection.h"
+#include "dicom_nifti.h"
 
 namespace brainshift::cli {
 
@@ -21,7 +22,7 @@ struct NetworkOptions {
   // `push --dicom DIR [--series UID]`: the series as NIfTI bytes (the wire
   // stays NIfTI). Set by brainshift-offline (DCMTK is linked there); the
   // engine-free brainshift hands such a push to it.
-  std::function<std::string(const std::string& dir, const std::string& series_uid)> dicom_nifti;
+  std::function<DicomNifti(const std::string& dir, const std::string& series_uid)> dicom_nifti;
   // `push` of .nrrd/.nhdr files (labels: a label map or Slicer .seg.nrrd), likewise.
   std::function<std::string(const std::string& path, bool labels)> nrrd_nifti;
   // `pull --format nrrd`: NRRD copies of the pulled images and field.

@@ -23,6 +23,7 @@
 #include "pipeline/engine_session.h"
 #include "pipeline/scan_outputs.h"
 #include "pipeline/scan_report.h"
+#include "protocol/fields.h"
 
 namespace brainshift::cli {
 namespace fs = std::filesystem;
@@ -39,12 +40,13 @@ struct PreopPaths {
   std::string dicom, series;  // the preop image as a DICOM series instead of image
 };
 
-// A scalar image given as a NIfTI file or as a DICOM series folder (one of them).
+// A scalar image given as a NIfTI file or as a DICOM series folder (one of
+// them); a series' PatientID goes to patient_id (left as it is otherwise).
 ImageF read_scalar_input(const std::string& nifti, const std::string& dicom, const std::string& series,
-                         const std::string& option, std::size_t max_bytes) {
+                         const std::string& option, std::size_t max_bytes, std::string* patient_id = nullptr) {
   if (!nifti.empty() && !dicom.empty()) throw InputError("give --" + option + "-image or --" + option + "-dicom, not both");
   if (!series.empty() && dicom.empty()) throw InputError("--" + option + "-series needs --" + option + "-dicom");
-  if (!dicom.empty()) return read_dicom_series(dicom, series, max_bytes);
+  if (!dicom.empty()) return read_dicom_series(dicom, series, max_bytes, patient_id);
   if (is_nrrd_path(nifti)) return read_nrrd_scalar(nifti, max_bytes);
   return read_scalar_image(nifti, max_bytes);
 }
@@ -59,7 +61,7 @@ LabelImage read_label_input(const std::string& path, const LabelTable& table, st
 
 // Reads the preop pair, or the default atlas (in the table's values) when
 // neither path is given.
-PreopInput read_preop(const PreopPaths& paths, const LabelTable& table) {
+PreopInput read_preop(const PreopPaths& paths, const LabelTable& table, std::string* patient_id = nullptr) {
   const bool has_image = !paths.image.empty() || !paths.dicom.empty();
   if (has_image != !paths.labels.empty())
     throw InputError("give both --preop-image (or --preop-dicom) and --preop-labels, or neither (default atlas)");
@@ -68,7 +70,7 @@ PreopInput read_preop(const PreopPaths& paths, const LabelTable& table) {
     DefaultAtlas atlas = load_or_build_default_atlas(cache);
     return PreopInput{std::move(atlas.t1), atlas_labels_for(atlas.labels, table)};
   }
-  ImageF t1 = read_scalar_input(paths.image, paths.dicom, paths.series, "preop", static_cast<std::size_t>(-1));
+  ImageF t1 = read_scalar_input(paths.image, paths.dicom, paths.series, "preop", static_cast<std::size_t>(-1), patient_id);
   LabelImage labels = labels_on_image_grid(read_label_input(paths.labels, table, static_cast<std::size_t>(-1)), t1.grid,
                                            paths.labels);
   return PreopInput{std::move(t1), std::move(labels)};
@@ -93,6 +95,16 @@ struct RegisterOptions {
   std::string labels_use;  // empty: the configuration's given_labels
 };
 
+// Both series name their patient: they must name the same one (compared as
+// the daemon compares preop.load's and scan.push's patient_id).
+void check_same_patient(const std::string& preop_dicom_id, const std::string& intraop_dicom_id) {
+  const auto preop = protocol::detail::normalised_patient_id(preop_dicom_id);
+  const auto intraop = protocol::detail::normalised_patient_id(intraop_dicom_id);
+  if (preop && intraop && *preop != *intraop)
+    throw InputError("the intraop series is of patient \"" + *intraop + "\" and the preop series of patient \"" + *preop +
+                     "\": a scan of another patient is not registered");
+}
+
 int run_register_rank0(const RegisterOptions& o) {
   const PipelineParameters params = read_parameters(o.config);
   // The intraop files are read first: a broken scan is refused in a moment
@@ -102,17 +114,20 @@ int run_register_rank0(const RegisterOptions& o) {
   if (o.intraop_labels.empty() && !has_image)
     throw InputError("give --intraop-image (or --intraop-dicom), --intraop-labels, or both");
   ScanInput scan;
+  std::string intraop_patient, preop_patient;  // DICOM PatientIDs, "" unknown
   if (!o.intraop_labels.empty())
     scan.labels = read_label_input(o.intraop_labels, params.label_table, params.max_image_bytes);
   if (has_image)
-    scan.image = read_scalar_input(o.intraop_image, o.intraop_dicom, o.intraop_series, "intraop", params.max_image_bytes);
+    scan.image = read_scalar_input(o.intraop_image, o.intraop_dicom, o.intraop_series, "intraop", params.max_image_bytes,
+                                   &intraop_patient);
   if (scan.labels && scan.image) scan.labels = labels_on_image_grid(std::move(*scan.labels), scan.image->grid, o.intraop_labels);
   scan.read_seconds = read_clock.seconds();
   if (!o.labels_use.empty()) scan.labels_use = given_labels_use_from_string(o.labels_use);
 
   EngineSession session(MPI_COMM_WORLD, params);
   Stopwatch atlas_clock;
-  PreopInput preop = read_preop(o.preop, params.label_table);
+  PreopInput preop = read_preop(o.preop, params.label_table, &preop_patient);
+  check_same_patient(preop_patient, intraop_patient);
   session.set_atlas_seconds(atlas_clock.seconds());
   print_progress("preop", "atlas", 1.0, atlas_clock.seconds());
   session.load_preop(std::move(preop), [](const std::string& s, double f, double t) { print_progress("preop", s, f, t); });

@@ -103,6 +103,15 @@ const json& FieldReader::object(const char* key) const {
   return *v;
 }
 
+std::optional<std::string> normalised_patient_id(const std::string& id) {
+  if (id.size() > 64) return std::nullopt;
+  for (const char c : id)
+    if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) return std::nullopt;
+  const auto first = id.find_first_not_of(' ');
+  if (first == std::string::npos) return std::nullopt;
+  return id.substr(first, id.find_last_not_of(' ') - first + 1);
+}
+
 bool is_valid_id(const std::string& id) {
   if (id.empty() || id.size() > 128) return false;
   for (char c : id)

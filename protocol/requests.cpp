@@ -26,6 +26,15 @@ constexpr NameTable<ScanState, 4> kScanStates{{{ScanState::kQueued, "queued"},
                                                {ScanState::kProcessing, "processing"},
                                                {ScanState::kDone, "done"},
                                                {ScanState::kFailed, "failed"}}};
+// "patient_id" of preop.load and scan.push, normalised (fields.h).
+std::optional<std::string> patient_id_field(const FieldReader& f) {
+  const std::optional<std::string> raw = f.opt_string("patient_id");
+  if (!raw) return std::nullopt;
+  std::optional<std::string> id = detail::normalised_patient_id(*raw);
+  if (!id) f.fail("patient_id", "must be 1..64 characters without control characters, not only spaces (DICOM PatientID)");
+  return id;
+}
+
 template <class E, std::size_t N>
 std::string_view name_of(const NameTable<E, N>& table, E value) {
   for (const auto& [e, n] : table)
@@ -166,6 +175,7 @@ Message make_status_reply(const std::string& request_id, const StatusReply& r) {
   h["versions"] = r.versions;
   h["versions"]["protocol"] = std::to_string(kProtocolVersion);
   if (r.preop_id) h["preop_id"] = *r.preop_id;
+  if (r.preop_patient_id) h["preop_patient_id"] = *r.preop_patient_id;
   if (r.mesh) h["mesh"] = to_json_value(*r.mesh);
   h["mpi_ranks"] = r.mpi_ranks;
   h["queue"] = {{"depth", r.queue.depth}, {"capacity", r.queue.capacity}};
@@ -196,6 +206,7 @@ StatusReply parse_status_reply(const Message& m) {
     r.versions[k] = v.get<std::string>();
   }
   r.preop_id = f.opt_string("preop_id");
+  r.preop_patient_id = f.opt_string("preop_patient_id");
   if (const json* mesh = f.opt_object("mesh")) r.mesh = mesh_size_from_json(*mesh, "status.reply.mesh");
   r.mpi_ranks = f.uint("mpi_ranks");
   const FieldReader q(f.object("queue"), "status.reply.queue");
@@ -216,6 +227,7 @@ StatusReply parse_status_reply(const Message& m) {
 Message make_preop_load_request(const std::string& request_id, const PreopLoadRequest& r) {
   Message m = make_message(MessageType::kPreopLoad, request_id);
   m.header["use_default_atlas"] = r.use_default_atlas;
+  if (r.patient_id) m.header["patient_id"] = *r.patient_id;
   for (const auto* f : {&r.t1, &r.labels, &r.label_table})
     if (*f) m.frames.push_back(**f);
   return m;
@@ -227,6 +239,9 @@ PreopLoadRequest parse_preop_load_request(const Message& m) {
     const FieldReader f(m.header, "preop.load");
     PreopLoadRequest r;
     r.use_default_atlas = f.boolean("use_default_atlas", false);
+    r.patient_id = patient_id_field(f);
+    if (r.use_default_atlas && r.patient_id)
+      f.fail("patient_id", "names the patient of uploaded preop images; the default atlas is no patient's");
     if (r.use_default_atlas) {
       expect_frames(m, {});
       return r;
@@ -267,6 +282,7 @@ Message make_scan_push_request(const std::string& request_id, const ScanPushRequ
   Message m = make_message(MessageType::kScanPush, request_id);
   if (r.client_scan_id) m.header["client_scan_id"] = *r.client_scan_id;
   if (r.labels_use) m.header["labels_use"] = *r.labels_use;
+  if (r.patient_id) m.header["patient_id"] = *r.patient_id;
   if (r.labels) m.frames.push_back(*r.labels);
   if (r.image) m.frames.push_back(*r.image);
   return m;
@@ -278,7 +294,7 @@ ScanPushRequest parse_scan_push_request(const Message& m) {
     const FieldReader f(m.header, "scan.push");
     expect_frames(m, {"labels", "image"});
     ScanPushRequest r{get_frame(m, "labels", nifti_media), get_frame(m, "image", nifti_media),
-                      f.opt_string("client_scan_id"), f.opt_string("labels_use")};
+                      f.opt_string("client_scan_id"), f.opt_string("labels_use"), patient_id_field(f)};
     if (!r.labels && !r.image)
       throw ProtocolError(ErrorCode::kInvalidRequest,
                           "scan.push: needs a frame \"labels\", \"image\" or both (an image alone is segmented)");

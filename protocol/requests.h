@@ -79,6 +79,7 @@ struct StatusReply {
   std::optional<Progress> progress{};             // present while kLoadingPreop
   std::map<std::string, std::string> versions{};  // "protocol" is always added
   std::optional<std::string> preop_id{};          // loaded or loading preop
+  std::optional<std::string> preop_patient_id{};  // that preop's patient, when preop.load named one
   std::optional<MeshSize> mesh{};                 // once the preop is ready
   std::uint64_t mpi_ranks = 1;
   QueueInfo queue{};
@@ -98,6 +99,9 @@ struct PreopLoadRequest {
   std::optional<Frame> labels{};       // "labels", NIfTI, same grid as t1
   std::optional<Frame> label_table{};  // "label_table", JSON, optional
   std::optional<LabelMap> label_map{};  // label_table parsed by parse_preop_load_request
+  // The patient the preop images are of (DICOM PatientID); scans pushed with
+  // another patient's id are refused (PROTOCOL.md, "Patient identity").
+  std::optional<std::string> patient_id{};
 };
 Message make_preop_load_request(const std::string& request_id, const PreopLoadRequest& r);
 PreopLoadRequest parse_preop_load_request(const Message& m);  // moves nothing; copies frames
@@ -121,6 +125,7 @@ struct ScanPushRequest {
   // With both frames: "refine" (the image is classified under the labels)
   // or "exact" (the labels as given); absent: the server's configuration.
   std::optional<std::string> labels_use{};
+  std::optional<std::string> patient_id{};  // the scan's patient (DICOM PatientID), checked against the preop's
 };
 Message make_scan_push_request(const std::string& request_id, const ScanPushRequest& r);
 ScanPushRequest parse_scan_push_request(const Message& m);

@@ -291,6 +291,7 @@ void CaseStore::save_preop(const PreopRecord& p) {
     write_grid(f, "labels", p.labels.grid);
     json meta{{"format", kStoreFormat}, {"preop_id", p.preop_id}, {"source", p.source},
               {"saved_at", protocol::utc_now()}};
+    if (p.patient_id) meta["patient_id"] = *p.patient_id;
     h5::write_string_attribute(f, kMetaAttr, meta.dump());
     h5::write_bytes(f, "label_table_json", p.label_table_json);
   });
@@ -306,6 +307,7 @@ PreopRecord CaseStore::load_preop() const {
   const json meta = json::parse(h5::read_string_attribute(f.get(), kMetaAttr));
   p.preop_id = meta.at("preop_id").get<std::string>();
   p.source = meta.at("source").get<std::string>();
+  if (meta.contains("patient_id")) p.patient_id = meta.at("patient_id").get<std::string>();  // stores before it have none
   p.t1 = ImageF(read_grid(f.get(), "t1"));
   h5::read_dataset(f.get(), "t1", H5T_NATIVE_FLOAT, p.t1.voxels.data());
   p.labels = LabelImage(read_grid(f.get(), "labels"));

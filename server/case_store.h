@@ -49,6 +49,7 @@ struct PreopRecord {
   ImageF t1;
   LabelImage labels;
   std::string label_table_json;  // protocol label-table JSON, "" when none was given
+  std::optional<std::string> patient_id;  // preop.load's patient_id, when given
 };
 
 enum class StoredScanState { queued, done, failed };

@@ -26,6 +26,7 @@ void ServerCore::start() {
     job->preop_id = p.preop_id;
     job->source = "store";
     job->label_table_json = p.label_table_json;
+    job->patient_id = p.patient_id;
     job->stored_mesh = store_.load_mesh(p.preop_id);
     job->images = PreopImages{std::move(p.t1), std::move(p.labels)};
     spdlog::info("store holds preop {} ({} mesh); warming up from it", job->preop_id,
@@ -47,6 +48,7 @@ void ServerCore::start() {
   std::lock_guard lock(mutex_);
   if (job) {
     loading_preop_id_ = job->preop_id;
+    loading_patient_id_ = job->patient_id;
     state_ = ServerState::kLoadingPreop;
     progress_ = Progress{"queued", 0.0};
     pending_preop_ = std::move(job);

@@ -77,7 +77,8 @@ void ServerCore::run_preop_job(PreopJob job) {
     engine_.load_preop(*job.images, std::move(job.stored_mesh), atlas_seconds, progress);
     const TetMesh& mesh = engine_.mesh();
     if (job.source != "store") {
-      store_.save_preop(PreopRecord{id, job.source, job.images->t1, job.images->labels, job.label_table_json});
+      store_.save_preop(
+          PreopRecord{id, job.source, job.images->t1, job.images->labels, job.label_table_json, job.patient_id});
     }
     if (job.source != "store" || !had_mesh) store_.save_mesh(id, mesh);
     const MeshSize size{mesh.node_count(), mesh.tet_count()};
@@ -85,6 +86,8 @@ void ServerCore::run_preop_job(PreopJob job) {
     {
       std::lock_guard lock(mutex_);
       ready_preop_id_ = id;
+      ready_patient_id_ = job.patient_id;
+      loading_patient_id_.reset();
       ready_label_map_ = std::move(job.label_map);
       loading_preop_id_.clear();
       mesh_size_ = size;
@@ -102,6 +105,7 @@ void ServerCore::run_preop_job(PreopJob job) {
     {
       std::lock_guard lock(mutex_);
       loading_preop_id_.clear();
+      loading_patient_id_.reset();
       last_error_ = error;
       state_ = engine_.ready() ? ServerState::kReady : ServerState::kIdle;
       progress_.reset();

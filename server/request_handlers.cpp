@@ -159,12 +159,15 @@ Message ServerCore::on_preop_load(const Message& m) {
     return make_error_reply(m.request_id(), ErrorCode::kBusy,
                             "a preop warm-up or scans are in progress; retry when the server is ready or idle");
   job->preop_id = new_preop_id();
+  job->patient_id = req.patient_id;
   const std::string id = job->preop_id;
   loading_preop_id_ = id;
+  loading_patient_id_ = req.patient_id;
   state_ = ServerState::kLoadingPreop;
   progress_ = Progress{"queued", 0.0};
   pending_preop_ = std::move(job);
-  spdlog::info("preop.load accepted: {} ({})", id, pending_preop_->source);
+  spdlog::info("preop.load accepted: {} ({}, patient {})", id, pending_preop_->source,
+               req.patient_id.value_or("not given"));
   return make_preop_load_reply(m.request_id(), {id});
 }
 
@@ -172,12 +175,22 @@ Message ServerCore::on_scan_push(const Message& m) {
   ScanPushRequest req = parse_scan_push_request(m);
   const std::string rid = m.request_id();
   std::string preop_id;
+  std::optional<std::string> preop_patient;
   {
     std::lock_guard lock(mutex_);
-    preop_id = !loading_preop_id_.empty() ? loading_preop_id_ : ready_preop_id_;
+    const bool loading = !loading_preop_id_.empty();
+    preop_id = loading ? loading_preop_id_ : ready_preop_id_;
+    preop_patient = loading ? loading_patient_id_ : ready_patient_id_;
   }
   if (preop_id.empty())
     return make_error_reply(rid, ErrorCode::kNotReady, "no preop is loaded: send preop.load first");
+  // A scan of another patient is never registered to this preop, nor kept
+  // (checked before the idempotence key: it is not this case's scan).
+  if (req.patient_id && preop_patient && *req.patient_id != *preop_patient)
+    return make_error_reply(rid, ErrorCode::kInvalidRequest,
+                            "the scan is of patient \"" + *req.patient_id + "\" and the loaded preop " + preop_id +
+                                " of patient \"" + *preop_patient +
+                                "\": a scan of another patient is not registered; it was NOT stored");
 
   PushedScan input{req.labels ? std::optional<std::string>(req.labels->bytes) : std::nullopt,
                    req.image ? std::optional<std::string>(req.image->bytes) : std::nullopt, req.labels_use};

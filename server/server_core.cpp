@@ -70,8 +70,8 @@ StatusReply ServerCore::status() const {
   r.state = state_;
   r.progress = state_ == ServerState::kLoadingPreop ? progress_ : std::nullopt;
   r.versions = versions_;
-  if (!loading_preop_id_.empty()) r.preop_id = loading_preop_id_;
-  else if (!ready_preop_id_.empty()) r.preop_id = ready_preop_id_;
+  if (!loading_preop_id_.empty()) r.preop_id = loading_preop_id_, r.preop_patient_id = loading_patient_id_;
+  else if (!ready_preop_id_.empty()) r.preop_id = ready_preop_id_, r.preop_patient_id = ready_patient_id_;
   r.mesh = mesh_size_;
   r.mpi_ranks = static_cast<std::uint64_t>(ranks_);
   r.queue = {queue_.size(), queue_.capacity()};

@@ -142,6 +142,9 @@ class ServerCore {
   std::optional<protocol::Progress> progress_;
   std::string loading_preop_id_;  // non-empty while a warm-up is pending or running
   std::string ready_preop_id_;    // non-empty once the engine is warm
+  // The patient of each (preop.load patient_id, kept in the store): a scan
+  // of another patient is refused before it is stored.
+  std::optional<std::string> loading_patient_id_, ready_patient_id_;
   // The label map (preop.load label_table) of the ready preop, null when it
   // had none: the intraop labels of its scans use the same values.
   std::shared_ptr<const protocol::LabelMap> ready_label_map_;

@@ -25,6 +25,7 @@ struct ServerCore::PreopJob {
   std::string source;  // "atlas", "files", "upload", "store"
   std::optional<PreopImages> images;  // absent: build the atlas / read files on the engine thread
   std::string label_table_json;  // the label map as received, stored with the preop
+  std::optional<std::string> patient_id;  // preop.load's, normalised; none for the atlas or when not given
   std::shared_ptr<const protocol::LabelMap> label_map;  // parsed once; null when none
   std::optional<TetMesh> stored_mesh;
 };

@@ -26,7 +26,7 @@ constexpr Uint32 kHeaderReadLength = 4096;
 
 struct Slice {
   fs::path file;
-  std::string series_uid, description, modality;
+  std::string series_uid, description, modality, patient_id;
   Eigen::Vector3d row_dir = Eigen::Vector3d::Zero(), col_dir = Eigen::Vector3d::Zero();  // LPS
   Eigen::Vector3d position_lps = Eigen::Vector3d::Zero();
   double row_spacing = 0, col_spacing = 0;  // PixelSpacing: between rows, between columns
@@ -68,6 +68,7 @@ std::optional<Slice> read_header(const fs::path& file) {
   if (s.series_uid.empty() || !d.tagExists(DCM_PixelData)) return std::nullopt;  // not an image (e.g. a report)
   s.description = text(d, DCM_SeriesDescription);
   s.modality = text(d, DCM_Modality);
+  s.patient_id = text(d, DCM_PatientID);
   for (int a = 0; a < 3; ++a) {
     s.row_dir[a] = number(d, DCM_ImageOrientationPatient, a).value_or(NAN);
     s.col_dir[a] = number(d, DCM_ImageOrientationPatient, a + 3).value_or(NAN);
@@ -159,6 +160,9 @@ void check_alike(const fs::path& dir, const std::vector<Slice>& slices) {
         (s.row_dir - f.row_dir).norm() > 1e-3 || (s.col_dir - f.col_dir).norm() > 1e-3)
       throw InputError(error_prefix(dir) + name +
                        ": ImageOrientationPatient differs from the first slice's (or is missing): not one volume");
+    if (s.patient_id != f.patient_id)
+      throw InputError(error_prefix(dir) + name + ": PatientID \"" + s.patient_id + "\", the first slice's \"" +
+                       f.patient_id + "\": slices of two patients are not one volume");
   }
 }
 
@@ -263,7 +267,8 @@ double dicom_slice_tolerance_mm(double slice_spacing_mm) {
 
 std::vector<DicomSeriesSummary> list_dicom_series(const fs::path& dir) { return summarise(read_headers(dir)); }
 
-ImageF read_dicom_series(const fs::path& dir, const std::string& series_uid, std::size_t max_image_bytes) {
+ImageF read_dicom_series(const fs::path& dir, const std::string& series_uid, std::size_t max_image_bytes,
+                         std::string* patient_id) {
   std::vector<Slice> all = read_headers(dir);
   const auto series = summarise(all);
   std::string uid = series_uid;
@@ -278,6 +283,7 @@ ImageF read_dicom_series(const fs::path& dir, const std::string& series_uid, std
     if (s.series_uid == uid) slices.push_back(std::move(s));
   if (slices.empty()) throw InputError(error_prefix(dir) + "no series " + uid + "; the folder holds:" + series_list(series));
   check_alike(dir, slices);
+  if (patient_id) *patient_id = slices.front().patient_id;
   const Eigen::Vector3d row = slices.front().row_dir.normalized(), col = slices.front().col_dir.normalized();
   const Eigen::Vector3d normal = row.cross(col).normalized();
   const double spacing = check_stack(dir, slices, normal);

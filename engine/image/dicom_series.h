@@ -19,7 +19,8 @@
 // different size, spacing or orientation, a gantry tilt (the slice positions
 // do not advance along the normal), non-uniform slice spacing or missing
 // slices (the gap and the InstanceNumbers missing are named), two slices at
-// one position, multi-frame objects, compressed pixel data, colour images.
+// one position, multi-frame objects, compressed pixel data, colour images,
+// slices of different PatientIDs.
 #include <cstddef>
 #include <filesystem>
 #include <string>
@@ -42,8 +43,11 @@ std::vector<DicomSeriesSummary> list_dicom_series(const std::filesystem::path& d
 
 // Reads the series series_uid ("" when the folder holds only one) as a
 // float image; max_image_bytes bounds the voxels (4 bytes each).
+// patient_id, when given, receives the series' PatientID (0010,0020) as
+// written ("" when absent), for the check that preop and scan are of one
+// patient (docs/DESIGN.md, "Patient identity").
 ImageF read_dicom_series(const std::filesystem::path& dir, const std::string& series_uid,
-                         std::size_t max_image_bytes);
+                         std::size_t max_image_bytes, std::string* patient_id = nullptr);
 
 // The largest distance (mm) by which a slice's position may differ from the
 // uniform stack fitted through all of them, and an in-plane offset between

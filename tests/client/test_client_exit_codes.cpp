@@ -184,6 +184,60 @@ TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
   EXPECT_NE(r.err.find("not both"), std::string::npos) << r.err;
 }
 
+// Patient identity (PROTOCOL.md 5.3): a preop loaded for a patient refuses a
+// DICOM series of another patient (push sends the series' PatientID), and
+// nothing of it is registered or kept; --patient-id that contradicts the
+// series is a usage error; the patient's own series is taken.
+TEST(ClientExitCodes, PushDicomOfAnotherPatientIsRefused) {
+  LoopbackDaemon d;
+  DicomSeriesSpec spec;
+  spec.columns = 20;
+  spec.rows = 18;
+  spec.slices = 12;
+  write_dicom_series(test::synthetic_head().t1, d.dir.path() / "other", spec);  // PatientID PHANTOM01
+  spec.patient_id = "MRN-0042";
+  write_dicom_series(test::synthetic_head().t1, d.dir.path() / "own", spec);
+  LabelImage labels(dicom_series_grid_ras(spec));
+  for (int k = 2; k < 10; ++k)
+    for (int j = 3; j < 15; ++j)
+      for (int i = 3; i < 17; ++i) labels.at(i, j, k) = (i > 8 && i < 12 && j > 7 && j < 11) ? 2 : 1;
+  const fs::path labels_file = d.write("dicom_labels.nii.gz", label_image_to_bytes(labels, true));
+  const fs::path t1_file =
+      d.write("t1.nii.gz", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
+  e2e::RunResult r = d.client({"load-preop", "--image", t1_file.string(), "--labels", labels_file.string(),
+                               "--patient-id", "MRN-0042", "--wait"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+  r = d.client({"status"});
+  EXPECT_NE(r.out.find("(patient MRN-0042)"), std::string::npos) << r.out;
+
+  r = d.client({"push", "--dicom", (d.dir.path() / "other").string(), "--id", "wrong-patient", "--wait"});
+  EXPECT_EQ(r.code, cli::kExitError) << r.err;
+  EXPECT_NE(r.err.find("of patient \"PHANTOM01\""), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("NOT stored"), std::string::npos) << r.err;
+  EXPECT_FALSE(d.engine.last_scan_image.has_value()) << "nothing of the other patient's scan may reach the engine";
+  r = d.client({"list"});
+  EXPECT_EQ(r.out.find("wrong-patient"), std::string::npos) << r.out;
+
+  r = d.client({"push", "--dicom", (d.dir.path() / "other").string(), "--patient-id", "MRN-0042"});
+  EXPECT_EQ(r.code, cli::kExitUsage) << r.err;
+  EXPECT_NE(r.err.find("the DICOM series is of patient \"PHANTOM01\""), std::string::npos) << r.err;
+
+  r = d.client({"push", "--dicom", (d.dir.path() / "own").string(), "--wait", "--wait-timeout", "30"});
+  ASSERT_EQ(r.code, cli::kExitOk) << r.err;
+  EXPECT_TRUE(d.engine.last_scan_image.has_value());
+
+  // register, with both images as DICOM series, compares their patients the
+  // same way, before any of the preop's warm-up is spent.
+  const fs::path t0 = d.dir.path() / "register_other_patient";
+  r = d.client({"register", "--preop-dicom", (d.dir.path() / "own").string(), "--preop-labels", labels_file.string(),
+                "--intraop-dicom", (d.dir.path() / "other").string(), "--out", t0.string()});
+  EXPECT_EQ(r.code, cli::kExitError) << r.err;
+  EXPECT_NE(r.err.find("the intraop series is of patient \"PHANTOM01\" and the preop series of patient \"MRN-0042\""),
+            std::string::npos)
+      << r.err;
+  EXPECT_FALSE(fs::exists(t0));
+}
+
 // A server of an earlier revision (PROTOCOL.md 10) does not know labels.get
 // and answers unknown_type: `pull --scene` says so and stops before it pulls
 // anything (the client has no label table of its own).

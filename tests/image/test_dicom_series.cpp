@@ -145,6 +145,26 @@ TEST(DicomSeries, MissingSlicesAreRefusedNamingWhatIsMissing) {
   EXPECT_NE(why.find("InstanceNumber 8, 9 missing"), std::string::npos) << why;
 }
 
+// The series names its patient (for the check that a scan is of the preop's
+// patient, DESIGN.md "Patient identity"); slices of two patients under one
+// series UID (a resend mixed with another exam) are not one volume.
+TEST(DicomSeries, ThePatientIsReadAndSlicesOfTwoPatientsAreRefused) {
+  test::TempDir dir;
+  auto spec = spec_for(cases()[0]);
+  spec.series_uid = "1.2.826.0.1.3680043.2.1125.1.7";
+  spec.patient_id = "MRN-0042";
+  const auto files = write_dicom_series(phantom(), dir.path() / "a", spec);
+  std::string patient;
+  read_dicom_series(dir.path() / "a", "", kMaxBytes, &patient);
+  EXPECT_EQ(patient, "MRN-0042");
+  spec.patient_id = "MRN-0043";
+  const auto other = write_dicom_series(phantom(), dir.path() / "b", spec);
+  fs::copy_file(other[5], files[5], fs::copy_options::overwrite_existing);
+  const std::string why = refusal(dir.path() / "a");
+  EXPECT_NE(why.find("slices of two patients"), std::string::npos) << why;
+  EXPECT_NE(why.find("MRN-0043"), std::string::npos) << why;
+}
+
 TEST(DicomSeries, SeveralSeriesAreListedAndOneIsChosenByUid) {
   test::TempDir dir;
   auto a = spec_for(cases()[0]);

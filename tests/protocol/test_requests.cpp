@@ -248,6 +248,47 @@ TEST(ScanPush, RefusesNoFramesExtraFramesAndBadIds) {
   EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(wrong_media)); }), ErrorCode::kInvalidRequest);
 }
 
+// PROTOCOL.md "Patient identity": DICOM's PatientID, carried by preop.load
+// and scan.push, compared without DICOM's padding spaces.
+TEST(PatientId, TravelsWithPreopLoadAndScanPushAndIsChecked) {
+  bp::ScanPushRequest push;
+  push.labels = labels_frame();
+  push.patient_id = "  MRN 0042 ";
+  EXPECT_EQ(bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", push))).patient_id.value_or(""),
+            "MRN 0042");
+  bp::PreopLoadRequest preop;
+  preop.t1 = bp::media::nifti_frame("t1", bp::testing::fake_nifti(2, 2, 2));
+  preop.labels = bp::media::nifti_frame("labels", bp::testing::fake_nifti(2, 2, 2));
+  preop.patient_id = "MRN 0042";
+  EXPECT_EQ(bp::parse_preop_load_request(wire_trip(bp::make_preop_load_request("p", preop))).patient_id.value_or(""),
+            "MRN 0042");
+  push.patient_id.reset();
+  EXPECT_FALSE(bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", push))).patient_id);
+
+  for (const std::string bad : {std::string(""), std::string("   "), std::string(65, 'x'), std::string("a\nb"),
+                                std::string("tab\there")}) {
+    push.patient_id = bad;
+    EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", push))); }),
+              ErrorCode::kInvalidRequest)
+        << "\"" << bad << "\"";
+  }
+  auto not_text = bp::make_scan_push_request("q", {labels_frame()});
+  not_text.header["patient_id"] = 42;
+  EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(not_text)); }), ErrorCode::kInvalidRequest);
+  // The default atlas is no patient's.
+  EXPECT_EQ(error_of([&] {
+              bp::parse_preop_load_request(
+                  wire_trip(bp::make_preop_load_request("p", {.use_default_atlas = true, .patient_id = "MRN 0042"})));
+            }),
+            ErrorCode::kInvalidRequest);
+
+  bp::StatusReply status;
+  status.preop_id = "p-1";
+  status.preop_patient_id = "MRN 0042";
+  EXPECT_EQ(bp::parse_status_reply(wire_trip(bp::make_status_reply("s", status))).preop_patient_id.value_or(""),
+            "MRN 0042");
+}
+
 TEST(ScanResult, RequestRoundTrip) {
   bp::ScanResultRequest r{"s-000001",
                           {bp::ResultPart::kDisplacement, bp::ResultPart::kModels, bp::ResultPart::kTimings},

@@ -51,8 +51,9 @@ struct Harness {
     for (const auto& e : events) n += e.type() == type;
     return n;
   }
-  std::string load_preop() {
+  std::string load_preop(std::optional<std::string> patient_id = std::nullopt) {
     PreopLoadRequest r;
+    r.patient_id = std::move(patient_id);
     const LabelImage labels = test::ball_labels(10);
     r.t1 = media::nifti_frame("t1", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
     r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, false));
@@ -387,6 +388,45 @@ TEST(ServerCore, IdempotentPushAndConflict) {
   other.voxels[5] = 2;
   expect_error(h.push(other, std::string("c1")), ErrorCode::kConflict, "push");
   EXPECT_EQ(h.store->list_newest_first(10).size(), 1u);
+}
+
+// A scan of another patient (a series sent from the wrong exam, a preop
+// loaded for the wrong case) is refused before it is stored, whatever its
+// images would register to; the same patient, or a scan that names none
+// (NIfTI from a converter), is taken; the preop's patient survives a restart.
+TEST(ServerCore, AScanOfAnotherPatientIsRefusedAndNotStored) {
+  Harness h;
+  h.load_preop(std::string("MRN-0042"));
+  EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).preop_patient_id.value_or(""), "MRN-0042");
+  const LabelImage labels = intraop_labels();
+  ScanPushRequest r;
+  r.labels = media::nifti_frame("labels", label_image_to_bytes(labels, true));
+  r.patient_id = "MRN-0043";
+  r.client_scan_id = "other-patient";
+  const Message refused = h.call(make_scan_push_request("x", r));
+  expect_error(refused, ErrorCode::kInvalidRequest, "x");
+  EXPECT_NE(parse_error_reply(refused).message.find("MRN-0043"), std::string::npos);
+  EXPECT_NE(parse_error_reply(refused).message.find("NOT stored"), std::string::npos);
+  EXPECT_TRUE(h.store->list_newest_first(10).empty());
+  EXPECT_FALSE(h.store->find_by_client_id("other-patient"));
+  // DICOM pads PatientID with spaces: not significant.
+  r.patient_id = "MRN-0042 ";
+  r.client_scan_id = "same-patient";
+  EXPECT_EQ(h.call(make_scan_push_request("y", r)).type(), MessageType::kScanPushReply);
+  r.patient_id.reset();
+  r.client_scan_id = "no-patient";
+  EXPECT_EQ(h.call(make_scan_push_request("z", r)).type(), MessageType::kScanPushReply);
+  EXPECT_EQ(h.store->list_newest_first(10).size(), 2u);
+  ASSERT_TRUE(h.core->step(10ms));
+  // After a restart the stored preop still names its patient.
+  h.engine = test::FakeEngine{};
+  h.open();
+  ASSERT_TRUE(h.core->step(10ms));
+  EXPECT_EQ(parse_status_reply(h.call(make_status_request("s"))).preop_patient_id.value_or(""), "MRN-0042");
+  r.patient_id = "MRN-0043";
+  r.client_scan_id = "other-patient";
+  expect_error(h.call(make_scan_push_request("x2", r)), ErrorCode::kInvalidRequest, "x2");
+  EXPECT_EQ(h.store->list_newest_first(10).size(), 2u);
 }
 
 TEST(ServerCore, FullQueueAnswersBusyAndStoresNothing) {
