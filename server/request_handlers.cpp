@@ -166,8 +166,9 @@ Message ServerCore::on_preop_load(const Message& m) {
   state_ = ServerState::kLoadingPreop;
   progress_ = Progress{"queued", 0.0};
   pending_preop_ = std::move(job);
-  spdlog::info("preop.load accepted: {} ({}, patient {})", id, pending_preop_->source,
-               req.patient_id.value_or("not given"));
+  // The identifier itself stays out of the log (it identifies a person).
+  spdlog::info("preop.load accepted: {} ({}, {})", id, pending_preop_->source,
+               req.patient_id ? "patient named" : "no patient named");
   return make_preop_load_reply(m.request_id(), {id});
 }
 
@@ -186,11 +187,13 @@ Message ServerCore::on_scan_push(const Message& m) {
     return make_error_reply(rid, ErrorCode::kNotReady, "no preop is loaded: send preop.load first");
   // A scan of another patient is never registered to this preop, nor kept
   // (checked before the idempotence key: it is not this case's scan).
-  if (req.patient_id && preop_patient && *req.patient_id != *preop_patient)
+  if (req.patient_id && preop_patient && *req.patient_id != *preop_patient) {
+    spdlog::warn("scan.push {} refused: it names another patient than preop {} (not stored)", rid, preop_id);
     return make_error_reply(rid, ErrorCode::kInvalidRequest,
                             "the scan is of patient \"" + *req.patient_id + "\" and the loaded preop " + preop_id +
                                 " of patient \"" + *preop_patient +
                                 "\": a scan of another patient is not registered; it was NOT stored");
+  }
 
   PushedScan input{req.labels ? std::optional<std::string>(req.labels->bytes) : std::nullopt,
                    req.image ? std::optional<std::string>(req.image->bytes) : std::nullopt, req.labels_use};
