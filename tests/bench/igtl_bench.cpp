@@ -88,7 +88,7 @@ int main(int argc, char** argv) {
       image.voxels[i] = static_cast<float>(i % 251);
       labels.voxels[i] = static_cast<std::uint16_t>(i % 5);
     }
-    const server::PushedScan input{label_image_to_bytes(labels, true), std::nullopt};
+    const server::PushedScan input{label_image_to_bytes(labels, true), std::nullopt, std::nullopt};
     const auto rec = store.add_scan(input, std::nullopt, server::content_digest(input), "p");
     std::map<std::string, std::string> files{{"field.nii", displacement_field_to_bytes(field, false)},
                                              {"warped_image.nii", scalar_image_to_bytes(image, VoxelType::float32, false)},

@@ -265,7 +265,7 @@ TEST(PatientId, TravelsWithPreopLoadAndScanPushAndIsChecked) {
   push.patient_id.reset();
   EXPECT_FALSE(bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", push))).patient_id);
 
-  for (const std::string bad : {std::string(""), std::string("   "), std::string(65, 'x'), std::string("a\nb"),
+  for (const std::string& bad : {std::string(""), std::string("   "), std::string(65, 'x'), std::string("a\nb"),
                                 std::string("tab\there")}) {
     push.patient_id = bad;
     EXPECT_EQ(error_of([&] { bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", push))); }),

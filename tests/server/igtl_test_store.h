@@ -47,7 +47,7 @@ inline std::string store_done_scan(server::CaseStore& store, const server::Pushe
 inline std::string store_result(server::CaseStore& store, float value, int n = 12,
                                 protocol::ResultKindInfo result = {}) {
   const LabelImage labels = test::ball_labels(n);
-  return store_done_scan(store, {label_image_to_bytes(labels, true), std::nullopt}, result_files(labels, value), result);
+  return store_done_scan(store, {label_image_to_bytes(labels, true), std::nullopt, std::nullopt}, result_files(labels, value), result);
 }
 
 // The same for a scan pushed as an image alone: its result also holds the
@@ -58,7 +58,8 @@ inline std::string store_image_only_result(server::CaseStore& store, float value
   files["intraop_labels.nii"] = label_image_to_bytes(labels, false);
   files["segmentation_confidence.nii"] = scalar_image_to_bytes(ImageF(labels.grid, 0.9f), VoxelType::float32, false);
   return store_done_scan(
-      store, {std::nullopt, scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true)}, files, {});
+      store, {std::nullopt, scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true), std::nullopt},
+      files, {});
 }
 
 inline server::OpenIgtlinkSettings any_port(std::size_t queue = 32, std::size_t max_clients = 8) {
