@@ -1,9 +1,11 @@
 #include "server/dicom_node.h"
 
+#include <fcntl.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <chrono>
+#include <iterator>
 #include <fstream>
 #include <map>
 #include <set>
@@ -48,21 +50,43 @@ fs::path free_name(const fs::path& target) {
   throw InputError("too many records named " + target.string());
 }
 
-int run_command(std::vector<std::string> argv, const fs::path& series_dir) {
+// The queue command's exit code and the end of what it printed: a refusal
+// (the daemon's reason: another patient, no preop, a full queue) goes into
+// the rejected series' reason.txt, so the OR sees why, not only that.
+struct CommandOutcome {
+  int code = -1;
+  std::string output_tail;  // at most kOutputTail characters of stdout and stderr
+};
+constexpr std::size_t kOutputTail = 2000;
+
+CommandOutcome run_command(std::vector<std::string> argv, const fs::path& series_dir) {
   argv.push_back(series_dir.string());
   std::vector<char*> args;
   for (auto& a : argv) args.push_back(a.data());
   args.push_back(nullptr);
+  const std::string log = series_dir.string() + ".log";
+  CommandOutcome out;
   const pid_t pid = fork();
-  if (pid < 0) return -1;
-  if (pid == 0) {
+  if (pid < 0) return out;
+  if (pid == 0) {  // only async-signal-safe calls until exec
+    const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+    if (fd >= 0) {
+      dup2(fd, STDOUT_FILENO);
+      dup2(fd, STDERR_FILENO);
+    }
     execvp(args[0], args.data());
     _exit(127);
   }
   int status = 0;
   while (waitpid(pid, &status, 0) < 0)
-    if (errno != EINTR) return -1;
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+    if (errno != EINTR) return out;
+  out.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::ifstream in(log, std::ios::binary);
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  out.output_tail = text.size() > kOutputTail ? text.substr(text.size() - kOutputTail) : text;
+  std::error_code ec;
+  fs::remove(log, ec);
+  return out;
 }
 
 // What the SCP shares with its const notification hook (DCMTK declares
@@ -163,9 +187,10 @@ class NodeScp : public DcmStorageSCP {
     const fs::path queued = free_name(s_.staging / "queued" / series);
     fs::create_directories(queued.parent_path());
     fs::rename(dir, queued);
-    const int rc = run_command(s_.queue_command, queued);
-    if (rc != 0) {
-      reject(queued, "queue command exited with " + std::to_string(rc));
+    const CommandOutcome rc = run_command(s_.queue_command, queued);
+    if (rc.code != 0) {
+      reject(queued, "queue command exited with " + std::to_string(rc.code) +
+                         (rc.output_tail.empty() ? std::string() : ":\n" + rc.output_tail));
       return;
     }
     spdlog::info("dicom node: series {} queued from {}", series, queued.string());

@@ -93,8 +93,10 @@ StatusReply Client::status() {
   return parse_status_reply(*r);
 }
 
-void Client::load_preop(const std::string& t1_bytes, const std::string& labels_bytes) {
+void Client::load_preop(const std::string& t1_bytes, const std::string& labels_bytes,
+                        std::optional<std::string> patient_id) {
   PreopLoadRequest req;
+  req.patient_id = std::move(patient_id);
   req.t1 = media::nifti_frame("t1", t1_bytes);
   req.labels = media::nifti_frame("labels", labels_bytes);
   auto r = call(make_preop_load_request(next_id(), req));

@@ -69,7 +69,8 @@ class Client {
   std::string next_id();
 
   protocol::StatusReply status();
-  void load_preop(const std::string& t1_bytes, const std::string& labels_bytes);
+  void load_preop(const std::string& t1_bytes, const std::string& labels_bytes,
+                  std::optional<std::string> patient_id = std::nullopt);
   // The raw reply (a scan.push reply or an error). An empty labels or image
   // is not sent (an image alone is a scan).
   protocol::Message push(const std::string& labels_bytes, const std::string& image_bytes,
