@@ -37,6 +37,7 @@ void ServerCore::start() {
   } else if (settings_.preop.kind == DefaultPreop::Kind::files) {
     job->preop_id = new_preop_id();
     job->source = "files";
+    job->patient_id = settings_.preop.patient_id;
   } else {
     job.reset();
   }

@@ -6,6 +6,7 @@
 #include "core/errors.h"
 #include "core/file_bytes.h"
 #include "protocol/curve_keys.h"
+#include "protocol/fields.h"
 
 namespace brainshift::server {
 namespace {
@@ -13,7 +14,7 @@ namespace {
 namespace fs = std::filesystem;
 using config::TomlSection;
 
-// preop = "atlas" | "none" | { t1 = "...", labels = "...", label_table = "..." }
+// preop = "atlas" | "none" | { t1 = "...", labels = "...", label_table = "...", patient_id = "..." }
 DefaultPreop read_preop(TomlSection& server) {
   DefaultPreop p;
   const toml::node* n = server.node("preop");
@@ -32,6 +33,10 @@ DefaultPreop read_preop(TomlSection& server) {
   p.t1 = files.string("t1", "");
   p.labels = files.string("labels", "");
   p.label_table = files.string("label_table", "");
+  if (files.node("patient_id")) {
+    p.patient_id = protocol::detail::normalised_patient_id(files.string("patient_id", ""));
+    if (!p.patient_id) files.fail("patient_id", "must be 1..64 characters without control characters (DICOM PatientID)");
+  }
   files.reject_unknown_keys();
   if (p.t1.empty() || p.labels.empty()) server.fail("preop", "needs both t1 and labels paths");
   return p;

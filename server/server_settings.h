@@ -20,6 +20,7 @@ struct DefaultPreop {
   std::filesystem::path t1;           // files only
   std::filesystem::path labels;       // files only
   std::filesystem::path label_table;  // files only, optional (protocol JSON)
+  std::optional<std::string> patient_id;  // files only, optional: as preop.load's (PROTOCOL.md 5.2)
 };
 
 // One allowed client key (PROTOCOL.md section 13).

@@ -29,7 +29,7 @@ queue_depth = 9
 max_frame_bytes = 4096
 timing_log = "t.jsonl"
 atlas_cache = "/cache"
-preop = { t1 = "a.nii.gz", labels = "b.nii.gz", label_table = "c.json" }
+preop = { t1 = "a.nii.gz", labels = "b.nii.gz", label_table = "c.json", patient_id = "MRN-0042 " }
 allow_plain_tcp_non_loopback = true
 )", "t.toml");
   EXPECT_EQ(s.endpoint, "tcp://127.0.0.1:6000");
@@ -43,6 +43,7 @@ allow_plain_tcp_non_loopback = true
   EXPECT_EQ(s.preop.t1, "a.nii.gz");
   EXPECT_EQ(s.preop.labels, "b.nii.gz");
   EXPECT_EQ(s.preop.label_table, "c.json");
+  EXPECT_EQ(s.preop.patient_id.value_or(""), "MRN-0042");  // DICOM's padding dropped
   EXPECT_TRUE(s.allow_plain_tcp_non_loopback);
 }
 
@@ -69,6 +70,7 @@ TEST(ServerSettings, RefusesBadValuesNamingTheKey) {
   expect_input_error("[server]\npreop = \"atlass\"\n", "preop");
   expect_input_error("[server]\npreop = { t1 = \"a\" }\n", "preop");
   expect_input_error("[server]\npreop = { t1 = \"a\", labels = \"b\", extra = 1 }\n", "extra");
+  expect_input_error("[server]\npreop = { t1 = \"a\", labels = \"b\", patient_id = \"  \" }\n", "patient_id");
   expect_input_error("[server]\nallow_plain_tcp_non_loopback = 1\n", "allow_plain_tcp_non_loopback");
   expect_input_error("[server\n", "parse error");
 }
