@@ -202,6 +202,20 @@ FallbackTransform image_fallback(const WarmState& warm, const std::optional<Eige
   return {rigid_part(labels_affine, centre_mm), "rigid part of the labels' affine (" + why + "; the image gave no affine)"};
 }
 
+// The labels' own pass refused because a surface of theirs lies beyond
+// what any deformation of the preop's reaches (the residual gate: a mean
+// residual over three voxels of segmentation noise). That says something
+// against the labels (a segmenter's lost horn or lobe; held-out family 28,
+// docs/PERFORMANCE.md 12.47), unlike a fold or a solver failure, which the
+// image's own segmentation could meet as well. The surface the gate named.
+std::string unreachable_surface(const nlohmann::json& metrics, double max_mean_residual_mm) {
+  if (!metrics.contains("surfaces") || !metrics["surfaces"].is_object()) return {};
+  for (const auto& [name, m] : metrics["surfaces"].items())
+    if (m.is_object() && m.value("matched", false) && m.value("mean_residual_mm", 0.0) > max_mean_residual_mm)
+      return name;
+  return {};
+}
+
 }  // namespace
 
 ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input, const PipelineParameters& params,
@@ -283,12 +297,19 @@ ScanResult register_labels_with_image(WarmState& warm, const IntraopInput& input
     return true;
   };
   const bool check_refused = !c.failure.empty();
+  const std::string unreachable = result.kind == ResultKind::nonrigid
+                                      ? std::string()
+                                      : unreachable_surface(result.metrics, params.gates.max_mean_surface_residual_mm);
   bool disregarded = false;
-  // Only refusals of the labels themselves: a fold, a residual or a solver
-  // failure in their pass says nothing against them, and its fallback stands.
-  if (use == GivenLabelsUse::refine && (check_refused || geometry_refused))
-    disregarded = answer_from_the_image(check_refused ? "they disagree with their image: " + c.failure
-                                                      : "the gates refused their geometry: " + result.fallback_reason);
+  // Only refusals of the labels themselves (the check, the gates on their
+  // geometry, a surface of theirs out of reach): a fold or a solver failure
+  // in their pass says nothing against them, and its fallback stands.
+  if (use == GivenLabelsUse::refine && (check_refused || geometry_refused || !unreachable.empty()))
+    disregarded = answer_from_the_image(
+        check_refused      ? "they disagree with their image: " + c.failure
+        : geometry_refused ? "the gates refused their geometry: " + result.fallback_reason
+                           : "no deformation of the preop reaches their " + unreachable + " (" +
+                                 result.fallback_reason + ")");
   const auto refused_labels = [&](const std::string& why) {
     result.metrics["given_labels"] = {{"use", std::string(to_string(use))}, {"refined", false}, {"why", why}};
     if (!image_alone_refused.empty()) result.metrics["given_labels"]["image_alone_refused"] = image_alone_refused;

@@ -351,6 +351,37 @@ TEST_F(DamagedInputs, RefusedLabelsToBeRefinedGiveWayToTheImagesOwnAnswer) {
   }
 }
 
+// A segmenter that lost the left ventricle's posterior horn (its voxels
+// labelled brain), pushed with the image to be refined: no deformation of
+// the preop's ventricles reaches what is left (the residual gate refuses
+// the labels' own pass), which says something against the labels, so the
+// image's own answer stands, with the caution; used exactly, the marked
+// fallback.
+TEST_F(DamagedInputs, LabelsMissingAVentricleToBeRefinedGiveWayToTheImagesOwnAnswer) {
+  LabelImage lost = case_->intraop_labels;
+  const Eigen::Vector3d c = centroid(lost);
+  for_each_voxel(lost.grid, [&](int i, int j, int k) {
+    const Eigen::Vector3d p = lost.grid.world_mm(i, j, k);
+    if (lost.at(i, j, k) == 2 && p.x() < c.x() && p.y() < c.y() - 5) lost.at(i, j, k) = 1;
+  });
+  const ScanResult exact = register_with_the_image(lost, GivenLabelsUse::exact);
+  ASSERT_EQ(exact.kind, ResultKind::affine_only_fallback) << "the lost ventricle was matched";
+  ASSERT_NE(exact.fallback_reason.find("surface match of ventricles diverged"), std::string::npos)
+      << exact.fallback_reason << exact.metrics["label_image_check"].dump();
+  const ScanResult r = register_with_the_image(lost);
+  ASSERT_EQ(r.kind, ResultKind::nonrigid) << r.fallback_reason;
+  const nlohmann::json& given = r.metrics["given_labels"];
+  EXPECT_TRUE(given.value("disregarded", false)) << given.dump();
+  EXPECT_NE(given.value("why", "").find("no deformation of the preop reaches their ventricles"), std::string::npos)
+      << given.dump();
+  EXPECT_NE(result_caution(r.metrics).find("the given labels were disregarded"), std::string::npos);
+  ScanInput alone;
+  alone.image = case_->intraop_t1;
+  const double image_alone_mm =
+      evaluation::evaluate_result("image alone", *case_, session_->register_scan(alone, nullptr)).nonrigid_mean_mm;
+  EXPECT_NEAR(evaluation::evaluate_result("lost ventricle", *case_, r).nonrigid_mean_mm, image_alone_mm, 0.05);
+}
+
 TEST_F(DamagedInputs, ALost45MillimetreBlockIsNotASilentFailure) {
   LabelImage lost = case_->intraop_labels;
   const Eigen::Vector3d c = centroid(lost) + Eigen::Vector3d(38, 0, 0);
