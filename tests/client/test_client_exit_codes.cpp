@@ -109,20 +109,31 @@ TEST(ClientExitCodes, EachCodeForTheCaseItNames) {
   EXPECT_EQ(r.code, cli::kExitScanFailed) << r.err;
 }
 
-// `push --dicom`: the series is read in the client (brainshift hands the
-// command to brainshift-offline) and arrives as the NIfTI image of the scan.
-TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
-  LoopbackDaemon d;
+// A small series of the synthetic head, and a box of brain round a box of
+// ventricle on its grid (the labels pushed with it).
+DicomSeriesSpec small_series() {
   DicomSeriesSpec spec;
   spec.columns = 20;
   spec.rows = 18;
   spec.slices = 12;
-  spec.rescale_slope = 0.5;
-  write_dicom_series(test::synthetic_head().t1, d.dir.path() / "series", spec);
+  return spec;
+}
+LabelImage box_labels_on(const DicomSeriesSpec& spec) {
   LabelImage labels(dicom_series_grid_ras(spec));
   for (int k = 2; k < 10; ++k)
     for (int j = 3; j < 15; ++j)
       for (int i = 3; i < 17; ++i) labels.at(i, j, k) = (i > 8 && i < 12 && j > 7 && j < 11) ? 2 : 1;
+  return labels;
+}
+
+// `push --dicom`: the series is read in the client (brainshift hands the
+// command to brainshift-offline) and arrives as the NIfTI image of the scan.
+TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
+  LoopbackDaemon d;
+  DicomSeriesSpec spec = small_series();
+  spec.rescale_slope = 0.5;
+  write_dicom_series(test::synthetic_head().t1, d.dir.path() / "series", spec);
+  const LabelImage labels = box_labels_on(spec);
   const fs::path labels_file = d.write("dicom_labels.nii.gz", label_image_to_bytes(labels, true));
   ASSERT_EQ(d.client({"load-preop", "--image",
                       d.write("t1.nii.gz", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true))
@@ -190,17 +201,11 @@ TEST(ClientExitCodes, PushDicomSendsTheSeriesAsTheScansImage) {
 // series is a usage error; the patient's own series is taken.
 TEST(ClientExitCodes, PushDicomOfAnotherPatientIsRefused) {
   LoopbackDaemon d;
-  DicomSeriesSpec spec;
-  spec.columns = 20;
-  spec.rows = 18;
-  spec.slices = 12;
+  DicomSeriesSpec spec = small_series();
   write_dicom_series(test::synthetic_head().t1, d.dir.path() / "other", spec);  // PatientID PHANTOM01
   spec.patient_id = "MRN-0042";
   write_dicom_series(test::synthetic_head().t1, d.dir.path() / "own", spec);
-  LabelImage labels(dicom_series_grid_ras(spec));
-  for (int k = 2; k < 10; ++k)
-    for (int j = 3; j < 15; ++j)
-      for (int i = 3; i < 17; ++i) labels.at(i, j, k) = (i > 8 && i < 12 && j > 7 && j < 11) ? 2 : 1;
+  const LabelImage labels = box_labels_on(spec);
   const fs::path labels_file = d.write("dicom_labels.nii.gz", label_image_to_bytes(labels, true));
   const fs::path t1_file =
       d.write("t1.nii.gz", scalar_image_to_bytes(test::ramp_image(labels.grid), VoxelType::float32, true));
