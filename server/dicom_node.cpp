@@ -4,8 +4,8 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
-#include <iterator>
 #include <fstream>
 #include <map>
 #include <set>
@@ -78,12 +78,22 @@ CommandOutcome run_command(std::vector<std::string> argv, const fs::path& series
     _exit(127);
   }
   int status = 0;
+  bool waited = true;
   while (waitpid(pid, &status, 0) < 0)
-    if (errno != EINTR) return out;
-  out.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  std::ifstream in(log, std::ios::binary);
-  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  out.output_tail = text.size() > kOutputTail ? text.substr(text.size() - kOutputTail) : text;
+    if (errno != EINTR) {
+      waited = false;
+      break;
+    }
+  if (waited) out.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  // Only the end is read: a command may print without bound.
+  std::ifstream in(log, std::ios::binary | std::ios::ate);
+  if (in) {
+    const std::streamoff size = in.tellg();
+    const std::streamoff from = std::max<std::streamoff>(0, size - static_cast<std::streamoff>(kOutputTail));
+    out.output_tail.resize(static_cast<std::size_t>(size - from));
+    in.seekg(from);
+    in.read(out.output_tail.data(), static_cast<std::streamsize>(out.output_tail.size()));
+  }
   std::error_code ec;
   fs::remove(log, ec);
   return out;
