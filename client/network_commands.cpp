@@ -320,7 +320,11 @@ int cmd_push(const NetworkOptions& o, const PushArgs& a) {
     r.image = media::nifti_frame("image", std::move(series.nifti));
     // The series names its patient: sent, so that the daemon refuses a scan
     // of another patient than the preop's.
-    if (const auto from_series = protocol::detail::normalised_patient_id(series.patient_id)) {
+    const auto from_series = protocol::detail::normalised_patient_id(series.patient_id);
+    if (!from_series && !r.patient_id && series.patient_id.find_first_not_of(' ') != std::string::npos)
+      throw CommandError(kExitUsage, "the DICOM series' PatientID is not text brainshift can read (a character set "
+                                     "it does not declare, or over 64 bytes): give the patient with --patient-id");
+    if (from_series) {
       if (r.patient_id && *r.patient_id != *from_series)
         throw CommandError(kExitUsage, "--patient-id \"" + *r.patient_id + "\" but the DICOM series is of patient \"" +
                                            *from_series + "\"");

@@ -7,6 +7,7 @@
 #include <cstdlib>
 #include <fstream>
 #include <iostream>
+#include <optional>
 
 #include "atlas/default_atlas.h"
 #include "config_file.h"
@@ -97,9 +98,15 @@ struct RegisterOptions {
 
 // Both series name their patient: they must name the same one (compared as
 // the daemon compares preop.load's and scan.push's patient_id).
+// An identifier that is not text (a character set the files do not
+// declare) is compared as written: both came from DICOM files.
 void check_same_patient(const std::string& preop_dicom_id, const std::string& intraop_dicom_id) {
-  const auto preop = protocol::detail::normalised_patient_id(preop_dicom_id);
-  const auto intraop = protocol::detail::normalised_patient_id(intraop_dicom_id);
+  const auto as_compared = [](const std::string& id) -> std::optional<std::string> {
+    if (id.find_first_not_of(' ') == std::string::npos) return std::nullopt;
+    return protocol::detail::normalised_patient_id(id).value_or(id);
+  };
+  const auto preop = as_compared(preop_dicom_id);
+  const auto intraop = as_compared(intraop_dicom_id);
   if (preop && intraop && *preop != *intraop)
     throw InputError("the intraop series is of patient \"" + *intraop + "\" and the preop series of patient \"" + *preop +
                      "\": a scan of another patient is not registered");

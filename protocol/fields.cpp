@@ -1,5 +1,6 @@
 #include "protocol/fields.h"
 
+#include <cstdint>
 #include <cmath>
 
 namespace brainshift::protocol::detail {
@@ -103,8 +104,33 @@ const json& FieldReader::object(const char* key) const {
   return *v;
 }
 
+namespace {
+
+// Well-formed UTF-8 (no overlong forms, no surrogates, at most U+10FFFF):
+// what a JSON header may hold.
+bool is_utf8(const std::string& s) {
+  std::size_t i = 0;
+  while (i < s.size()) {
+    const auto c = static_cast<unsigned char>(s[i]);
+    const std::size_t n = c < 0x80 ? 1 : (c >> 5) == 0x6 ? 2 : (c >> 4) == 0xE ? 3 : (c >> 3) == 0x1E ? 4 : 0;
+    if (n == 0 || i + n > s.size()) return false;
+    std::uint32_t cp = n == 1 ? c : n == 2 ? (c & 0x1Fu) : n == 3 ? (c & 0x0Fu) : (c & 0x07u);
+    for (std::size_t k = 1; k < n; ++k) {
+      const auto cc = static_cast<unsigned char>(s[i + k]);
+      if ((cc >> 6) != 0x2) return false;
+      cp = (cp << 6) | (cc & 0x3Fu);
+    }
+    const std::uint32_t min_cp[] = {0, 0, 0x80, 0x800, 0x10000};
+    if (cp < min_cp[n] || cp > 0x10FFFF || (cp >= 0xD800 && cp <= 0xDFFF)) return false;
+    i += n;
+  }
+  return true;
+}
+
+}  // namespace
+
 std::optional<std::string> normalised_patient_id(const std::string& id) {
-  if (id.size() > 64) return std::nullopt;
+  if (id.size() > 64 || !is_utf8(id)) return std::nullopt;
   for (const char c : id)
     if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) return std::nullopt;
   const auto first = id.find_first_not_of(' ');

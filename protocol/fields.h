@@ -43,7 +43,7 @@ class FieldReader {
 bool is_valid_id(const std::string& id);
 
 // A patient's identifier as DICOM's PatientID (0010,0020) holds it: 1..64
-// characters, no control characters, not only spaces. Returned without the
+// bytes of UTF-8, no control characters, not only spaces. Returned without the
 // leading and trailing spaces DICOM pads with (they are not significant), or
 // nullopt when invalid.
 std::optional<std::string> normalised_patient_id(const std::string& id);

@@ -3,6 +3,7 @@
 #include <dcmtk/config/osconfig.h>
 #include <dcmtk/dcmdata/dcdeftag.h>
 #include <dcmtk/dcmdata/dcfilefo.h>
+#include <dcmtk/dcmdata/dcspchrs.h>
 #include <dcmtk/dcmdata/dcxfer.h>
 
 #include <algorithm>
@@ -57,6 +58,22 @@ long integer(DcmDataset& d, const DcmTagKey& tag, long fallback) {
   }
 }
 
+// PatientID in UTF-8, as the protocol carries it: converted from the
+// character set the file declares (SpecificCharacterSet; a European site's
+// ISO_IR 100 writes an umlaut as one byte), as written when it declares none
+// or the conversion fails (a caller that needs text then says so).
+std::string patient_id_utf8(DcmDataset& d) {
+  const std::string raw = text(d, DCM_PatientID);
+  OFString charset;
+  if (std::all_of(raw.begin(), raw.end(), [](char c) { return static_cast<unsigned char>(c) < 0x80; }) ||
+      d.findAndGetOFStringArray(DCM_SpecificCharacterSet, charset).bad() || charset.empty())
+    return raw;
+  DcmSpecificCharacterSet converter;
+  OFString utf8;
+  if (converter.selectCharacterSet(charset).bad() || converter.convertString(raw.c_str(), utf8).bad()) return raw;
+  return std::string(utf8.c_str());
+}
+
 // Part-10 files only (the "DICM" preamble): anything else in the folder is skipped.
 std::optional<Slice> read_header(const fs::path& file) {
   DcmFileFormat ff;
@@ -68,7 +85,7 @@ std::optional<Slice> read_header(const fs::path& file) {
   if (s.series_uid.empty() || !d.tagExists(DCM_PixelData)) return std::nullopt;  // not an image (e.g. a report)
   s.description = text(d, DCM_SeriesDescription);
   s.modality = text(d, DCM_Modality);
-  s.patient_id = text(d, DCM_PatientID);
+  s.patient_id = patient_id_utf8(d);
   for (int a = 0; a < 3; ++a) {
     s.row_dir[a] = number(d, DCM_ImageOrientationPatient, a).value_or(NAN);
     s.col_dir[a] = number(d, DCM_ImageOrientationPatient, a + 3).value_or(NAN);

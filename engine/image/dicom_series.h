@@ -43,9 +43,10 @@ std::vector<DicomSeriesSummary> list_dicom_series(const std::filesystem::path& d
 
 // Reads the series series_uid ("" when the folder holds only one) as a
 // float image; max_image_bytes bounds the voxels (4 bytes each).
-// patient_id, when given, receives the series' PatientID (0010,0020) as
-// written ("" when absent), for the check that preop and scan are of one
-// patient (docs/DESIGN.md, "Patient identity").
+// patient_id, when given, receives the series' PatientID (0010,0020) in
+// UTF-8 (converted from the SpecificCharacterSet the files declare; as
+// written when they declare none; "" when absent), for the check that
+// preop and scan are of one patient (docs/DESIGN.md, "Patient identity").
 ImageF read_dicom_series(const std::filesystem::path& dir, const std::string& series_uid,
                          std::size_t max_image_bytes, std::string* patient_id = nullptr);
 

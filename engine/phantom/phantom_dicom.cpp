@@ -97,6 +97,7 @@ std::vector<fs::path> write_dicom_series(const ImageF& phantom, const fs::path& 
     put(d, DCM_Modality, "MR");
     put(d, DCM_ImageType, "ORIGINAL\\PRIMARY\\M\\ND");
     put(d, DCM_PatientName, "Phantom^Brainshift");
+    if (!s.specific_character_set.empty()) put(d, DCM_SpecificCharacterSet, s.specific_character_set);
     put(d, DCM_PatientID, s.patient_id);
     put(d, DCM_StudyDate, "20260101");
     put(d, DCM_StudyTime, "120000");

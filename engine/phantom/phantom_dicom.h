@@ -28,7 +28,8 @@ struct DicomSeriesSpec {
   double tilt_mm_per_slice = 0.0;  // each slice shifted along the column direction (gantry tilt)
   std::string series_uid;          // generated when empty
   std::string series_description = "phantom T1";
-  std::string patient_id = "PHANTOM01";  // PatientID (0010,0020)
+  std::string patient_id = "PHANTOM01";  // PatientID (0010,0020), in specific_character_set
+  std::string specific_character_set;    // (0008,0005); empty: not written (the default repertoire)
   unsigned shuffle_seed = 0;       // nonzero: file names in a random order of the slices
 };
 

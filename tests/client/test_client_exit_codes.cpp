@@ -227,6 +227,14 @@ TEST(ClientExitCodes, PushDicomOfAnotherPatientIsRefused) {
   EXPECT_EQ(r.code, cli::kExitUsage) << r.err;
   EXPECT_NE(r.err.find("the DICOM series is of patient \"PHANTOM01\""), std::string::npos) << r.err;
 
+  // A PatientID in a character set the files do not declare is no text to
+  // compare: the push says so instead of sending it unchecked.
+  spec.patient_id = "M\xDCLLER-7";
+  write_dicom_series(test::synthetic_head().t1, d.dir.path() / "undeclared", spec);
+  r = d.client({"push", "--dicom", (d.dir.path() / "undeclared").string()});
+  EXPECT_EQ(r.code, cli::kExitUsage) << r.err;
+  EXPECT_NE(r.err.find("give the patient with --patient-id"), std::string::npos) << r.err;
+
   r = d.client({"push", "--dicom", (d.dir.path() / "own").string(), "--wait", "--wait-timeout", "30"});
   ASSERT_EQ(r.code, cli::kExitOk) << r.err;
   EXPECT_TRUE(d.engine.last_scan_image.has_value());

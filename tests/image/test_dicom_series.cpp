@@ -163,6 +163,13 @@ TEST(DicomSeries, ThePatientIsReadAndSlicesOfTwoPatientsAreRefused) {
   const std::string why = refusal(dir.path() / "a");
   EXPECT_NE(why.find("slices of two patients"), std::string::npos) << why;
   EXPECT_NE(why.find("MRN-0043"), std::string::npos) << why;
+  // A European site's Latin-1 (ISO_IR 100): one byte for the umlaut, read
+  // as UTF-8, which the protocol carries.
+  spec.specific_character_set = "ISO_IR 100";
+  spec.patient_id = "M\xDCLLER-7";
+  write_dicom_series(phantom(), dir.path() / "latin1", spec);
+  read_dicom_series(dir.path() / "latin1", "", kMaxBytes, &patient);
+  EXPECT_EQ(patient, "M\xC3\x9CLLER-7");
 }
 
 TEST(DicomSeries, SeveralSeriesAreListedAndOneIsChosenByUid) {

@@ -4,6 +4,7 @@
 
 #include <functional>
 
+#include "protocol/fields.h"
 #include "protocol/media.h"
 #include "protocol/requests.h"
 #include "test_util.h"
@@ -265,6 +266,10 @@ TEST(PatientId, TravelsWithPreopLoadAndScanPushAndIsChecked) {
   push.patient_id.reset();
   EXPECT_FALSE(bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", push))).patient_id);
 
+  push.patient_id = "M\xC3\x9CLLER-7";  // UTF-8 is text
+  EXPECT_EQ(bp::parse_scan_push_request(wire_trip(bp::make_scan_push_request("q", push))).patient_id.value_or(""),
+            "M\xC3\x9CLLER-7");
+  EXPECT_FALSE(bp::detail::normalised_patient_id("M\xDCLLER-7"));  // Latin-1 bytes are not
   for (const std::string& bad : {std::string(""), std::string("   "), std::string(65, 'x'), std::string("a\nb"),
                                 std::string("tab\there")}) {
     push.patient_id = bad;
