@@ -175,7 +175,7 @@ int wait_preop_ready(Connection& c, const std::string& preop_id, double wait_s) 
 std::optional<std::string> patient_id_arg(const std::string& given) {
   if (given.empty()) return std::nullopt;
   std::optional<std::string> id = protocol::detail::normalised_patient_id(given);
-  if (!id) throw CommandError(kExitUsage, "--patient-id must be 1..64 characters without control characters");
+  if (!id) throw CommandError(kExitUsage, std::string("--patient-id must be ") + protocol::detail::kPatientIdRule);
   return id;
 }
 

@@ -47,5 +47,8 @@ bool is_valid_id(const std::string& id);
 // leading and trailing spaces DICOM pads with (they are not significant), or
 // nullopt when invalid.
 std::optional<std::string> normalised_patient_id(const std::string& id);
+// That rule in words, for every message that refuses an identifier.
+inline constexpr const char* kPatientIdRule =
+    "1..64 bytes of UTF-8 without control characters, not only spaces (DICOM PatientID)";
 
 }  // namespace brainshift::protocol::detail

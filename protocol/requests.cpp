@@ -36,7 +36,7 @@ std::optional<std::string> patient_id_field(const FieldReader& f) {
   const std::optional<std::string> raw = f.opt_string("patient_id");
   if (!raw) return std::nullopt;
   std::optional<std::string> id = detail::normalised_patient_id(*raw);
-  if (!id) f.fail("patient_id", "must be 1..64 characters without control characters, not only spaces (DICOM PatientID)");
+  if (!id) f.fail("patient_id", std::string("must be ") + detail::kPatientIdRule);
   return id;
 }
 

@@ -35,7 +35,7 @@ DefaultPreop read_preop(TomlSection& server) {
   p.label_table = files.string("label_table", "");
   if (files.node("patient_id")) {
     p.patient_id = protocol::detail::normalised_patient_id(files.string("patient_id", ""));
-    if (!p.patient_id) files.fail("patient_id", "must be 1..64 characters without control characters (DICOM PatientID)");
+    if (!p.patient_id) files.fail("patient_id", std::string("must be ") + protocol::detail::kPatientIdRule);
   }
   files.reject_unknown_keys();
   if (p.t1.empty() || p.labels.empty()) server.fail("preop", "needs both t1 and labels paths");
